@@ -1,0 +1,13 @@
+"""swathflow: calibrate, orthorectify and mosaic airborne line-scanner imagery.
+
+The pure maths lives here (numpy, scipy, pyproj, rasterio; no Prefect). Sensor models are
+in :mod:`swathflow.sensors`, Prefect tasks in :mod:`swathflow.tasks`, flows in
+:mod:`swathflow.flows`.
+"""
+from .errors import FormatError, OutOfRangeError, SwathflowError
+from .pos import Trajectory, interpolate_pos, read_pos
+
+__version__ = "0.1.0"
+
+__all__ = ["FormatError", "OutOfRangeError", "SwathflowError", "Trajectory",
+           "interpolate_pos", "read_pos", "__version__"]
