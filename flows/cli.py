@@ -1,0 +1,109 @@
+"""The ``swathflow`` command line. Each subcommand lazily imports what it needs, so
+``swathflow --help`` and ``swathflow sensors`` stay fast (no Prefect import).
+
+Bad input never ends in a traceback: :class:`~swathflow.errors.SwathflowError` is printed
+as one clear message with exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from importlib import import_module
+
+
+def _sensors(args) -> int:
+    from swathflow.sensors import list_sensors
+    from swathflow.sensors.registry import _registry
+    reg = _registry()
+    if not reg:
+        print("no sensor models registered")
+        return 1
+    width = max(len(n) for n in reg)
+    for name, (cls, target) in reg.items():
+        doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+        print(f"{name:<{width}}  {cls.kind or '-':<12} {target}\n{'':<{width}}  {doc}")
+    return 0 if list_sensors() else 1
+
+
+def _call(target: str):
+    """A handler that imports ``module:function`` only when the subcommand runs."""
+    def run(args) -> int:
+        module, _, func = target.partition(":")
+        return int(getattr(import_module(module), func)(args) or 0)
+    return run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="swathflow",
+        description="Calibrate, orthorectify and mosaic airborne line-scanner imagery.",
+        epilog="Start with 'swathflow demo'. Each command has its own --help.")
+    from swathflow import __version__
+    p.add_argument("--version", action="version", version=f"swathflow {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    s = sub.add_parser("sensors", help="list the registered sensor models (plugins)")
+    s.set_defaults(func=_sensors)
+
+    s = sub.add_parser("validate", help="check a mission folder and list every problem")
+    s.add_argument("mission", help="mission folder (with mission.toml)")
+    s.set_defaults(func=_call("swathflow.mission:cli_validate"))
+
+    s = sub.add_parser("simulate", help="write a simulated mission bundle with its truth")
+    s.add_argument("out", help="output mission folder")
+    s.add_argument("--preset", default="tiny", help="tiny, demo, paper, area (default tiny)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--texture", help="orthophoto GeoTIFF/JPEG+world file for the ground truth")
+    s.add_argument("--dem", help="DEM GeoTIFF for the terrain shape")
+    s.set_defaults(func=_call("swathflow.simulate:cli_simulate"))
+
+    s = sub.add_parser("calibrate", help="estimate calibration parameters from control points")
+    s.add_argument("mission")
+    s.add_argument("--out", required=True, help="output folder (calibration.json, report.html)")
+    s.set_defaults(func=_call("swathflow.calibration:cli_calibrate"))
+
+    s = sub.add_parser("rectify", help="orthorectify every swing to a COG")
+    s.add_argument("mission")
+    s.add_argument("--calibration", help="calibration.json to use (default: mission priors)")
+    s.add_argument("--out", required=True, help="output folder")
+    s.set_defaults(func=_call("swathflow.rectify:cli_rectify"))
+
+    s = sub.add_parser("mosaic", help="match strips and blend rectified swings into a mosaic")
+    s.add_argument("source", help="mission folder or folder of rectified swings")
+    s.add_argument("--out", required=True, help="output mosaic GeoTIFF")
+    s.set_defaults(func=_call("swathflow.mosaic:cli_mosaic"))
+
+    s = sub.add_parser("run", help="run the whole mission flow (Prefect, Dask)")
+    s.add_argument("mission")
+    s.add_argument("--out", required=True, help="output folder")
+    s.add_argument("--calibration", help="use this calibration.json instead of calibrating")
+    s.add_argument("--dask-address", help="an existing Dask scheduler (default: local cluster)")
+    s.set_defaults(func=_call("swathflow.flows.mission:cli_run"))
+
+    s = sub.add_parser("demo", help="simulate the demo mission and run the whole flow on it")
+    s.add_argument("--out", default="swathflow-demo", help="output folder (default ./swathflow-demo)")
+    s.add_argument("--preset", default="demo", help=argparse.SUPPRESS)
+    s.set_defaults(func=_call("swathflow.flows.mission:cli_demo"))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from swathflow.errors import SwathflowError
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return args.func(args)
+    except SwathflowError as exc:
+        print(f"swathflow {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"swathflow {args.command}: interrupted; finished outputs are kept, "
+              f"re-run to complete", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
