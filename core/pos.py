@@ -147,6 +147,7 @@ class Trajectory:
     lon: np.ndarray       # deg, unwrapped
     attitude: np.ndarray  # (n, 3) roll, pitch, heading (deg, heading unwrapped)
     max_gap: float = 1.0
+    source: dict | None = None  # the columns as given (to_dataset returns them unchanged)
 
     @classmethod
     def from_dataset(cls, ds: xr.Dataset, max_gap: float = 1.0) -> "Trajectory":
@@ -156,7 +157,8 @@ class Trajectory:
         att = np.stack([ds["roll"].values, ds["pitch"].values,
                         np.degrees(np.unwrap(np.radians(ds["heading"].values)))], axis=-1)
         lon_u = np.degrees(np.unwrap(np.radians(lon)))
-        return cls(ds["time"].values.astype(float), ecef, lat, lon_u, att, float(max_gap))
+        src = {k: ds[k].values.astype(float) for k in POS_VARIABLES}
+        return cls(ds["time"].values.astype(float), ecef, lat, lon_u, att, float(max_gap), src)
 
     def _locate(self, t) -> tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t, dtype=float)
@@ -191,6 +193,8 @@ class Trajectory:
                 "pitch": att[..., 1], "heading": att[..., 2]}
 
     def to_dataset(self) -> xr.Dataset:
+        if self.source is not None:
+            return _dataset(self.time, *(self.source[k] for k in POS_VARIABLES), "trajectory")
         from .geodesy import ecef_to_geodetic
         llh = ecef_to_geodetic(self.ecef)
         heading = (self.attitude[:, 2] + 180.0) % 360.0 - 180.0

@@ -235,7 +235,7 @@ class SensorModel(ABC):
 
     def with_parameters(self, params: ParameterSet | Mapping | None = None, **kw) -> "SensorModel":
         """A new model with some parameters changed (by name, or a whole ParameterSet)."""
-        new = self._params if isinstance(params, ParameterSet) else self._params.updated(params, **kw)
+        new = params if isinstance(params, ParameterSet) else self._params.updated(params, **kw)
         return type(self)(self._sensor, self._lines, self._trajectory, new, **self._image)
 
     def with_vector(self, v) -> "SensorModel":

@@ -152,3 +152,18 @@ class PendulumModel(SensorModel):
             out[k, 0] = line
             out[k, 1] = elem
         return out.reshape(shape + (2,))
+
+    @classmethod
+    def example_model(cls, direction: str = "L", n_lines: int = 800) -> "PendulumModel":
+        """A realistic small swing (contract tests, examples): +-40 deg over 800 lines."""
+        from swathflow.testing import straight_trajectory
+        traj, lines = straight_trajectory(n_lines=n_lines, line_rate=400.0)
+        sweep = np.linspace(-40.0, 40.0, n_lines)
+        lines["swing"] = sweep if direction == "L" else sweep[::-1]
+        lines["pitch_comp"] = np.linspace(1.5, -1.5, n_lines)
+        sensor = {"pixel_pitch": 15e-6, "focal_length": 0.16, "n_elements": 512,
+                  "k0": 255.5, "y0": 0.0}
+        params = {"u_gps": [-0.08, 0.24, 0.91], "u_sen": [-0.07, -0.11, -2.01],
+                  "opk_sen": [0.03, -0.47, -0.04], "opk_pos_L": [2.73, 0.0, -0.11],
+                  "opk_pos_R": [2.68, -0.01, -0.07]}
+        return cls.build(sensor, lines, traj, params, direction=direction)
