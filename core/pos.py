@@ -23,7 +23,7 @@ SBET_FIELDS = ("time", "lat", "lon", "h", "vx", "vy", "vz", "roll", "pitch",
 SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
 
 
-def _dataset(time, lat, lon, h, roll, pitch, heading, source: str) -> xr.Dataset:
+def _dataset(time, lat, lon, h, roll, pitch, heading, source: str, check: bool = True) -> xr.Dataset:
     data = {k: ("time", np.asarray(v, dtype=float)) for k, v in
             zip(POS_VARIABLES, (lat, lon, h, roll, pitch, heading))}
     ds = xr.Dataset(data, coords={"time": np.asarray(time, dtype=float)},
@@ -34,7 +34,7 @@ def _dataset(time, lat, lon, h, roll, pitch, heading, source: str) -> xr.Dataset
     ds["h"].attrs["long_name"] = "ellipsoidal height"
     ds["heading"].attrs["long_name"] = "true heading, clockwise from north"
     ds["time"].attrs["units"] = "s"
-    return check_trajectory(ds, source)
+    return check_trajectory(ds, source) if check else ds
 
 
 def check_trajectory(ds: xr.Dataset, source: str = "trajectory") -> xr.Dataset:
@@ -211,4 +211,5 @@ def interpolate_pos(ds: xr.Dataset, times, max_gap: float = 1.0) -> xr.Dataset:
     h = ecef_to_geodetic(r["ecef"])[..., 2]
     heading = (r["heading"] + 180.0) % 360.0 - 180.0
     lon = (r["lon"] + 180.0) % 360.0 - 180.0
-    return _dataset(t, r["lat"], lon, h, r["roll"], r["pitch"], heading, "interpolated")
+    return _dataset(t, r["lat"], lon, h, r["roll"], r["pitch"], heading, "interpolated",
+                    check=False)

@@ -89,7 +89,8 @@ def _linearity(model, partial_fn, perturb, base_img, scale, tol, what):
 
 
 def check_ground_partials(model, height: float = 50.0, n: int = 20, seed=1):
-    """ground_partials predict the image motion of a 5 cm ground displacement."""
+    """ground_partials predict the image motion of a 1 cm ground displacement (to 2 % or
+    2e-4 px: trajectories interpolated piecewise-linearly have slope changes at POS epochs)."""
     rng = np.random.default_rng(seed)
     img = _interior_points(model, n, rng)
     ground = model.image_to_ground(img, height)
@@ -98,11 +99,12 @@ def check_ground_partials(model, height: float = 50.0, n: int = 20, seed=1):
     assert jac.shape == (n, 2, 3), f"ground_partials shape {jac.shape}, expected {(n, 2, 3)}"
     for k in range(3):
         d = np.zeros(3)
-        d[k] = 0.05
+        d[k] = 0.01
         moved = model.ground_to_image(ground + d, clip=False)
-        err = np.abs(moved - (base + jac[..., k] * 0.05)).max()
+        err = np.abs(moved - (base + jac[..., k] * 0.01)).max()
         scale = np.abs(moved - base).max()
-        assert err < max(1e-4, 1e-3 * scale), \
+        assert scale > 0, f"moving the ground along axis {k} does not move the image point"
+        assert err < max(2e-4, 2e-2 * scale), \
             f"ground_partials axis {k}: linear prediction off by {err:.3g} px"
 
 
