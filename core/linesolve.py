@@ -10,16 +10,19 @@ import numpy as np
 
 
 def bracket_lines(f_at: Callable[[np.ndarray, np.ndarray], np.ndarray], n_points: int,
-                  n_lines: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  n_lines: int, lo=None, hi=None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Find for each point an integer ``j`` with a sign change of ``f`` between ``j, j+1``.
 
     ``f_at(point_index, line_index)`` evaluates the crossing condition at integer lines.
-    Returns ``(j, f_j, f_j1, found)``; ``found`` is False where the end lines do not
-    differ in sign (the point is not swept by the image).
+    ``lo``/``hi`` optionally narrow the starting bracket per point. Returns
+    ``(j, f_j, f_j1, found)``; ``found`` is False where the end lines do not differ in sign
+    (the point is not swept by the image).
     """
     idx = np.arange(n_points)
-    lo = np.zeros(n_points, dtype=np.intp)
-    hi = np.full(n_points, n_lines - 1, dtype=np.intp)
+    lo = np.zeros(n_points, dtype=np.intp) if lo is None else np.asarray(lo, np.intp).copy()
+    hi = (np.full(n_points, n_lines - 1, dtype=np.intp) if hi is None
+          else np.asarray(hi, np.intp).copy())
     flo = f_at(idx, lo)
     fhi = f_at(idx, hi)
     found = (np.sign(flo) != np.sign(fhi)) & np.isfinite(flo) & np.isfinite(fhi)
@@ -37,6 +40,32 @@ def bracket_lines(f_at: Callable[[np.ndarray, np.ndarray], np.ndarray], n_points
         hi[k] = np.where(left, hi[k], mid)
         fhi[k] = np.where(left, fhi[k], fm)
     return lo, flo, fhi, found
+
+
+def plane_brackets(points: np.ndarray, planes: np.ndarray, nodes: int = 64,
+                   chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
+    """Narrow brackets from a coarse pass over evenly spaced lines.
+
+    ``planes`` ``(n_lines, 4)`` holds each line's viewing plane as ``(normal, offset)`` with
+    the condition ``normal . X + offset``; evaluating ``nodes`` lines for all points is one
+    matrix product per chunk. Returns per-point ``(lo, hi)`` line indices around the first
+    sign change (the full range where there is none, so the caller reports "not found").
+    """
+    n_lines = planes.shape[0]
+    n = points.shape[0]
+    grid = np.unique(np.linspace(0, n_lines - 1, min(nodes, n_lines)).round().astype(np.intp))
+    lo = np.zeros(n, dtype=np.intp)
+    hi = np.full(n, n_lines - 1, dtype=np.intp)
+    p = planes[grid]
+    for s in range(0, n, chunk):
+        f = points[s:s + chunk] @ p[:, :3].T + p[:, 3]
+        sg = np.signbit(f)
+        change = sg[:, 1:] != sg[:, :-1]
+        has = change.any(axis=1)
+        first = np.argmax(change, axis=1)
+        lo[s:s + chunk] = np.where(has, grid[first], 0)
+        hi[s:s + chunk] = np.where(has, grid[first + 1], n_lines - 1)
+    return lo, hi
 
 
 def secant_lines(f_exact: Callable[[np.ndarray, np.ndarray], np.ndarray], j, fj, fj1,

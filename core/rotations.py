@@ -49,24 +49,59 @@ def r_opk(omega, phi, kappa) -> np.ndarray:
 
 def r_en(lat, lon) -> np.ndarray:
     """Local north-east-down frame N to ECEF E at geodetic latitude/longitude (radians)."""
-    lat = np.asarray(lat, dtype=float)
-    lon = np.asarray(lon, dtype=float)
+    lat, lon = np.broadcast_arrays(np.asarray(lat, dtype=float), np.asarray(lon, dtype=float))
     sl, cl = np.sin(lat), np.cos(lat)
     so, co = np.sin(lon), np.cos(lon)
-    zero = np.zeros(np.broadcast_shapes(lat.shape, lon.shape))
-    return _stack([[-sl * co, -so, -cl * co],
-                   [-sl * so, co + zero, -cl * so],
-                   [cl + zero, zero, -sl + zero]])
+    out = np.empty(lat.shape + (3, 3))
+    out[..., 0, 0] = -sl * co
+    out[..., 0, 1] = -so
+    out[..., 0, 2] = -cl * co
+    out[..., 1, 0] = -sl * so
+    out[..., 1, 1] = co
+    out[..., 1, 2] = -cl * so
+    out[..., 2, 0] = cl
+    out[..., 2, 1] = 0.0
+    out[..., 2, 2] = -sl
+    return out
 
 
 def r_nb(roll, pitch, heading) -> np.ndarray:
-    """IMU body frame B to navigation frame N: ``Rz(heading) @ Ry(pitch) @ Rx(roll)``."""
-    return rz(heading) @ ry(pitch) @ rx(roll)
+    """IMU body frame B to navigation frame N: ``Rz(heading) @ Ry(pitch) @ Rx(roll)``
+    (written out in closed form: this is on the hot path of every projection)."""
+    r, p, h = np.broadcast_arrays(np.asarray(roll, dtype=float), np.asarray(pitch, dtype=float),
+                                  np.asarray(heading, dtype=float))
+    sr, cr = np.sin(r), np.cos(r)
+    sp, cp = np.sin(p), np.cos(p)
+    sh, ch = np.sin(h), np.cos(h)
+    out = np.empty(r.shape + (3, 3))
+    out[..., 0, 0] = ch * cp
+    out[..., 0, 1] = ch * sp * sr - sh * cr
+    out[..., 0, 2] = ch * sp * cr + sh * sr
+    out[..., 1, 0] = sh * cp
+    out[..., 1, 1] = sh * sp * sr + ch * cr
+    out[..., 1, 2] = sh * sp * cr - ch * sr
+    out[..., 2, 0] = -sp
+    out[..., 2, 1] = cp * sr
+    out[..., 2, 2] = cp * cr
+    return out
 
 
 def r_ph(swing, pitch_comp) -> np.ndarray:
-    """Gimbal: platform base P to scan head H, ``Rx(swing) @ Ry(pitch_comp)``."""
-    return rx(swing) @ ry(pitch_comp)
+    """Gimbal: platform base P to scan head H, ``Rx(swing) @ Ry(pitch_comp)`` (closed form)."""
+    s, q = np.broadcast_arrays(np.asarray(swing, dtype=float), np.asarray(pitch_comp, dtype=float))
+    ss, cs = np.sin(s), np.cos(s)
+    sq, cq = np.sin(q), np.cos(q)
+    out = np.empty(s.shape + (3, 3))
+    out[..., 0, 0] = cq
+    out[..., 0, 1] = 0.0
+    out[..., 0, 2] = sq
+    out[..., 1, 0] = ss * sq
+    out[..., 1, 1] = cs
+    out[..., 1, 2] = -ss * cq
+    out[..., 2, 0] = -cs * sq
+    out[..., 2, 1] = ss
+    out[..., 2, 2] = cs * cq
+    return out
 
 
 def apply(r: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -71,3 +71,15 @@ def test_round_trip_random_sensors(params, swing, direction, heading, roll, y0, 
     ground = m.image_to_ground(img, 20.0)
     back = m.ground_to_image(ground)
     assert np.abs(back - img).max() < 1e-3
+
+
+@given(angles, angles, angles)
+def test_closed_form_builders_equal_the_spec_products(a, b, c):
+    from swathflow.rotations import r_ph
+    assert np.allclose(r_nb(a, b, c), rz(c) @ ry(b) @ rx(a), atol=1e-14)
+    assert np.allclose(r_ph(a, b), rx(a) @ ry(b), atol=1e-14)
+    lat, lon = a / 2, b
+    expected = np.array([[-np.sin(lat) * np.cos(lon), -np.sin(lon), -np.cos(lat) * np.cos(lon)],
+                         [-np.sin(lat) * np.sin(lon), np.cos(lon), -np.cos(lat) * np.sin(lon)],
+                         [np.cos(lat), 0, -np.sin(lat)]])
+    assert np.allclose(r_en(lat, lon), expected, atol=1e-14)

@@ -1,0 +1,80 @@
+"""Throughput of the pendulum model's ground_to_image and image_to_ground (points per second).
+
+Reproduce:  python benchmarks/bench_geometry.py [--points 1000000] [--threads 1]
+Prints points/s for ground_to_image (constant height), image_to_ground (constant height)
+and image_to_ground (a DEM), on one core unless --threads says otherwise.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=1_000_000)
+    ap.add_argument("--threads", type=int, default=1, help="BLAS/OpenMP threads (default 1)")
+    args = ap.parse_args(argv)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(args.threads)
+
+    import numpy as np
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from swathflow.geodesy import ecef_to_geodetic, transformer, utm_crs_for
+    from swathflow.sensors.pendulum import PendulumModel
+    from swathflow.terrain import DEM
+
+    n = args.points
+    m = PendulumModel.example_model(n_lines=8000)
+    rng = np.random.default_rng(0)
+    img = np.stack([rng.uniform(0, m.n_lines - 1, n), rng.uniform(0, m.n_elements - 1, n)], -1)
+
+    rows = []
+
+    def timed(label, fn):
+        fn_small = fn(slice(0, 1000))          # warm-up
+        del fn_small
+        t = time.perf_counter()
+        out = fn(slice(None))
+        dt = time.perf_counter() - t
+        rows.append((label, n / dt, dt))
+        return out
+
+    ground = timed("image_to_ground, constant height",
+                   lambda s: m.image_to_ground(img[s], 10.0))
+    back = timed("ground_to_image, constant height", lambda s: m.ground_to_image(ground[s]))
+    err = np.nanmax(np.abs(back - img))
+
+    # a DEM under the swing: hills on a 10 m grid in UTM
+    llh = ecef_to_geodetic(ground[:: max(1, n // 1000)])
+    crs = utm_crs_for(float(np.mean(llh[:, 0])), float(np.mean(llh[:, 1])))
+    e, nn = transformer("EPSG:4326", crs).transform(llh[:, 1], llh[:, 0])
+    x0, y1 = e.min() - 500, nn.max() + 500
+    w, h = int((e.max() - e.min() + 1000) / 10), int((nn.max() - nn.min() + 1000) / 10)
+    yy, xx = np.mgrid[0:h, 0:w]
+    dem_data = 20 + 15 * np.sin(xx / 40.0) * np.cos(yy / 55.0)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "dem.tif")
+        with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1,
+                           dtype="float64", crs=crs, transform=from_origin(x0, y1, 10, 10)) as d:
+            d.write(dem_data, 1)
+        dem = DEM.open(path)
+        timed("image_to_ground, DEM (10 m grid, 5-35 m hills)",
+              lambda s: m.image_to_ground(img[s], dem))
+
+    print(f"swathflow geometry benchmark: {n:,} points, pendulum model, "
+          f"{args.threads} thread(s), {os.cpu_count()} cores on this machine")
+    for label, rate, dt in rows:
+        print(f"  {label:<48} {rate / 1e6:7.3f} M points/s  ({dt:6.2f} s)")
+    print(f"  round-trip worst error: {err:.2e} px")
+    print(f"reproduce: python benchmarks/bench_geometry.py --points {n} --threads {args.threads}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
