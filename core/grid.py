@@ -124,7 +124,7 @@ class Grid:
         """The sub-grid of a window."""
         r0, r1, _ = rows.indices(self.height)
         c0, c1, _ = cols.indices(self.width)
-        t = self.transform * Affine.translation(c0, r0)
+        t = self.transform @ Affine.translation(c0, r0)
         return Grid(self.crs, t, (r1 - r0, c1 - c0))
 
     def tiles(self, size: int = 512) -> Iterator[tuple[slice, slice]]:

@@ -71,6 +71,7 @@ class RawSource:
             data = data.transpose("line", "element")
             nodata = data.attrs.get("_FillValue", data.attrs.get("nodata")) if nodata is None \
                 else nodata
+            data = data.data                           # numpy or dask underneath
         self._data = data
         self.shape = tuple(int(n) for n in data.shape[-2:])
         self.dtype = np.dtype(data.dtype)
@@ -528,7 +529,9 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
             part = stack.enter_context(atomic_path(os.fspath(o["path"]) + ".part",
                                                    suffix=".tif"))
-            dst = stack.enter_context(rasterio.open(part, "w", **profile))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+                dst = stack.enter_context(rasterio.open(part, "w", **profile))
             if o.get("tags"):
                 dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
             sources.append(arr)
@@ -540,9 +543,12 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
         for dst, part, final, path in parts:
             dst.close()
             pred = {"PREDICTOR": "YES"} if compress == "deflate" else {}
-            rio_copy(part, final, driver="COG", COMPRESS=compress.upper(),
-                     BLOCKSIZE=blocksize, OVERVIEW_RESAMPLING=overview_resampling.upper(),
-                     BIGTIFF="IF_SAFER", **pred)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+                rio_copy(part, final, driver="COG", COMPRESS=compress.upper(),
+                         BLOCKSIZE=blocksize,
+                         OVERVIEW_RESAMPLING=overview_resampling.upper(),
+                         BIGTIFF="IF_SAFER", **pred)
     for _, _, _, path in parts:                      # the .part files are renamed, not kept
         with contextlib.suppress(FileNotFoundError):
             os.remove(os.fspath(path) + ".part")
@@ -710,3 +716,62 @@ def shift_report(rect: np.ndarray, truth: np.ndarray, tile: int = 128, margin: i
     return {"whole": whole, "whole_px": math.hypot(*whole), "tiles": len(tiles),
             "worst_tile": worst, "worst_tile_px": float(np.nanmax(mags)),
             "median_tile_px": float(np.nanmedian(mags))}
+
+
+# ----------------------------------------------------------------------------------------
+# command line
+# ----------------------------------------------------------------------------------------
+def cli_rectify(args) -> int:
+    """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image."""
+    import hashlib
+    import json
+    import time
+    from .calibfile import calibration_priors, read_calibration
+    from .grid import resolve_crs
+    from .mission import load_mission
+    mission = load_mission(args.mission)
+    params, cal_tag = mission.priors, "mission priors (mission.toml [calibration])"
+    if getattr(args, "calibration", None):
+        doc = read_calibration(args.calibration)
+        if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):
+            raise FormatError(f"{args.calibration}: calibration is for sensor "
+                              f"{doc['sensor']!r}, the mission uses "
+                              f"{mission.sensor.get('model')!r}")
+        params = mission.priors.updated(calibration_priors(doc))
+        with open(args.calibration, "rb") as f:
+            digest = hashlib.sha256(f.read()).hexdigest()[:16]
+        cal_tag = f"{os.path.abspath(args.calibration)} (sha256 {digest})"
+    ids = mission.image_ids
+    if getattr(args, "images", None):
+        want = [i.strip() for i in args.images.split(",") if i.strip()]
+        missing = [i for i in want if i not in ids]
+        if missing:
+            raise FormatError(f"{args.mission}: no image(s) {', '.join(missing)}; the mission "
+                              f"has {', '.join(ids)}")
+        ids = want
+    products = tuple(p.strip() for p in (getattr(args, "products", "") or "").split(",")
+                     if p.strip())
+    method = getattr(args, "method", "exact") or "exact"
+    kernel = getattr(args, "kernel", "bilinear") or "bilinear"
+    tol = float(getattr(args, "tolerance", None) or TOLERANCE_PX)
+    tile = int(getattr(args, "tile", None) or 512)
+    os.makedirs(args.out, exist_ok=True)
+    summaries = []
+    for iid in ids:
+        model = mission.model(iid, params)
+        grid = footprint_grid(model, mission.terrain, mission.gsd, mission.crs)
+        out = os.path.join(args.out, f"{iid}.tif")
+        t0 = time.perf_counter()
+        s = rectify_image(model, mission.image(iid), mission.terrain, out, grid=grid,
+                          method=method, kernel=kernel, tol=tol, tile=tile, products=products,
+                          tags={"image_id": iid, "calibration": cal_tag,
+                                "mission": mission.name,
+                                "parameters": json.dumps(model.parameters.values_dict())})
+        s["image_id"] = iid
+        summaries.append(s)
+        print(f"{iid}: {grid.shape[0]} x {grid.shape[1]} px -> {out} "
+              f"({time.perf_counter() - t0:.1f} s)")
+    from .io import write_text
+    write_text(os.path.join(args.out, "rectify.json"),
+               json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")
+    return 0

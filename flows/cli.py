@@ -66,6 +66,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("mission")
     s.add_argument("--calibration", help="calibration.json to use (default: mission priors)")
     s.add_argument("--out", required=True, help="output folder")
+    s.add_argument("--method", choices=("exact", "polynomial"), default="exact",
+                   help="exact (default: inverse mapping through the sensor model, gap-free) "
+                        "or polynomial (the paper's fast forward method)")
+    s.add_argument("--kernel", choices=("nearest", "bilinear", "cubic"), default="bilinear",
+                   help="resampling kernel (default bilinear)")
+    s.add_argument("--products", default="",
+                   help="extra products, comma separated: glt (output->raw lookup), "
+                        "igm (ground coordinates of every raw pixel)")
+    s.add_argument("--images", help="only these image ids, comma separated")
+    s.add_argument("--tolerance", type=float, default=0.05,
+                   help="bound on the interpolated raw coordinates' error, pixels (default 0.05)")
+    s.add_argument("--tile", type=int, default=512, help="output tile size (default 512)")
     s.set_defaults(func=_call("swathflow.rectify:cli_rectify"))
 
     s = sub.add_parser("mosaic", help="match strips and blend rectified swings into a mosaic")

@@ -1,0 +1,100 @@
+"""Output grids (swathflow.grid): coordinates against rasterio's conventions, snapping,
+tiling, auto-UTM and footprints against independent projections."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio.transform
+from affine import Affine
+
+from swathflow.errors import FormatError
+from swathflow.geodesy import ecef_to_geodetic, transformer
+from swathflow.grid import Grid, ecef_to_map, footprint_grid, resolve_crs, union_grid
+from swathflow.terrain import ConstantHeight
+
+
+def _grid():
+    return Grid("EPSG:32651", Affine(0.5, 0, 260000.0, 0, -0.5, 3601000.0), (300, 420))
+
+
+def test_xy_and_rowcol_follow_rasterio():
+    g = _grid()
+    rows = np.array([0, 5, 299, 17])
+    cols = np.array([0, 419, 3, 200])
+    x, y = g.xy(rows, cols)
+    xr_, yr_ = rasterio.transform.xy(g.transform, rows, cols, offset="center")
+    assert np.allclose(x, xr_) and np.allclose(y, yr_)
+    xu, yu = g.xy(rows, cols, offset="ul")
+    assert np.allclose(xu, np.array(rasterio.transform.xy(g.transform, rows, cols,
+                                                          offset="ul"))[0])
+    r, c = g.rowcol(x + 0.2, y - 0.2)
+    rr, cc = rasterio.transform.rowcol(g.transform, x + 0.2, y - 0.2)
+    assert np.array_equal(r, rr) and np.array_equal(c, cc)
+    # continuous inverse: pixel centres at integers
+    rf, cf = g.rowcol(*g.xy(rows + 0.25, cols - 0.3), op=None)
+    assert np.allclose(rf, rows + 0.25) and np.allclose(cf, cols - 0.3)
+
+
+def test_from_bounds_snaps_and_covers():
+    g = Grid.from_bounds("EPSG:32651", (100.3, 200.7, 160.1, 251.2), 2.0)
+    assert g.bounds == (100.0, 200.0, 162.0, 252.0)
+    assert g.shape == (26, 31)
+    assert g.res == (2.0, 2.0)
+    with pytest.raises(FormatError):
+        Grid.from_bounds("EPSG:32651", (0, 0, 1, 1), 0.0)
+    with pytest.raises(ValueError):
+        Grid("EPSG:32651", Affine(1, 0, 0, 0, 1, 0), (2, 2))     # not north-up
+
+
+def test_tiles_cover_the_grid_exactly_once_and_windows_agree():
+    g = _grid()
+    hits = np.zeros(g.shape, int)
+    for rs, cs in g.tiles(128):
+        hits[rs, cs] += 1
+        sub = g.window(rs, cs)
+        x, y = sub.centres()
+        x0, y0 = g.centres(rs, cs)
+        assert np.allclose(x, x0) and np.allclose(y, y0)
+    assert (hits == 1).all()
+    assert tuple(map(sum, g.chunks(128))) == g.shape
+    assert union_grid([g.window(slice(0, 10), slice(0, 10)),
+                       g.window(slice(200, 300), slice(400, 420))]).bounds == g.bounds
+
+
+def test_resolve_crs_auto_utm():
+    assert resolve_crs("auto-utm", 32.52, 120.45) == "EPSG:32651"
+    assert resolve_crs("auto-utm", -33.9, 18.4) == "EPSG:32734"
+    assert resolve_crs("EPSG:32633", 0, 0) == "EPSG:32633"
+    with pytest.raises(FormatError):
+        resolve_crs("EPSG:4326", 0, 0)
+    with pytest.raises(FormatError):
+        resolve_crs("not a crs", 0, 0)
+
+
+def test_to_ecef_puts_points_on_the_terrain():
+    g = _grid()
+    x, y = g.centres(slice(0, 3), slice(0, 4))
+    ecef = g.to_ecef(x, y, ConstantHeight(37.5))
+    llh = ecef_to_geodetic(ecef)
+    assert np.allclose(llh[..., 2], 37.5, atol=1e-6)
+    xb, yb, h = ecef_to_map(ecef, g.crs)
+    assert np.allclose(xb, x, atol=1e-6) and np.allclose(yb, y, atol=1e-6)
+
+
+def test_footprint_grid_covers_the_image_corners():
+    from test_rectify import scene_model
+    model = scene_model(n_lines=200, n_elements=64)
+    terrain = ConstantHeight(5.0)
+    g = footprint_grid(model, terrain, 2.0)
+    assert g.crs == "EPSG:32651" and g.res == (2.0, 2.0)
+    nl, ne = model.shape
+    corners = np.array([[-0.5, -0.5], [-0.5, ne - 0.5], [nl - 0.5, -0.5],
+                        [nl - 0.5, ne - 0.5], [nl / 2, ne / 2]])
+    ground = model.image_to_ground(corners, terrain)
+    llh = ecef_to_geodetic(ground)
+    x, y = transformer("EPSG:4326", g.crs).transform(llh[:, 1], llh[:, 0])
+    xmin, ymin, xmax, ymax = g.bounds
+    assert (x >= xmin).all() and (x <= xmax).all() and (y >= ymin).all() and (y <= ymax).all()
+    # tight: no more than one pixel of slack beyond the extreme corners on every side
+    assert x.min() - xmin < 2.0 + 1e-6 and xmax - x.max() < 2.0 + 1e-6
+    assert y.min() - ymin < 2.0 + 1e-6 and ymax - y.max() < 2.0 + 1e-6
