@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Iterator
 
 import numpy as np
@@ -142,8 +143,7 @@ class Grid:
     def to_ecef(self, x, y, terrain) -> np.ndarray:
         """ECEF ``(..., 3)`` of map points on the terrain (ellipsoidal heights)."""
         from .geodesy import geodetic_to_ecef
-        lon, lat = transformer(self.crs, "EPSG:4326").transform(np.asarray(x, float),
-                                                                np.asarray(y, float))
+        lon, lat = _to_lonlat(self.crs).transform(np.asarray(x, float), np.asarray(y, float))
         h = terrain.height(lat, lon)
         return geodetic_to_ecef(np.stack(np.broadcast_arrays(lat, lon, h), axis=-1))
 
@@ -152,10 +152,20 @@ class Grid:
                 "shape": list(self.shape)}
 
 
+@lru_cache(maxsize=64)
+def _to_lonlat(crs: str):
+    return transformer(crs, "EPSG:4326")
+
+
+@lru_cache(maxsize=64)
+def _from_lonlat(crs: str):
+    return transformer("EPSG:4326", crs)
+
+
 def ecef_to_map(ground, crs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(x, y, ellipsoidal h) in ``crs`` of ECEF points ``(..., 3)``."""
     llh = ecef_to_geodetic(ground)
-    x, y = transformer("EPSG:4326", crs).transform(llh[..., 1], llh[..., 0])
+    x, y = _from_lonlat(crs).transform(llh[..., 1], llh[..., 0])
     return np.asarray(x), np.asarray(y), llh[..., 2]
 
 

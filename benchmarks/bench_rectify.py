@@ -1,0 +1,239 @@
+"""Rectification benchmark: swathflow's exact method side by side with GDAL's geolocation
+warp (``gdalwarp -geoloc``) and ``rasterio.warp.reproject(src_geoloc_array=...)``, on the
+same swing, the same output grid and the same kernel, plus the paper's polynomial method.
+
+All peers get the geolocation arrays our own model computes (pixel CORNER convention for
+GDAL: the array value at [i, j] is the ground position of raw coordinate (i - 0.5, j - 0.5),
+see shared/DESIGN.md). Positional error: subpixel shift against the truth ortho (analytic
+texture at the output pixel centres) over the whole footprint and per 128-px tile.
+
+    /tmp/venv/bin/python benchmarks/bench_rectify.py                 # side by side
+    /tmp/venv/bin/python benchmarks/bench_rectify.py --memory        # 2048 x 20000 swing, peak RSS
+    options: --elements 1024 --lines 2800 --threads 2 --kernel bilinear
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from test_rectify import render, scene_model, texture  # noqa: E402
+
+from swathflow import rectify as R  # noqa: E402
+from swathflow.grid import ecef_to_map, footprint_grid  # noqa: E402
+from swathflow.terrain import ConstantHeight  # noqa: E402
+
+
+def geoloc_arrays(model, terrain, crs, corner: bool = True, block: int = 256):
+    """Map x, y of every raw pixel's top-left corner (or centre) on the terrain."""
+    nl, ne = model.shape
+    X = np.empty((nl, ne))
+    Y = np.empty((nl, ne))
+    off = -0.5 if corner else 0.0
+    for l0 in range(0, nl, block):
+        l1 = min(l0 + block, nl)
+        ll, ee = np.meshgrid(np.arange(l0, l1) + off, np.arange(ne) + off, indexing="ij")
+        g = R._quiet_ground(model, np.stack([ll, ee], axis=-1).astype(float), terrain)
+        X[l0:l1], Y[l0:l1], _ = ecef_to_map(g, crs)
+    return X, Y
+
+
+def _score(name, out, truth, seconds, cores):
+    rep = R.shift_report(out, truth, tile=128, margin=16)
+    ok = np.isfinite(out) & np.isfinite(truth)
+    rms = float(np.sqrt(np.mean((out[ok] - truth[ok]) ** 2)))
+    mpx = out.size / 1e6
+    return {"method": name, "seconds": round(seconds, 3),
+            "whole_shift_px": round(rep["whole_px"], 4),
+            "worst_tile_px": round(rep["worst_tile_px"], 4),
+            "median_tile_px": round(rep["median_tile_px"], 4), "tiles": rep["tiles"],
+            "rms_dn": round(rms, 3), "valid_px": int(np.isfinite(out).sum()),
+            "mpx_per_s_per_core": round(mpx / seconds / cores, 3)}
+
+
+def _gdalwarp(raw, X, Y, grid, kernel, threads, tmp):
+    import rasterio
+    from swathflow.raster import write_geotiff
+    from swathflow.grid import Grid
+    gdal = shutil.which("gdalwarp")
+    if gdal is None:
+        return None
+    nl, ne = raw.shape
+    write_geotiff(tmp / "raw.tif", raw.astype(np.float32), None, (1, 0, 0, 0, 1, 0))
+    write_geotiff(tmp / "x.tif", X, None, (1, 0, 0, 0, 1, 0))
+    write_geotiff(tmp / "y.tif", Y, None, (1, 0, 0, 0, 1, 0))
+    wkt = grid.pyproj_crs.to_wkt().replace('"', "&quot;")
+    (tmp / "raw.vrt").write_text(f"""<VRTDataset rasterXSize="{ne}" rasterYSize="{nl}">
+  <Metadata domain="GEOLOCATION">
+    <MDI key="SRS">{wkt}</MDI>
+    <MDI key="X_DATASET">{tmp / 'x.tif'}</MDI><MDI key="X_BAND">1</MDI>
+    <MDI key="Y_DATASET">{tmp / 'y.tif'}</MDI><MDI key="Y_BAND">1</MDI>
+    <MDI key="PIXEL_OFFSET">0</MDI><MDI key="LINE_OFFSET">0</MDI>
+    <MDI key="PIXEL_STEP">1</MDI><MDI key="LINE_STEP">1</MDI>
+  </Metadata>
+  <VRTRasterBand dataType="Float32" band="1">
+    <SimpleSource><SourceFilename>{tmp / 'raw.tif'}</SourceFilename><SourceBand>1</SourceBand></SimpleSource>
+  </VRTRasterBand>
+</VRTDataset>
+""")
+    xmin, ymin, xmax, ymax = grid.bounds
+    out = tmp / "gdal.tif"
+    cmd = [gdal, "-q", "-overwrite", "-geoloc", "-t_srs", grid.pyproj_crs.to_string(),
+           "-te", str(xmin), str(ymin), str(xmax), str(ymax),
+           "-ts", str(grid.width), str(grid.height), "-r", kernel, "-dstnodata", "nan",
+           "-ot", "Float32", "-multi", "-wo", f"NUM_THREADS={threads}",
+           str(tmp / "raw.vrt"), str(out)]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True)
+    dt = time.perf_counter() - t0
+    with rasterio.open(out) as src:
+        arr = src.read(1)
+        assert src.transform.almost_equals(grid.transform), (src.transform, grid.transform)
+    return arr, dt, " ".join(cmd)
+
+
+def _rasterio(raw, X, Y, grid, kernel, threads):
+    from rasterio.crs import CRS
+    from rasterio.warp import Resampling, reproject
+    dst = np.full(grid.shape, np.nan, np.float32)
+    t0 = time.perf_counter()
+    reproject(raw.astype(np.float32), dst, src_geoloc_array=np.stack([X, Y]),
+              src_crs=CRS.from_wkt(grid.pyproj_crs.to_wkt()), dst_transform=grid.transform,
+              dst_crs=CRS.from_wkt(grid.pyproj_crs.to_wkt()), dst_nodata=np.nan,
+              resampling=getattr(Resampling, kernel), num_threads=threads)
+    return dst, time.perf_counter() - t0
+
+
+def side_by_side(args):
+    import dask
+    terrain = ConstantHeight(5.0)
+    model = scene_model(n_lines=args.lines, n_elements=args.elements, swing=args.swing,
+                        pixel_pitch=args.pitch)
+    grid = footprint_grid(model, terrain, args.gsd)
+    print(f"swing {model.shape[0]} lines x {model.shape[1]} elements; output grid "
+          f"{grid.shape[0]} x {grid.shape[1]} px at {args.gsd} m ({grid.crs}); "
+          f"kernel {args.kernel}; {args.threads} threads")
+    t0 = time.perf_counter()
+    raw = render(model, terrain, grid.crs)
+    print(f"render raw image: {time.perf_counter() - t0:.1f} s")
+    truth = texture(*grid.centres())
+    rows = []
+    # ours
+    with dask.config.set(scheduler="threads", num_workers=args.threads):
+        R.rectify(model, raw, grid, terrain, args.kernel, tile=512).compute()   # warm-up
+        t0 = time.perf_counter()
+        ours = R.rectify(model, raw, grid, terrain, args.kernel, tile=512).compute()
+        rows.append(_score("swathflow exact", ours, truth, time.perf_counter() - t0,
+                           args.threads))
+    t0 = time.perf_counter()
+    poly = R.rectify_polynomial(model, raw, grid, terrain)
+    rows.append(_score("swathflow polynomial (1 core)", poly, truth,
+                       time.perf_counter() - t0, 1))
+    t0 = time.perf_counter()
+    X, Y = geoloc_arrays(model, terrain, grid.crs, corner=True)
+    t_geo = time.perf_counter() - t0
+    print(f"geolocation arrays (pixel corners, our model, not counted below): {t_geo:.1f} s")
+    out, dt = _rasterio(raw, X, Y, grid, args.kernel, args.threads)
+    rows.append(_score("rasterio reproject geoloc (corners)", out, truth, dt, args.threads))
+    with tempfile.TemporaryDirectory() as td:
+        res = _gdalwarp(raw, X, Y, grid, args.kernel, args.threads, Path(td))
+        if res is None:
+            print("gdalwarp not found: skipping it (apt-get install gdal-bin)")
+        else:
+            arr, dt, cmd = res
+            rows.append(_score("gdalwarp -geoloc (corners)", arr, truth, dt, args.threads))
+            print(f"gdalwarp command: {cmd[:160]}...")
+    base = rows[0]["seconds"]
+    print()
+    print(f"{'method':<40}{'s':>8}{'x ours':>8}{'whole px':>10}{'worst tile':>11}"
+          f"{'median':>8}{'rms DN':>8}{'Mpx/s/core':>11}")
+    for r in rows:
+        print(f"{r['method']:<40}{r['seconds']:>8.2f}{r['seconds'] / base:>8.2f}"
+              f"{r['whole_shift_px']:>10.4f}{r['worst_tile_px']:>11.4f}"
+              f"{r['median_tile_px']:>8.4f}{r['rms_dn']:>8.3f}{r['mpx_per_s_per_core']:>11.3f}")
+    print(f"\n(output grid {grid.shape[0] * grid.shape[1] / 1e6:.2f} Mpx, "
+          f"{rows[0]['tiles']} full 128-px tiles; texture amplitude ~ +-60 DN)")
+    print("reproduce: /tmp/venv/bin/python benchmarks/bench_rectify.py " + " ".join(sys.argv[1:]))
+    return rows
+
+
+MEMORY_SCRIPT = r"""
+import json, resource, sys, time, os
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_rectify import scene_model
+from swathflow import rectify as R
+from swathflow.grid import footprint_grid
+from swathflow.terrain import ConstantHeight
+import dask
+nl, ne, out_dir, gsd = {nl}, {ne}, {out!r}, {gsd}
+model = scene_model(n_lines=nl, n_elements=ne, swing={swing}, pixel_pitch=15e-6)
+terrain = ConstantHeight(5.0)
+raw = np.lib.format.open_memmap(os.path.join(out_dir, "raw.npy"), mode="w+",
+                                dtype=np.uint16, shape=(nl, ne))
+for l0 in range(0, nl, 1024):
+    l = np.arange(l0, min(l0 + 1024, nl))[:, None]
+    e = np.arange(ne)[None, :]
+    raw[l0:l0 + 1024] = (1000 + 500 * np.sin(l / 37.0) * np.cos(e / 23.0)).astype(np.uint16)
+raw.flush(); del raw
+raw = np.load(os.path.join(out_dir, "raw.npy"), mmap_mode="r")
+grid = footprint_grid(model, terrain, gsd)
+t0 = time.perf_counter()
+with dask.config.set(scheduler="threads", num_workers={threads}):
+    s = R.rectify_image(model, raw, terrain, os.path.join(out_dir, "big.tif"), grid=grid,
+                        kernel="bilinear", tile=512)
+dt = time.perf_counter() - t0
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps(dict(lines=nl, elements=ne, grid=list(grid.shape), seconds=round(dt, 1),
+                      peak_rss_mb=round(peak, 1), out_mpx=grid.shape[0] * grid.shape[1] / 1e6)))
+"""
+
+
+def memory_run(nl=20000, ne=2048, gsd=0.5, swing=54.0, threads=2, keep=None) -> dict:
+    """Rectify a synthetic nl x ne swing (raw uint16 memmap on disk) in a fresh process;
+    returns its peak RSS (MB), time and grid."""
+    with tempfile.TemporaryDirectory(dir=keep) as td:
+        code = MEMORY_SCRIPT.format(tests=str(ROOT / "tests"), nl=nl, ne=ne, out=td, gsd=gsd,
+                                    swing=swing, threads=threads)
+        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        if p.returncode:
+            raise RuntimeError(p.stderr[-3000:])
+        return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--memory", action="store_true", help="the 2048 x 20000 peak-memory run")
+    ap.add_argument("--elements", type=int, default=1024)
+    ap.add_argument("--lines", type=int, default=2800)
+    ap.add_argument("--pitch", type=float, default=30e-6, help="detector pitch, m")
+    ap.add_argument("--swing", type=float, default=15.0, help="half swing, deg")
+    ap.add_argument("--gsd", type=float, default=0.75)
+    ap.add_argument("--kernel", default="bilinear", choices=("nearest", "bilinear", "cubic"))
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    if args.memory:
+        r = memory_run(threads=args.threads)
+        print(json.dumps(r))
+        print(f"2048 x 20000 swing: peak RSS {r['peak_rss_mb']:.0f} MB "
+              f"(bound 2048 MB), {r['seconds']:.0f} s, output grid {r['grid'][0]} x "
+              f"{r['grid'][1]} ({r['out_mpx']:.0f} Mpx)")
+        print("reproduce: /tmp/venv/bin/python benchmarks/bench_rectify.py --memory")
+        return
+    side_by_side(args)
+
+
+if __name__ == "__main__":
+    main()
