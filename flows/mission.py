@@ -1,0 +1,154 @@
+"""The mission flow: ingest -> POS interpolation -> calibration -> rectification -> mosaic.
+
+Composition only: every stage is a task in :mod:`swathflow.tasks.stages`. Embedded defaults
+need nothing set up by hand: Prefect's local (ephemeral) mode, unless ``PREFECT_API_URL``
+names a server, and a local Dask cluster sized to the machine, unless ``dask_address``
+names a scheduler. The Dask cluster runs the heavy work inside the tasks (DESIGN.md: a
+DaskTaskRunner would start a Prefect server in every worker in local mode).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+from pathlib import Path
+
+QUIET_PREFECT = {
+    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+    "PREFECT_SERVER_UI_ENABLED": "false",
+    "PREFECT_LOGGING_LEVEL": "CRITICAL",  # failures are reported once, by the CLI
+    "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "60",
+    "DASK_LOGGING__DISTRIBUTED": "warning",
+}
+for _k, _v in QUIET_PREFECT.items():
+    os.environ.setdefault(_k, _v)
+
+from prefect import flow  # noqa: E402
+
+from swathflow.tasks import stages  # noqa: E402
+
+
+class Progress:
+    """One progress bar per stage on the terminal (plain lines when not a terminal)."""
+
+    def __init__(self, stream=None):
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.timings: dict[str, float] = {}
+        self._t0: dict[str, float] = {}
+
+    def start(self, stage: str, total: int = 1) -> None:
+        self._t0[stage] = time.perf_counter()
+        self.update(stage, 0, total)
+
+    def update(self, stage: str, done: int, total: int) -> None:
+        width = 24
+        fill = int(width * done / max(total, 1))
+        bar = "#" * fill + "." * (width - fill)
+        text = f"{stage:<16} [{bar}] {done}/{total}"
+        if self.tty:
+            self.stream.write("\r" + text)
+        elif done in (0, total):
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def finish(self, stage: str, total: int = 1) -> None:
+        self.timings[stage] = time.perf_counter() - self._t0.get(stage, time.perf_counter())
+        self.update(stage, total, total)
+        if self.tty:
+            self.stream.write(f"  {self.timings[stage]:.1f} s\n")
+            self.stream.flush()
+
+
+@contextlib.contextmanager
+def dask_client(address: str | None = None, n_workers: int | None = None):
+    """A Dask client: on ``address``, or on a local cluster sized to the machine
+    (one single-threaded worker process per core), closed on exit."""
+    from distributed import Client, LocalCluster
+    if address:
+        with Client(address) as client:
+            yield client
+        return
+    n = n_workers or max(1, min(os.cpu_count() or 1, 4))
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                      dashboard_address=None, silence_logs=40) as cluster, \
+            Client(cluster) as client:
+        yield client
+
+
+@flow(name="swathflow-mission", log_prints=False)
+def mission_flow(mission: str, out: str, calibration: str | None = None,
+                 dask_address: str | None = None) -> dict:
+    """Process one mission folder into ``out``; returns the paths of every product and the
+    stage timings. Finished outputs whose inputs are unchanged are reused."""
+    mission = str(Path(mission).resolve())
+    out = str(Path(out).resolve())
+    prog = Progress()
+    with dask_client(dask_address):
+        prog.start("ingest")
+        info = stages.ingest(mission)
+        prog.finish("ingest")
+        ids = info["images"]
+        prog.start("interpolate-pos")
+        eo = stages.interpolate_pos(mission, out)
+        prog.finish("interpolate-pos")
+        prog.start("calibrate")
+        cal = stages.calibrate(mission, out, calibration)
+        prog.finish("calibrate")
+        prog.start("rectify", len(ids))
+        futures = [stages.rectify.submit(mission, iid, cal, out) for iid in ids]
+        rectified = []
+        for i, fut in enumerate(futures):
+            rectified.append(fut.result())
+            prog.update("rectify", i + 1, len(ids))
+        prog.finish("rectify", len(ids))
+        prog.start("mosaic")
+        mos = stages.mosaic(rectified, out)
+        prog.finish("mosaic")
+    report = str(Path(cal).parent / "report.html")
+    return {"mission": info["name"], "eo": eo, "calibration": cal,
+            "report": report if os.path.exists(report) else None,
+            "rectified": rectified, "mosaic": mos, "timings": prog.timings}
+
+
+def _print_summary(result: dict) -> None:
+    print(f"mission {result['mission']}: done")
+    print(f"  calibration  {result['calibration']}")
+    if result.get("report"):
+        print(f"  report       {result['report']}")
+    print(f"  rectified    {len(result['rectified'])} swings in "
+          f"{os.path.dirname(result['rectified'][0]) if result['rectified'] else '-'}")
+    print(f"  mosaic       {result['mosaic']}")
+    print("  stage timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in result["timings"].items()))
+
+
+def run(mission, out, calibration=None, dask_address=None) -> dict:
+    """Run the flow without the heartbeat overhead (DESIGN.md) and return its result."""
+    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
+    try:
+        ctx = temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None})
+    except Exception:  # older settings objects reject None: keep the default
+        ctx = contextlib.nullcontext()
+    with ctx:
+        return mission_flow(str(mission), str(out), calibration, dask_address)
+
+
+def cli_run(args) -> int:
+    result = run(args.mission, args.out, args.calibration, args.dask_address)
+    _print_summary(result)
+    return 0
+
+
+def cli_demo(args) -> int:
+    from swathflow.simulate import simulate
+    out = Path(args.out).resolve()
+    mission = out / "mission"
+    t0 = time.perf_counter()
+    if not (mission / "mission.toml").exists():
+        print(f"simulating the {args.preset} mission into {mission} ...", file=sys.stderr)
+        simulate(mission, preset=args.preset, seed=0)
+    result = run(mission, out / "products")
+    _print_summary(result)
+    print(f"demo finished in {time.perf_counter() - t0:.0f} s; open {result.get('report') or ''}")
+    return 0

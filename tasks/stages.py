@@ -1,0 +1,141 @@
+"""The mission flow's stages as Prefect tasks.
+
+Each task takes paths and small values, returns a path or a small dict, reuses a finished
+output whose inputs have not changed (:mod:`swathflow.cache`), and never hashes arrays
+(``cache_policy=NO_CACHE``: Prefect's own input hashing costs seconds per large input).
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from swathflow.cache import is_fresh, mark_done, stage_key
+from swathflow.errors import SwathflowError
+
+
+def _mission_files(mission) -> list:
+    """The files every stage of a mission depends on (configuration, POS, terrain)."""
+    files = [mission.path / "mission.toml", mission.path / mission.config["pos"]["file"]]
+    dem = mission.config.get("terrain", {}).get("dem")
+    if dem:
+        files.append(mission.path / dem)
+    return files
+
+
+def _image_files(mission, iid) -> list:
+    e = mission.images[iid]
+    return [e.file, e.lines_file]
+
+
+@task(name="ingest", cache_policy=NO_CACHE)
+def ingest(mission_path: str) -> dict:
+    """Validate the mission (every problem listed at once) and summarise it."""
+    from swathflow.mission import format_problems, load_mission, validate_mission
+    problems = validate_mission(mission_path)
+    if problems:
+        raise SwathflowError(format_problems(mission_path, problems))
+    m = load_mission(mission_path)
+    return {"name": m.name, "images": list(m.images), "sensor": m.sensor.get("model"),
+            "gcps": 0 if m.gcps is None else int(len(m.gcps)), "crs": m.crs, "gsd": m.gsd}
+
+
+@task(name="interpolate-pos", cache_policy=NO_CACHE)
+def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
+    """Exterior orientation of every scan line: the POS interpolated to each line's time,
+    written as ``OUT/pos/<image>.eo.csv`` (a product, and a check that the POS covers every
+    line before the heavy stages start)."""
+    import pandas as pd
+    from swathflow.io import atomic_path
+    from swathflow.mission import load_mission
+    from swathflow.pos import interpolate_pos as interp
+    m = load_mission(mission_path)
+    paths = []
+    for iid in m.images:
+        out = Path(out_dir) / "pos" / f"{iid}.eo.csv"
+        key = stage_key("pos", _mission_files(m) + [m.images[iid].lines_file])
+        if not is_fresh(out, key):
+            lines = m.lines(iid)
+            ds = interp(m.pos, lines["time"])
+            df = pd.DataFrame({"line": range(len(lines["time"])), "time": lines["time"],
+                               **{k: ds[k].values for k in ("lat", "lon", "h", "roll", "pitch",
+                                                          "heading")}})
+            with atomic_path(out) as tmp:
+                df.to_csv(tmp, index=False, float_format="%.10f")
+            mark_done(out, key)
+        paths.append(str(out))
+    return paths
+
+
+@task(name="calibrate", cache_policy=NO_CACHE)
+def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -> str:
+    """Per-swing-direction calibration from the mission's control points, or the given
+    calibration file (checked), or, without control points, the mission's priors."""
+    from swathflow.calibfile import read_calibration, write_calibration
+    from swathflow.mission import load_mission
+    m = load_mission(mission_path)
+    out = Path(out_dir) / "calibration" / "calibration.json"
+    if calibration:
+        doc = read_calibration(calibration)
+        if doc.get("sensor") not in (None, m.sensor.get("model")):
+            raise SwathflowError(f"{calibration}: calibration is for sensor {doc['sensor']!r}, "
+                                 f"the mission uses {m.sensor.get('model')!r}")
+        return str(Path(calibration).resolve())
+    gcp_file = m.config.get("gcp", {}).get("file")
+    key = stage_key("calibrate", _mission_files(m) + [m.path / gcp_file if gcp_file else None]
+                    + [f for iid in m.images for f in _image_files(m, iid)[1:]])
+    if is_fresh(out, key):
+        return str(out)
+    if m.gcps is None or len(m.gcps) == 0:
+        write_calibration(out, m.sensor.get("model", ""), m.priors.to_dict(),
+                          note="no control points: the mission's prior values, uncalibrated")
+    else:
+        from swathflow.calibration import calibrate as run
+        models = {iid: m.model(iid) for iid in m.images}
+        res = run(models, m.gcps, m.priors)
+        res.write(out.parent)
+    mark_done(out, key)
+    return str(out)
+
+
+@task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
+def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
+    """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration."""
+    from swathflow.calibfile import calibration_priors, read_calibration
+    from swathflow.cache import file_digest
+    from swathflow.grid import footprint_grid
+    from swathflow.mission import load_mission
+    from swathflow.rectify import rectify_image
+    m = load_mission(mission_path)
+    out = Path(out_dir) / "rectified" / f"{image_id}.tif"
+    key = stage_key("rectify", _mission_files(m) + _image_files(m, image_id) + [calibration])
+    if is_fresh(out, key):
+        return str(out)
+    params = m.priors.updated(calibration_priors(read_calibration(calibration)))
+    model = m.model(image_id, params)
+    grid = footprint_grid(model, m.terrain, m.gsd, m.crs)
+    t0 = time.perf_counter()
+    rectify_image(model, m.image(image_id), m.terrain, out, grid=grid,
+                  tags={"image_id": image_id, "strip": m.images[image_id].strip,
+                        "mission": m.name,
+                        "calibration": f"{calibration} (sha256 {file_digest(calibration)[:16]})",
+                        "parameters": json.dumps(model.parameters.values_dict())})
+    mark_done(out, key, seconds=round(time.perf_counter() - t0, 3))
+    return str(out)
+
+
+@task(name="mosaic", cache_policy=NO_CACHE)
+def mosaic(rectified: list[str], out_dir: str) -> str:
+    """Strip matching and feathered mosaic of the rectified swings: ``OUT/mosaic.tif``."""
+    from swathflow.mosaic import mosaic as run
+    out = Path(out_dir) / "mosaic.tif"
+    key = stage_key("mosaic", rectified)
+    if is_fresh(out, key):
+        return str(out)
+    run(list(rectified), out)
+    mark_done(out, key)
+    return str(out)
