@@ -60,6 +60,24 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("calibrate", help="estimate calibration parameters from control points")
     s.add_argument("mission")
     s.add_argument("--out", required=True, help="output folder (calibration.json, report.html)")
+    s.add_argument("--model", choices=["15", "12"], default="15",
+                   help="15: separate IMU boresight for left and right swings (default); "
+                        "12: one shared boresight")
+    s.add_argument("--fix", action="append", metavar="NAME",
+                   help="hold a parameter at its prior (block such as opk_sen, or opk_sen[2]); "
+                        "repeatable")
+    s.add_argument("--images", help="comma-separated images whose control points enter the "
+                                    "adjustment (default: all); the others are validated")
+    s.add_argument("--drift", action="store_true",
+                   help="estimate a time-linear drift of the per-direction boresight angles")
+    s.add_argument("--no-robust", action="store_true",
+                   help="no blunder detection (robust reweighting and data snooping)")
+    s.add_argument("--no-vce", action="store_true",
+                   help="keep the a-priori weights (no variance component estimation)")
+    s.add_argument("--vce-priors", action="store_true",
+                   help="also estimate one variance component for the priors")
+    s.add_argument("--sigma-px", type=float, default=1.0,
+                   help="a-priori sigma of image coordinates in pixels (default 1)")
     s.set_defaults(func=_call("swathflow.calibration:cli_calibrate"))
 
     s = sub.add_parser("rectify", help="orthorectify every swing to a COG")
