@@ -121,8 +121,11 @@ def check_parameter_partials(model, height: float = 50.0, n: int = 20, seed=2):
     v0 = p.vector()
     units = p.flat_units()
     assert names == [] or np.abs(jac).max() > 0, "parameter_partials are all zero"
+    # a model may say how big a "small change" of each parameter is (e.g. polynomial
+    # coefficients of very different scales): ``fd_step_sizes()`` -> one step per parameter
+    steps = model.fd_step_sizes() if hasattr(model, "fd_step_sizes") else None
     for i, name in enumerate(names):
-        h = {"deg": 2e-3, "m": 2e-3}.get(units[i], 1e-5)
+        h = steps[i] if steps is not None else {"deg": 2e-3, "m": 2e-3}.get(units[i], 1e-5)
         v = v0.copy()
         v[i] += h
         moved = model.with_vector(v).ground_to_image(ground, clip=False)

@@ -17,6 +17,7 @@ from .base import SensorModel
 GROUP = "swathflow.sensors"
 BUILTINS = {
     "pendulum": "swathflow.sensors.pendulum:PendulumModel",
+    "pushbroom": "swathflow.sensors.pushbroom:PushbroomModel",
 }
 
 
