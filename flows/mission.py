@@ -37,6 +37,7 @@ class Progress:
         self.tty = self.stream.isatty()
         self.timings: dict[str, float] = {}
         self._t0: dict[str, float] = {}
+        self._shown: dict[str, int] = {}
 
     def start(self, stage: str, total: int = 1) -> None:
         self._t0[stage] = time.perf_counter()
@@ -49,8 +50,9 @@ class Progress:
         text = f"{stage:<16} [{bar}] {done}/{total}"
         if self.tty:
             self.stream.write("\r" + text)
-        elif done in (0, total):
+        elif done in (0, total) and self._shown.get(stage) != done:
             self.stream.write(text + "\n")
+        self._shown[stage] = done
         self.stream.flush()
 
     def finish(self, stage: str, total: int = 1) -> None:

@@ -14,3 +14,22 @@ os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
 
 # tests import their helper modules (spec_vectors) by plain name
 sys.path.insert(0, str(Path(__file__).parent))
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    """One Prefect test server for the whole session (DESIGN.md: about 10-13 s)."""
+    from prefect.testing.utilities import prefect_test_harness
+    with prefect_test_harness(server_startup_timeout=120):
+        yield
+
+
+@pytest.fixture(scope="session")
+def tiny_mission(tmp_path_factory):
+    """A simulated ``tiny`` mission (seed 1) with its truth; shared, treat as read-only."""
+    from swathflow.simulate import simulate
+    out = tmp_path_factory.mktemp("tiny") / "mission"
+    simulate(out, preset="tiny", seed=1)
+    return out

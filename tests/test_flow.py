@@ -1,0 +1,149 @@
+"""The mission flow for real: a Prefect flow run, a local Dask cluster (worker processes),
+COG outputs through rasterio, checked against the simulator's truth."""
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+pytestmark = pytest.mark.usefixtures("prefect_harness")
+
+
+def _outputs(out: Path) -> dict:
+    files = sorted(p for p in out.rglob("*") if p.is_file() and not p.name.endswith(".json"))
+    return {str(p.relative_to(out)): p.stat().st_mtime_ns for p in files}
+
+
+def _check_against_truth(mission: Path, result: dict):
+    from swathflow.mission import load_mission
+    from swathflow.rectify import phase_shift
+    m = load_mission(mission)
+    with rasterio.open(mission / "truth" / "ortho.tif") as t:
+        truth = t.read(1, masked=True).astype(float).filled(np.nan)
+        t_tr, t_crs = t.transform, t.crs
+    assert len(result["rectified"]) == len(m.images)
+    for path in result["rectified"]:
+        with rasterio.open(path) as src:
+            assert src.crs == t_crs == rasterio.crs.CRS.from_user_input(m.crs)
+            assert src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+            if max(src.width, src.height) > 512:
+                assert src.overviews(1), "no internal overviews"
+            assert src.tags().get("image_id") in m.images
+            img = src.read(1, masked=True).astype(float).filled(np.nan)
+            # the same window of the truth ortho (grids share pixel size and alignment)
+            col0 = round((src.transform.c - t_tr.c) / t_tr.a)
+            row0 = round((src.transform.f - t_tr.f) / t_tr.e)
+            assert abs(src.transform.a - t_tr.a) < 1e-9
+        win = truth[row0:row0 + img.shape[0], col0:col0 + img.shape[1]]
+        assert win.shape == img.shape, "rectified grid falls outside the truth ortho"
+        ok = np.isfinite(img) & np.isfinite(win)
+        assert ok.mean() > 0.3
+        dy, dx = phase_shift(np.where(ok, img, np.nanmean(img[ok])),
+                             np.where(ok, win, np.nanmean(win[ok])))
+        assert abs(dx) < 0.25 and abs(dy) < 0.25, (path, dx, dy)
+    with rasterio.open(result["mosaic"]) as mos:
+        assert mos.crs == t_crs and mos.width > 0
+
+
+def test_flow_end_to_end_and_rerun_reuses_outputs(tiny_mission, tmp_path):
+    from swathflow.flows.mission import run
+    out = tmp_path / "out"
+    cal = str(tiny_mission / "truth" / "calibration.json")
+    result = run(tiny_mission, out, calibration=cal)
+    _check_against_truth(tiny_mission, result)
+    eo = result["eo"][0]
+    assert Path(eo).exists() and sum(1 for _ in open(eo)) > 10
+    before = _outputs(out)
+    again = run(tiny_mission, out, calibration=cal)
+    assert again["rectified"] == result["rectified"]
+    assert _outputs(out) == before, "a re-run with unchanged inputs recomputed outputs"
+
+
+def test_changed_calibration_recomputes_only_what_depends_on_it(tiny_mission, tmp_path):
+    from swathflow.calibfile import read_calibration, write_calibration
+    from swathflow.flows.mission import run
+    out = tmp_path / "out"
+    cal = tmp_path / "cal.json"
+    shutil.copy(tiny_mission / "truth" / "calibration.json", cal)
+    run(tiny_mission, out, calibration=str(cal))
+    before = _outputs(out)
+    doc = read_calibration(cal)
+    doc["parameters"]["u_gps"]["value"][0] += 0.01
+    write_calibration(cal, doc["sensor"], doc["parameters"])
+    run(tiny_mission, out, calibration=str(cal))
+    after = _outputs(out)
+    eo = [k for k in before if k.startswith("pos/")]
+    assert eo and all(after[k] == before[k] for k in eo), "POS products were redone"
+    rect = [k for k in before if k.startswith("rectified/")]
+    assert rect and all(after[k] != before[k] for k in rect), "rectified swings were reused"
+
+
+def test_interrupted_run_resumes_without_redoing_finished_images(tiny_mission, tmp_path):
+    """Kill the run once the first swing is rectified; the re-run keeps that swing."""
+    out = tmp_path / "out"
+    cal = str(tiny_mission / "truth" / "calibration.json")
+    env = dict(os.environ)
+    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run",
+                             str(tiny_mission), "--out", str(out), "--calibration", cal],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    deadline = time.time() + 240
+    first = None
+    while time.time() < deadline and proc.poll() is None:
+        done = sorted((out / "rectified").glob("*.tif.swathflow.json"))
+        if done:
+            first = done[0]
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    if first is None:
+        pytest.fail("the run finished or failed before any swing was rectified: "
+                    + proc.stdout.read().decode()[-2000:])
+    finished = {p.name: p.stat().st_mtime_ns for p in (out / "rectified").glob("*.tif")
+                if Path(str(p) + ".swathflow.json").exists()}
+    from swathflow.flows.mission import run
+    result = run(tiny_mission, out, calibration=cal)
+    for name, mtime in finished.items():
+        assert (out / "rectified" / name).stat().st_mtime_ns == mtime, f"{name} was redone"
+    assert len(result["rectified"]) >= len(finished)
+    _check_against_truth(tiny_mission, result)
+    leftovers = [p for p in out.rglob("*") if ".tmp" in p.name or p.name.endswith(".part")]
+    assert not leftovers, f"half-written files left: {leftovers}"
+
+
+def test_killed_dask_worker_does_not_break_rectification(tiny_mission, tmp_path):
+    from distributed import Client, LocalCluster
+    from swathflow.flows.mission import run
+    out = tmp_path / "out"
+    cal = str(tiny_mission / "truth" / "calibration.json")
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None, silence_logs=40) as cluster, \
+            Client(cluster) as client:
+        killed = {}
+
+        def killer():
+            deadline = time.time() + 240
+            while time.time() < deadline and not killed:
+                busy = [w for w, tasks in client.processing().items() if tasks]
+                if busy:
+                    pids = client.run(os.getpid, workers=[busy[0]])
+                    os.kill(pids[busy[0]], signal.SIGKILL)
+                    killed["worker"] = busy[0]
+                    return
+                time.sleep(0.01)
+
+        t = threading.Thread(target=killer, daemon=True)
+        t.start()
+        result = run(tiny_mission, out, calibration=cal, dask_address=cluster.scheduler_address)
+        t.join(5)
+    assert killed, "no Dask work was seen to kill a worker in"
+    _check_against_truth(tiny_mission, result)
