@@ -1,0 +1,356 @@
+"""Overlap matching: the systematic offset between two rectified images on one grid.
+
+The method follows You & Li (papers.md section 3): the offset is the candidate shift with the
+minimum mean grey difference over the overlap. Here that integer search is made robust to a
+radiometric offset (the median difference is removed first), then refined to subpixel by
+phase correlation (upsampled DFT) and polished by a least-squares gradient fit that also
+solves for gain and offset. The overlap is cut into blocks; every block gives one estimate,
+blocks with too little texture are dropped (structure-tensor check, aperture problem
+included), outlying blocks are rejected (median / MAD), and the survivors give the offset,
+its standard error and a quality score.
+
+Sign convention: ``d = (drow, dcol)`` is the displacement of the content of ``mov``
+relative to ``ref``, i.e. ``mov[x] == ref[x - d]``. If every image ``k`` is the truth
+displaced by ``t_k``, the offset measured between ``i`` (ref) and ``j`` (mov) is
+``t_j - t_i``. Radiometric offset ``o``: ``mov ~= ref + o`` after alignment.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["BlockMatch", "OverlapMatch", "mmgd_search", "phase_correlation",
+           "gradient_refine", "texture_measure", "match_block", "combine_blocks"]
+
+
+@dataclass
+class BlockMatch:
+    """One block's estimate (``ok`` False with ``reason`` when it was dropped)."""
+    ok: bool
+    reason: str = ""
+    offset: tuple[float, float] = (np.nan, np.nan)     # (drow, dcol), px
+    sigma: tuple[float, float] = (np.nan, np.nan)      # formal standard errors, px
+    radiometric: float = np.nan                        # mov - ref (after alignment)
+    gain: float = np.nan
+    integer: tuple[int, int] = (0, 0)                  # the minimum-grey-difference shift
+    phase: tuple[float, float] = (np.nan, np.nan)      # phase-correlation estimate
+    peak: float = np.nan                               # phase-correlation peak height
+    texture: float = np.nan                            # weakest-direction gradient / noise
+    n: int = 0                                         # pixels used
+    centre: tuple[float, float] = (np.nan, np.nan)     # block centre (row, col) on the grid
+
+
+@dataclass
+class OverlapMatch:
+    """The combined estimate of one overlap."""
+    ok: bool
+    status: str                         # "ok", "low_texture", "too_small", "inconsistent"
+    offset: tuple[float, float] = (np.nan, np.nan)
+    sigma: tuple[float, float] = (np.nan, np.nan)
+    radiometric: float = np.nan
+    radiometric_sigma: float = np.nan
+    quality: float = 0.0                # 0..1
+    n_blocks: int = 0
+    n_textured: int = 0
+    n_inliers: int = 0
+    spread: float = np.nan              # robust std of the inlier block offsets, px
+    blocks: list = field(default_factory=list, repr=False)
+
+    def to_dict(self) -> dict:
+        r = lambda v: None if v is None or not np.isfinite(v) else round(float(v), 4)  # noqa: E731
+        return {"ok": self.ok, "status": self.status,
+                "offset": [r(v) for v in self.offset], "sigma": [r(v) for v in self.sigma],
+                "radiometric": r(self.radiometric), "quality": r(self.quality),
+                "n_blocks": self.n_blocks, "n_textured": self.n_textured,
+                "n_inliers": self.n_inliers, "spread": r(self.spread)}
+
+
+# --- the paper's search ---------------------------------------------------------------------
+def mmgd_search(ref, ref_ok, mov, mov_ok, max_shift: int, min_pixels: int = 64):
+    """Minimum mean grey difference over integer shifts.
+
+    ``ref`` (h, w) and ``mov`` (h + 2S, w + 2S) where ``mov`` is read with a margin of
+    ``S = max_shift`` pixels on each side. For every candidate shift ``s`` the mean absolute
+    difference ``|ref[x] - mov[x + s] - median(...)|`` is taken over the jointly valid
+    pixels (the median removes a radiometric offset). Returns ``(s, cost_map)``; ``s`` is
+    None when no shift leaves ``min_pixels`` common pixels.
+    """
+    S = int(max_shift)
+    h, w = ref.shape
+    cost = np.full((2 * S + 1, 2 * S + 1), np.inf)
+    for i, dr in enumerate(range(-S, S + 1)):
+        for j, dc in enumerate(range(-S, S + 1)):
+            m = mov[S + dr:S + dr + h, S + dc:S + dc + w]
+            ok = ref_ok & mov_ok[S + dr:S + dr + h, S + dc:S + dc + w]
+            n = int(ok.sum())
+            if n < min_pixels:
+                continue
+            diff = ref[ok] - m[ok]
+            cost[i, j] = np.mean(np.abs(diff - np.median(diff)))
+    if not np.isfinite(cost).any():
+        return None, cost
+    i, j = np.unravel_index(np.argmin(cost), cost.shape)
+    return (int(i) - S, int(j) - S), cost
+
+
+# --- phase correlation ------------------------------------------------------------------------
+def _upsampled_dft(data, size, factor, offsets):
+    """Matrix-multiply DFT of ``data`` upsampled by ``factor`` on a ``size`` region
+    starting at ``offsets`` (Guizar-Sicairos et al. 2008)."""
+    for n_items, ups, off in list(zip(data.shape, size, offsets))[::-1]:
+        kernel = (np.arange(ups) - off)[:, None] * np.fft.fftfreq(n_items, factor)
+        data = np.tensordot(np.exp(-2j * np.pi * kernel), data, axes=(1, -1))
+    return data
+
+
+def _taper(mask, edge: float = 6.0):
+    """Apodisation: the mask softened at its borders times a Tukey-like rectangle edge."""
+    t = ndimage.gaussian_filter(mask.astype(float), edge / 2.0) * mask
+    h, w = mask.shape
+    for axis, n in ((0, h), (1, w)):
+        k = max(1, min(int(edge * 2), n // 4))
+        ramp = np.ones(n)
+        ramp[:k] = 0.5 - 0.5 * np.cos(np.pi * (np.arange(k) + 0.5) / k)
+        ramp[n - k:] = ramp[:k][::-1]
+        t = t * (ramp[:, None] if axis == 0 else ramp[None, :])
+    return t
+
+
+def valid_rectangle(mask):
+    """A large all-valid rectangle inside ``mask`` (greedy: repeatedly drop the border row or
+    column with the largest invalid fraction). Returns slices, or None if nothing is left."""
+    m = np.asarray(mask, bool)
+    r0, r1, c0, c1 = 0, m.shape[0], 0, m.shape[1]
+    while r1 > r0 and c1 > c0:
+        sub = m[r0:r1, c0:c1]
+        bad = np.array([1 - sub[0].mean(), 1 - sub[-1].mean(),
+                        1 - sub[:, 0].mean(), 1 - sub[:, -1].mean()])
+        if not bad.any():
+            return slice(r0, r1), slice(c0, c1)
+        k = int(np.argmax(bad))
+        if k == 0:
+            r0 += 1
+        elif k == 1:
+            r1 -= 1
+        elif k == 2:
+            c0 += 1
+        else:
+            c1 -= 1
+    return None
+
+
+def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 16):
+    """Subpixel displacement ``d`` with ``mov[x] ~= ref[x - d]`` by phase correlation.
+
+    ``mask``: pixels valid in both (others are filled with the mean and tapered away).
+    Returns ``(d, peak)``: the peak of the normalised cross-power spectrum's inverse (1 for
+    a perfect pure translation, near 0 for unrelated images).
+    """
+    ref = np.asarray(ref, float)
+    mov = np.asarray(mov, float)
+    if mask is None:
+        mask = np.ones(ref.shape, bool)
+    elif not mask.all():
+        # mask edges common to both images would pull the peak to zero: correlate the
+        # largest all-valid rectangle when there is one
+        rect = valid_rectangle(mask)
+        if rect is not None and min(ref[rect].shape) >= min_side:
+            ref, mov, mask = ref[rect], mov[rect], np.ones(ref[rect].shape, bool)
+    tap = _taper(mask)
+    a = np.where(mask, ref - ref[mask].mean(), 0.0) * tap
+    b = np.where(mask, mov - mov[mask].mean(), 0.0) * tap
+    fa, fb = np.fft.fft2(a), np.fft.fft2(b)
+    prod = fb * fa.conj()
+    prod /= np.maximum(np.abs(prod), 1e-12 * np.abs(prod).max() + 1e-300)
+    cc = np.fft.ifft2(prod)
+    peak_idx = np.unravel_index(np.argmax(np.abs(cc)), cc.shape)
+    shape = np.array(cc.shape)
+    d = np.array(peak_idx, float)
+    d[d > shape // 2] -= shape[d > shape // 2]
+    if upsample > 1:
+        d = np.round(d * upsample) / upsample
+        size = int(np.ceil(upsample * 1.5))
+        centre = np.fix(size / 2.0)
+        up = _upsampled_dft(prod.conj(), (size, size), upsample, centre - d * upsample).conj()
+        idx = np.array(np.unravel_index(np.argmax(np.abs(up)), up.shape), float)
+        d = d + (idx - centre) / upsample
+    peak = float(np.abs(cc).max())
+    return (float(d[0]), float(d[1])), peak
+
+
+# --- least-squares polish ----------------------------------------------------------------
+def _shift(img, d, order=3):
+    """``out[x] = img[x - d]`` (cubic spline, edges extended)."""
+    return ndimage.shift(img, d, order=order, mode="nearest", prefilter=True)
+
+
+def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-4,
+                    planar: bool = True):
+    """Least-squares fit of ``mov[x] = g * ref[x - d] + o(x)`` over ``mask`` (Gauss-Newton).
+
+    ``o(x)`` is a constant, or with ``planar`` a plane in (row, col): a radiometric
+    difference that varies slowly across the block (illumination, drift) then neither biases
+    the offset nor inflates the residual. Returns ``(d, sigma_d, g, o_mean, rms)`` with
+    formal standard errors ``sigma_d`` (px); ``o_mean`` is ``o`` at the mask's centroid.
+    The mask should stay a few pixels inside both images' valid areas.
+    """
+    ref = np.asarray(ref, float)
+    mov = np.asarray(mov, float)
+    d = np.array(d0, float)
+    y = mov[mask]
+    rr, cc = np.nonzero(mask)
+    rr = (rr - rr.mean()) / max(mask.shape[0], 1)
+    cc = (cc - cc.mean()) / max(mask.shape[1], 1)
+    rad_cols = [np.ones(y.size)] + ([rr, cc] if planar else [])
+    rad = np.column_stack(rad_cols)
+    g = 1.0
+    o = np.zeros(rad.shape[1])
+    cov = None
+    for _ in range(iterations):
+        rw = _shift(ref, d)
+        gr, gc = np.gradient(rw)
+        a = np.column_stack([-g * gr[mask], -g * gc[mask], rw[mask], rad])
+        r = y - (g * rw[mask] + rad @ o)
+        n = a.T @ a
+        try:
+            cov = np.linalg.inv(n)
+        except np.linalg.LinAlgError:
+            return d, (np.inf, np.inf), g, float(o[0]), np.inf
+        dx = cov @ (a.T @ r)
+        d += dx[:2]
+        g += dx[2]
+        o += dx[3:]
+        if np.all(np.abs(dx[:2]) < tol):
+            break
+    rw = _shift(ref, d)
+    r = y - (g * rw[mask] + rad @ o)
+    dof = max(y.size - a.shape[1], 1)
+    rms = float(np.sqrt(r @ r / dof))
+    sig = np.sqrt(np.diag(cov)[:2]) * rms if cov is not None else (np.inf, np.inf)
+    return d, tuple(float(s) for s in sig), float(g), float(o[0]), rms
+
+
+def texture_measure(img, mask, noise: float) -> float:
+    """Gradient in the weakest direction (structure tensor of the sigma=1 smoothed image)
+    over ``noise``: small for flat areas and for one-directional texture (aperture problem).
+    """
+    sm = ndimage.gaussian_filter(np.asarray(img, float), 1.0)
+    gr, gc = np.gradient(sm)
+    m = ndimage.binary_erosion(mask, iterations=2) if mask.sum() > 100 else mask
+    if m.sum() < 16:
+        return 0.0
+    j = np.array([[np.mean(gr[m] ** 2), np.mean(gr[m] * gc[m])],
+                  [np.mean(gr[m] * gc[m]), np.mean(gc[m] ** 2)]])
+    lam = float(np.linalg.eigvalsh(j)[0])
+    return float(np.sqrt(max(lam, 0.0)) / max(noise, 1e-12))
+
+
+def _noise(diff_values) -> float:
+    """Robust per-image noise from the difference of two aligned images."""
+    v = np.asarray(diff_values, float)
+    if v.size == 0:
+        return np.inf
+    return float(1.4826 * np.median(np.abs(v - np.median(v))) / np.sqrt(2.0))
+
+
+def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1.0,
+                min_pixels: int = 256, abs_floor: float = 1e-6,
+                min_contrast: float = 0.15) -> BlockMatch:
+    """Offset of one block. ``ref`` (h, w); ``mov`` (h + 2S, w + 2S) read with a margin of
+    ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``)."""
+    S = int(max_shift)
+    h, w = ref.shape
+    s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S, min_pixels=min_pixels // 2)
+    if s is None:
+        return BlockMatch(False, "too_small")
+    finite = cost[np.isfinite(cost)]
+    contrast = (np.median(finite) - finite.min()) / max(np.median(finite), 1e-12)
+    if contrast < min_contrast:
+        # a flat cost surface: nothing in the overlap pins the shift down
+        return BlockMatch(False, "low_texture", integer=s)
+    if abs(s[0]) == S or abs(s[1]) == S:
+        return BlockMatch(False, "search_edge", integer=s)
+    m = mov[S + s[0]:S + s[0] + h, S + s[1]:S + s[1] + w]
+    m_ok = mov_ok[S + s[0]:S + s[0] + h, S + s[1]:S + s[1] + w]
+    joint = ref_ok & m_ok
+    inner = ndimage.binary_erosion(joint, iterations=3, border_value=0)
+    if inner.sum() < min_pixels:
+        return BlockMatch(False, "too_small", integer=s, n=int(inner.sum()))
+    fill_r = np.where(ref_ok, ref, ref[ref_ok].mean())
+    fill_m = np.where(m_ok, m, m[m_ok].mean())
+    # phase correlation on the residual (|d - s| < 1 px): d_pc relative to s
+    (pr, pc), peak = phase_correlation(fill_r, fill_m, joint)
+    if abs(pr) > 1.5 or abs(pc) > 1.5:
+        pr, pc = 0.0, 0.0          # a wild peak: start the polish from the integer shift
+    dres, sig, g, o, rms = gradient_refine(fill_r, fill_m, inner, (pr, pc))
+    # noise: the high-passed difference of the aligned images (slow radiometric trends out)
+    diff = fill_m - g * _shift(fill_r, dres)
+    diff = diff - ndimage.gaussian_filter(np.where(inner, diff, np.median(diff[inner])), 3.0)
+    noise = max(_noise(diff[inner]), abs_floor * (np.ptp(ref[ref_ok]) + 1.0))
+    tex = texture_measure(fill_r, joint, noise)
+    centre = (h / 2.0, w / 2.0)
+    common = dict(integer=s, phase=(s[0] + pr, s[1] + pc), peak=peak, texture=tex,
+                  n=int(inner.sum()), centre=centre)
+    if not (tex >= min_texture):
+        return BlockMatch(False, "low_texture", **common)
+    if not np.all(np.isfinite(dres)) or np.max(np.abs(dres)) > 2.0 or not (0.2 < g < 5.0):
+        return BlockMatch(False, "diverged", **common)
+    # radiometric offset at the mean level of the block (gain ~ 1 for offset-only data)
+    rad = float(np.median(m[inner] - _shift(fill_r, dres)[inner]))
+    return BlockMatch(True, "", offset=(s[0] + float(dres[0]), s[1] + float(dres[1])),
+                      sigma=sig, radiometric=rad, gain=g, **common)
+
+
+def combine_blocks(blocks: list[BlockMatch], min_blocks: int = 1, min_inlier_fraction=0.5,
+                   tolerance: float = 0.25, floor_sigma: float = 0.02,
+                   max_spread: float = 1.0) -> OverlapMatch:
+    """Robust combination of block estimates: median / MAD outlier rejection, then the
+    weighted mean of the inliers. ``sigma`` is the larger of the formal error and the
+    scatter-based one (never below ``floor_sigma``). An overlap whose inlier blocks still
+    scatter by more than ``max_spread`` px (std) is "inconsistent" and not used."""
+    good = [b for b in blocks if b.ok]
+    n_tex = sum(1 for b in blocks if b.ok or b.reason not in ("low_texture", "too_small"))
+    res = OverlapMatch(False, "", n_blocks=len(blocks), n_textured=n_tex, blocks=blocks)
+    if not good:
+        reasons = [b.reason for b in blocks]
+        res.status = ("low_texture" if "low_texture" in reasons else
+                      "too_small" if not reasons or all(r == "too_small" for r in reasons)
+                      else "no_match")
+        return res
+    d = np.array([b.offset for b in good])
+    med = np.median(d, axis=0)
+    mad = 1.4826 * np.median(np.abs(d - med), axis=0)
+    lim = np.maximum(3.0 * mad, tolerance)
+    inl = np.all(np.abs(d - med) <= lim, axis=1)
+    res.n_inliers = int(inl.sum())
+    if res.n_inliers < min_blocks or (len(good) >= 3 and inl.mean() < min_inlier_fraction):
+        res.status = "inconsistent"
+        res.offset = tuple(float(v) for v in med)
+        return res
+    di = d[inl]
+    sig = np.array([b.sigma for b in good])[inl]
+    w = 1.0 / np.maximum(sig, 1e-3) ** 2
+    mean = (w * di).sum(axis=0) / w.sum(axis=0)
+    formal = 1.0 / np.sqrt(w.sum(axis=0))
+    n = len(di)
+    spread = np.sqrt(((di - mean) ** 2).sum(axis=0) / max(n - 1, 1)) if n > 1 else np.zeros(2)
+    sigma = np.maximum.reduce([formal, spread / np.sqrt(n), np.full(2, floor_sigma)])
+    rad = np.array([b.radiometric for b in good])[inl]
+    res.spread = float(np.hypot(*spread))
+    if res.spread > max_spread:
+        res.status = "inconsistent"
+        res.offset = (float(mean[0]), float(mean[1]))
+        return res
+    res.ok = True
+    res.status = "ok"
+    res.offset = (float(mean[0]), float(mean[1]))
+    res.sigma = (float(sigma[0]), float(sigma[1]))
+    res.radiometric = float(np.median(rad))
+    res.radiometric_sigma = float(1.2533 * rad.std() / np.sqrt(n)) if n > 1 else np.nan
+    res.spread = float(np.hypot(*spread))
+    frac = n / len(good)
+    res.quality = float(frac * np.exp(-np.hypot(*sigma) / 0.1) *
+                        min(1.0, np.mean([b.peak for b in np.array(good)[inl]]) * 5))
+    return res
