@@ -308,3 +308,108 @@ def test_rectify_image_writes_cog_glt_igm(flat, tmp_path):
     ecef = grid.to_ecef(x, y, terrain)
     back = model.ground_to_image(ecef)
     assert np.allclose(back[:, 0], li, atol=1e-3) and np.allclose(back[:, 1], ei, atol=1e-3)
+
+
+# ----------------------------------------------------------------------------------------
+# scale: a 2048 x 20,000 swing (the paper's size) in bounded memory
+# ----------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_paper_size_swing_peak_memory_below_2gb():
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_rectify.py"
+    spec = importlib.util.spec_from_file_location("bench_rectify", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    r = bench.memory_run(nl=20000, ne=2048)
+    assert r["lines"] == 20000 and r["elements"] == 2048
+    assert r["peak_rss_mb"] < 2048, r
+
+
+# ----------------------------------------------------------------------------------------
+# end to end on a simulated mission bundle (truth ortho from the simulator)
+# ----------------------------------------------------------------------------------------
+def _simulate(tmp, preset="tiny", extra=()):
+    pytest.importorskip("swathflow.simulate")
+    from swathflow.flows.cli import main
+    out = tmp / "mission"
+    assert main(["simulate", str(out), "--preset", preset, "--seed", "3", *extra]) == 0
+    return out
+
+
+def _compare_with_truth(mission_dir, out_dir, tile=32):
+    import rasterio
+    from swathflow.raster import read_raster
+    truth_path = mission_dir / "truth" / "ortho.tif"
+    if not truth_path.exists():
+        pytest.skip("the simulator wrote no truth/ortho.tif")
+    truth = read_raster(truth_path, masked_to_nan=True)
+    reports = {}
+    for tif in sorted(out_dir.glob("*.tif")):
+        if tif.name.count(".") > 1:          # .glt.tif / .igm.tif
+            continue
+        with rasterio.open(tif) as src:
+            rect = src.read(1)
+            t = src.transform
+        # place the image's window inside the truth grid (both snapped to the GSD)
+        col0 = (t.c - truth.transform.c) / truth.transform.a
+        row0 = (t.f - truth.transform.f) / truth.transform.e
+        assert abs(col0 - round(col0)) < 1e-6 and abs(row0 - round(row0)) < 1e-6
+        col0, row0 = int(round(col0)), int(round(row0))
+        r0, c0 = max(row0, 0), max(col0, 0)
+        r1 = min(row0 + rect.shape[0], truth.data.shape[0])
+        c1 = min(col0 + rect.shape[1], truth.data.shape[1])
+        sub_t = truth.data[r0:r1, c0:c1]
+        sub_r = rect[r0 - row0:r1 - row0, c0 - col0:c1 - col0]
+        sub_r = np.where(np.isfinite(sub_t), sub_r, np.nan)
+        sub_t = np.where(np.isfinite(sub_t), sub_t, np.nanmean(sub_t))
+        reports[tif.stem] = R.shift_report(sub_r, sub_t, tile=tile, margin=tile // 4)
+        print(tif.stem, reports[tif.stem])
+    return reports
+
+
+def _truth_pos(mission):
+    """Point the mission at the simulator's noise-free trajectory (truth/pos.csv): the
+    mission's own POS carries simulated GPS/IMU noise that the truth ortho does not."""
+    import re
+    toml = mission / "mission.toml"
+    text = re.sub(r'\[pos\]\nfile = "[^"]*"\nformat = "[^"]*"',
+                  '[pos]\nfile = "truth/pos.csv"\nformat = "csv"', toml.read_text())
+    assert "truth/pos.csv" in text
+    toml.write_text(text)
+
+
+def _rectify_and_check(tmp_path, mission, limit=0.1, extra=()):
+    from swathflow.flows.cli import main
+    _truth_pos(mission)
+    out = tmp_path / "rect"
+    assert main(["rectify", str(mission), "--calibration",
+                 str(mission / "truth" / "calibration.json"), "--out", str(out), *extra]) == 0
+    summary = json.loads((out / "rectify.json").read_text())
+    assert summary["images"] and "truth" in summary["calibration"]
+    reports = _compare_with_truth(mission, out)
+    assert reports
+    for iid, rep in reports.items():
+        assert rep["whole_px"] < limit, (iid, rep)
+        if rep["tiles"]:
+            assert rep["worst_tile_px"] < limit, (iid, rep)
+    return reports
+
+
+def test_cli_rectify_simulated_mission(tmp_path):
+    mission = _simulate(tmp_path)
+    reports = _rectify_and_check(tmp_path, mission, extra=["--products", "glt"])
+    assert any(r["tiles"] for r in reports.values())
+    assert (tmp_path / "rect" / f"{next(iter(reports))}.glt.tif").exists()
+
+
+@pytest.mark.slow
+def test_cli_rectify_real_texture_over_real_dem(tmp_path):
+    """The real autzen orthophoto as ground texture over the real jacksboro DEM's relief."""
+    from spec_vectors import DATA
+    tex = DATA / "autzen" / "autzen.jpg"
+    dem = DATA / "dem" / "jacksboro_fault_dem.tif"
+    if not (tex.exists() and dem.exists()):
+        pytest.skip("real data not available")
+    mission = _simulate(tmp_path, extra=["--texture", str(tex), "--dem", str(dem)])
+    _rectify_and_check(tmp_path, mission)
