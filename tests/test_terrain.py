@@ -105,3 +105,27 @@ def test_open_terrain_forms(plane_dem):
     assert open_terrain(12.0).height(0, 0) == 12.0
     assert open_terrain({"height": 10.0, "vertical": "orthometric", "undulation": 2.0}).h == 12.0
     assert isinstance(open_terrain({"dem": str(plane_dem)}), DEM)
+
+
+def _write_gtx(path, lat0, lon0, dlat, dlon, values):
+    """A PROJ .gtx vertical grid (big-endian header + float32 rows, south to north)."""
+    import struct
+    rows, cols = values.shape
+    with open(path, "wb") as f:
+        f.write(struct.pack(">4d2i", lat0, lon0, dlat, dlon, rows, cols))
+        f.write(values.astype(">f4").tobytes())
+
+
+def test_geoid_grid_converts_orthometric_heights(plane_dem, tmp_path):
+    """A real PROJ grid file on the vgridshift path: h = H + N with N varying in latitude."""
+    lat = np.arange(30.0, 32.01, 0.25)
+    lon = np.arange(122.0, 124.01, 0.25)
+    n = (20.0 + 4.0 * (lat[:, None] - 30.0) + 0.0 * lon[None, :])
+    grid = tmp_path / "test_geoid.gtx"
+    _write_gtx(grid, 30.0, 122.0, 0.25, 0.25, n)
+    dem = DEM.open(plane_dem, vertical="orthometric", geoid=str(grid))
+    plain = DEM.open(plane_dem)
+    lon_c, lat_c = transformer("EPSG:32651", "EPSG:4326").transform(E0, N0)
+    expected_n = 20.0 + 4.0 * (lat_c - 30.0)
+    got = dem.height(lat_c, lon_c) - plain.height(lat_c, lon_c)
+    assert got == pytest.approx(expected_n, abs=1e-3)
