@@ -55,6 +55,21 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--texture", help="orthophoto GeoTIFF/JPEG+world file for the ground truth")
     s.add_argument("--dem", help="DEM GeoTIFF for the terrain shape")
+    s.add_argument("--geometry-only", action="store_true",
+                   help="write blank images (line tables, POS, GCPs, truth only): fast")
+    s.add_argument("--render", action="store_true",
+                   help="render images and the truth ortho even where the preset does not "
+                        "(paper: slow)")
+    s.add_argument("--no-direction-effect", action="store_true",
+                   help="same true IMU boresight for left and right swings")
+    s.add_argument("--direction-omega", type=float, metavar="DEG",
+                   help="true omega_L - omega_R (deg; default: the paper's Table 4)")
+    s.add_argument("--gcp-noise", type=float, metavar="PX",
+                   help="GCP image measurement noise, px per axis (default 1)")
+    s.add_argument("--gross-errors", type=float, dest="gross_fraction", metavar="FRACTION",
+                   help="fraction of GCP measurements with a 10-40 px gross error")
+    s.add_argument("--image-format", choices=("tif", "envi"), help="raw image format")
+    s.add_argument("--pos-format", choices=("sbet", "csv"), help="POS file format")
     s.set_defaults(func=_call("swathflow.simulate:cli_simulate"))
 
     s = sub.add_parser("calibrate", help="estimate calibration parameters from control points")
@@ -101,6 +116,22 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("mosaic", help="match strips and blend rectified swings into a mosaic")
     s.add_argument("source", help="mission folder or folder of rectified swings")
     s.add_argument("--out", required=True, help="output mosaic GeoTIFF")
+    s.add_argument("--mission", help="mission folder or mission.toml giving each image's strip")
+    s.add_argument("--anchor", action="append", metavar="ID",
+                   help="image id or strip number held fixed (repeatable; default: the mean "
+                        "offset of each connected group is zero)")
+    s.add_argument("--per-image", action="store_true",
+                   help="one offset per image instead of one per strip")
+    s.add_argument("--feather", type=int, default=64,
+                   help="feathering distance cap in pixels (default 64)")
+    s.add_argument("--no-feather", action="store_true", help="hard seams (nearest footprint)")
+    s.add_argument("--no-balance", action="store_true", help="no radiometric balancing")
+    s.add_argument("--no-match", action="store_true", help="no offset estimation")
+    s.add_argument("--max-shift", type=int, default=12,
+                   help="largest offset searched, pixels (default 12)")
+    s.add_argument("--tile", type=int, default=1024, help="tile size in pixels (default 1024)")
+    s.add_argument("--workers", type=int, help="threads (default: all cores)")
+    s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_call("swathflow.mosaic:cli_mosaic"))
 
     s = sub.add_parser("run", help="run the whole mission flow (Prefect, Dask)")

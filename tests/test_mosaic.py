@@ -1,0 +1,232 @@
+"""Mosaic: strip offsets, network, feathering and output against a known truth.
+
+Synthetic swings (tests/mosaic_synth.py) sample a known truth at exactly shifted positions,
+so the true strip offsets (1-5 px, random directions) and radiometric offsets are known.
+"""
+import json
+import os
+
+import numpy as np
+import pytest
+import rasterio
+
+from mosaic_synth import (ImageTruth, make_swings, random_shifts, truth_grid)
+from swathflow import mosaic as M
+from swathflow.errors import FormatError, SwathflowError
+from swathflow.matching import OverlapMatch, gradient_refine
+
+LAKE = (200, 400, 130, 200)         # a flat area covering part of the strip 0/1 overlap
+N = 5
+
+
+def _read(path):
+    with rasterio.open(path) as ds:
+        a = ds.read(1).astype(float)
+        nd = ds.nodata
+        ovr = ds.overviews(1)
+        prof = ds.profile
+    if nd is not None:
+        a[a == nd] = np.nan
+    return a, ovr, prof
+
+
+def _tile_shifts(mosaic, truth, tile=64, skip=None):
+    """Offset of the mosaic against the truth in every fully covered tile (px)."""
+    out = []
+    inner = np.zeros((tile, tile), bool)
+    inner[4:-4, 4:-4] = True
+    for r0 in range(0, mosaic.shape[0] - tile + 1, tile):
+        for c0 in range(0, mosaic.shape[1] - tile + 1, tile):
+            m = mosaic[r0:r0 + tile, c0:c0 + tile]
+            if not np.isfinite(m).all() or (skip is not None and skip[r0:r0 + tile, c0:c0 + tile].any()):
+                continue
+            d, *_ = gradient_refine(truth[r0:r0 + tile, c0:c0 + tile], m, inner)
+            out.append(np.hypot(*d))
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("swings")
+    shifts, rads = random_shifts(N, seed=1)
+    paths, fps, shape = make_swings(d, n_strips=N, shifts=shifts, rads=rads, lake=LAKE)
+    return dict(dir=d, paths=paths, fps=fps, shape=shape, shifts=shifts, rads=rads)
+
+
+@pytest.fixture(scope="module")
+def result(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out") / "mosaic.tif"
+    rep = M.mosaic(scene["paths"], out, anchors=["0"], tile=256)
+    return out, rep
+
+
+def test_scan_inputs(scene):
+    lay = M.scan_inputs(scene["paths"])
+    assert lay.shape == scene["shape"]
+    assert [s.strip for s in lay.swings] == [k for k in range(N) for _ in range(3)]
+    assert lay.swings[4].image_id == "S1_1" and lay.res == 2.0
+    assert lay.swings[3].col == 144 and lay.swings[4].row == 192
+
+
+def test_scan_inputs_rejects_misaligned(scene, tmp_path):
+    from affine import Affine
+    from swathflow.raster import write_geotiff
+    bad = tmp_path / "bad.tif"
+    write_geotiff(bad, np.ones((10, 10), np.float32), "EPSG:32633",
+                  Affine(2.0, 0, 500000.7, 0, -2.0, 4000000.0), nodata=-9999)
+    with pytest.raises(FormatError, match="not aligned"):
+        M.scan_inputs(scene["paths"][:2] + [bad])
+
+
+def test_offsets_recovered_within_0_2_px(scene, result):
+    _, rep = result
+    nodes = {n["node"]: n for n in rep["nodes"]}
+    for k in range(N):
+        est = np.array(nodes[str(k)]["offset"])
+        assert np.hypot(*(est - scene["shifts"][k])) < 0.2, (k, est, scene["shifts"][k])
+        assert abs(nodes[str(k)]["radiometric"] - scene["rads"][k]) < 1.0
+    assert rep["anchors"] == ["0"]
+    assert rep["sigma0"] is not None and rep["sigma0"] < 3
+
+
+def test_low_texture_overlap_reported_and_skipped(result):
+    _, rep = result
+    lake = [o for o in rep["overlaps"] if (o["ref"], o["mov"]) == ("S0_1", "S1_1")]
+    assert lake and lake[0]["status"] == "low_texture" and not lake[0]["used"]
+    assert {"ref": "S0_1", "mov": "S1_1", "status": "low_texture"} in rep["skipped"]
+    used = [o for o in rep["overlaps"] if o["used"]]
+    assert len(used) >= 20 and all(max(map(abs, o["residual"])) < 0.3 for o in used)
+
+
+def test_mosaic_matches_truth_in_every_tile(scene, result):
+    out, _ = result
+    mos, ovr, prof = _read(out)
+    truth = truth_grid(scene["shape"], lake=LAKE)
+    lake = truth_grid(scene["shape"], truth=lambda r, c: 0 * r, lake=LAKE) != 0
+    shifts = _tile_shifts(mos, truth, skip=lake)
+    assert len(shifts) >= 60
+    assert shifts.max() < 0.2, shifts.max()
+    assert np.median(shifts) < 0.05
+    # radiometry balanced back to the anchor strip's (offset-free) levels
+    ok = np.isfinite(mos)
+    assert abs(np.median(mos[ok] - truth[ok])) < 1.0
+    # output: COG with overviews, PNG quicklook, JSON report
+    assert ovr and prof["tiled"]
+    assert os.path.exists(str(out)[:-4] + ".png")
+    rep = json.load(open(str(out)[:-4] + ".json"))
+    assert rep["format"] == "swathflow-mosaic/1"
+
+
+def test_without_matching_the_mosaic_is_off(scene, tmp_path):
+    """The test can fail: with the offsets left in, tiles are off by the strip offsets."""
+    M.mosaic(scene["paths"], tmp_path / "raw.tif", match=False, png=False, tile=256)
+    mos, _, _ = _read(tmp_path / "raw.tif")
+    truth = truth_grid(scene["shape"], lake=LAKE)
+    assert _tile_shifts(mos, truth).max() > 1.0
+
+
+def test_nodata_aware_coverage(scene, result):
+    out, _ = result
+    mos, _, _ = _read(out)
+    union = np.any(scene["fps"], axis=0)
+    got = np.isfinite(mos)
+    assert got.sum() >= 0.97 * union.sum()
+    from scipy import ndimage
+    grown = ndimage.binary_dilation(union, iterations=6)   # footprints move by <= 5 px
+    assert not (got & ~grown).any()
+    assert (~got).any()                                    # nodata stays nodata
+
+
+def test_tiling_does_not_change_the_result(scene, tmp_path):
+    lay = M.scan_inputs(scene["paths"])
+    off = np.repeat(scene["shifts"], 3, axis=0)
+    rad = np.repeat(scene["rads"], 3)
+    M.write_mosaic(lay, tmp_path / "a.tif", off, rad, tile=128, cog=False)
+    M.write_mosaic(lay, tmp_path / "b.tif", off, rad, tile=1024, cog=False)
+    a, _, _ = _read(tmp_path / "a.tif")
+    b, _, _ = _read(tmp_path / "b.tif")
+    assert np.array_equal(np.isfinite(a), np.isfinite(b))
+    assert np.nanmax(np.abs(a - b)) < 1e-3
+
+
+def test_seams_vanish_with_feathering(tmp_path):
+    """Strips with a slow radiometric drift along track (constant offsets cannot remove it):
+    seams show with hard cuts, not with feathering."""
+    shifts, rads = random_shifts(N, seed=2)
+    paths, fps, shape = make_swings(tmp_path / "in", n_strips=N, shifts=shifts, rads=rads,
+                                    drift=6.0, seed=5)
+    truth = truth_grid(shape)
+    vis = {}
+    for mode in ("feather", "cut"):
+        rep = M.mosaic(paths, tmp_path / f"{mode}.tif", anchors=["0"], mode=mode, png=False)
+        mos, _, _ = _read(tmp_path / f"{mode}.tif")
+        vis[mode] = (M.seam_visibility(mos, fps), M.seam_visibility(mos - truth, fps))
+        nodes = {n["node"]: n for n in rep["nodes"]}
+        for k in range(N):
+            assert np.hypot(*(np.array(nodes[str(k)]["offset"]) - shifts[k])) < 0.2
+    (f_seam, f_in), (fe_seam, fe_in) = vis["feather"]
+    (c_seam, c_in), (ce_seam, ce_in) = vis["cut"]
+    print(f"\nseam/inner gradient: feather {f_seam:.3f}/{f_in:.3f}, cut {c_seam:.3f}/{c_in:.3f};"
+          f" of the error image: feather {fe_seam:.3f}/{fe_in:.3f}, cut {ce_seam:.3f}/{ce_in:.3f}")
+    assert f_seam <= f_in
+    assert f_seam < c_seam
+    assert fe_seam < 0.6 * ce_seam              # the step itself: clearly lower
+
+
+def test_per_image_offsets(scene, tmp_path):
+    rep = M.mosaic(scene["paths"], tmp_path / "pi.tif", per_image=True, anchors=["S0_0"],
+                   png=False)
+    nodes = {n["node"]: n for n in rep["nodes"]}
+    for k in range(N):
+        for s in range(3):
+            iid = f"S{k}_{s}"
+            if iid in ("S0_1",):      # in the lake: linked only along its strip
+                pass
+            est = np.array(nodes[iid]["offset"])
+            assert np.hypot(*(est - scene["shifts"][k])) < 0.2, (iid, est, scene["shifts"][k])
+
+
+def test_network_anchor_free_and_outlier():
+    def obs(i, j, d, ok=True):
+        return (i, j, OverlapMatch(ok, "ok", offset=d, sigma=(0.02, 0.02), radiometric=0.0,
+                                   radiometric_sigma=0.1))
+    t = np.array([[0, 0], [1.0, 2.0], [-1.5, 0.5], [3.0, -2.0]])
+    o = [obs(i, j, tuple(t[j] - t[i])) for i, j in [(0, 1), (1, 2), (2, 3), (0, 2), (1, 3),
+                                                     (0, 3)]]
+    o.append(obs(0, 3, (t[3][0] + 2.0, t[3][1])))     # a blunder
+    net = M.solve_network([0, 1, 2, 3], o, anchors=[0])
+    assert np.allclose(net.offsets, t, atol=1e-6)
+    assert not net.used[-1] and net.used[:-1].all()
+    free = M.solve_network([0, 1, 2, 3], o[:-1], anchors=[])
+    assert np.allclose(free.offsets, t - t.mean(0), atol=1e-6)
+    assert free.free_groups == [[0, 1, 2, 3]]
+
+
+def test_real_orthophoto_strips(tmp_path):
+    path = "/work/shared/data/real/autzen/autzen.jpg"
+    if not os.path.exists(path):
+        pytest.skip("real orthophoto not available")
+    truth = ImageTruth(path, rows=700, cols=820, r0=1500, c0=1000)
+    shifts, rads = random_shifts(5, seed=7)
+    paths, fps, shape = make_swings(tmp_path / "in", n_strips=5, length=600, shifts=shifts,
+                                    rads=rads, truth=truth, noise=1.0)
+    rep = M.mosaic(paths, tmp_path / "m.tif", anchors=["0"], png=False)
+    nodes = {n["node"]: n for n in rep["nodes"]}
+    for k in range(5):
+        assert np.hypot(*(np.array(nodes[str(k)]["offset"]) - shifts[k])) < 0.2
+    mos, _, _ = _read(tmp_path / "m.tif")
+    g = truth_grid(shape, truth=truth)
+    sh = _tile_shifts(mos, g)
+    assert len(sh) > 40 and np.percentile(sh, 95) < 0.2, np.sort(sh)[-5:]
+
+
+def test_cli(scene, tmp_path):
+    from swathflow.flows.cli import main
+    out = tmp_path / "cli.tif"
+    assert main(["mosaic", str(scene["dir"]), "--out", str(out), "--anchor", "0"]) == 0
+    assert out.exists() and (tmp_path / "cli.png").exists() and (tmp_path / "cli.json").exists()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["mosaic", str(empty), "--out", str(tmp_path / "x.tif")]) == 2
+    with pytest.raises(SwathflowError, match="anchor"):
+        M.mosaic(scene["paths"][:3], tmp_path / "y.tif", anchors=["nope"])
