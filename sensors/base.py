@@ -246,6 +246,11 @@ class SensorModel(ABC):
 
         The trajectory is cut to the image's time span (plus a margin)."""
         t0, t1 = self._lines["time"].min(), self._lines["time"].max()
+        # whisk-broom models time every pixel: keep the POS up to the image's last pixel
+        corners = self.image_time(np.array([[0.0, 0.0], [0.0, self.n_elements - 1.0],
+                                            [self.n_lines - 1.0, 0.0],
+                                            [self.n_lines - 1.0, self.n_elements - 1.0]]))
+        t0, t1 = min(t0, np.nanmin(corners)), max(t1, np.nanmax(corners))
         tr = self._trajectory
         i0 = max(int(np.searchsorted(tr.time, t0)) - 2, 0)
         i1 = min(int(np.searchsorted(tr.time, t1)) + 2, tr.time.size)
