@@ -350,7 +350,8 @@ def _inspect(path) -> tuple[list[Problem], dict]:
 
     # [[images]]
     images: dict[str, ImageEntry] = {}
-    shapes: dict[str, tuple[int, int]] = {}
+    shapes: dict[str, tuple[int, int]] = {}        # images whose line table is fine too
+    image_shapes: dict[str, tuple[int, int]] = {}  # every readable image
     lines: dict[str, dict] = {}
     entries = cfg.get("images")
     if not isinstance(entries, list) or not entries:
@@ -402,6 +403,7 @@ def _inspect(path) -> tuple[list[Problem], dict]:
             try:
                 rows, cols, _, _ = raster_info(ip)
                 shape = (rows, cols)
+                image_shapes[iid] = shape
                 if n_el is not None and cols != n_el:
                     c.add(ip, where, f"image has {cols} columns but [sensor].n_elements is "
                           f"{n_el}", "columns must be detector elements; fix n_elements or "
@@ -426,7 +428,9 @@ def _inspect(path) -> tuple[list[Problem], dict]:
             continue
         ok = True
         cols = {}
-        for col in need_cols:
+        check_cols = list(need_cols) + [col for col in df.columns if col not in need_cols
+                                        and pd.api.types.is_numeric_dtype(df[col])]
+        for col in check_cols:
             v = pd.to_numeric(df[col], errors="coerce").to_numpy(float)
             bad = ~np.isfinite(v)
             if bad.any():
@@ -435,23 +439,24 @@ def _inspect(path) -> tuple[list[Problem], dict]:
                       "every line needs finite numbers")
                 ok = False
             cols[col] = v
-        if not ok:
-            continue
         n = len(df)
-        if not np.array_equal(cols["line"], np.arange(n)):
+        if shape is not None and n != shape[0]:
+            c.add(lp, "", f"{n} rows but the image {ip.name} has {shape[0]} lines",
+                  "the line table needs exactly one row per image line")
+            ok = False
+        if np.isfinite(cols["line"]).all() and not np.array_equal(cols["line"], np.arange(n)):
             bad = cols["line"] != np.arange(n)
             c.add(lp, f"column line, file row(s) {_first_rows(bad)}",
                   "line numbers must be 0, 1, 2, ... in order", "one row per line, in order")
+            ok = False
         t = cols["time"]
+        if not np.isfinite(t).all():
+            continue
         dec = np.diff(t) <= 0
         if dec.any():
             c.add(lp, f"column time, file row(s) {_first_rows(np.r_[False, dec])}",
                   "times must increase strictly from line to line",
                   "sort the lines by time; remove duplicate lines")
-            ok = False
-        if shape is not None and n != shape[0]:
-            c.add(lp, "", f"{n} rows but the image {ip.name} has {shape[0]} lines",
-                  "the line table needs exactly one row per image line")
             ok = False
         if traj is not None:
             t0, t1 = traj.time[0], traj.time[-1]
@@ -494,7 +499,7 @@ def _inspect(path) -> tuple[list[Problem], dict]:
     parts["priors"] = priors
 
     # [gcp]
-    parts["gcps"] = _gcps(cfg, root, toml, images, shapes, c)
+    parts["gcps"] = _gcps(cfg, root, toml, images, image_shapes, c)
 
     # DEM coverage and model construction
     if cls is not None and traj is not None and priors is not None:
@@ -693,18 +698,25 @@ def _check_dem_cover(model, dem: DEM, iid: str, c: _Collector) -> None:
 # ------------------------------------------------------------------------------------------
 # public entry points
 
+def _inspect_safe(path) -> tuple[list[Problem], dict]:
+    try:
+        return _inspect(path)
+    except SwathflowError as exc:  # defensive: a check raised instead of collecting
+        return [Problem(os.fspath(path), "", str(exc), "")], {}
+    except Exception as exc:  # noqa: BLE001 - bad input must never end in a traceback
+        return [Problem(os.fspath(path), "", f"unexpected content ({type(exc).__name__}: "
+                        f"{exc})", "check mission.toml against spec/mission-format.md; if "
+                        "the mission is fine, report this as a swathflow bug")], {}
+
+
 def validate_mission(path) -> list[Problem]:
     """Every problem found in a mission folder (empty list: the mission is usable)."""
-    try:
-        problems, _ = _inspect(path)
-    except SwathflowError as exc:  # defensive: a check raised instead of collecting
-        return [Problem(os.fspath(path), "", str(exc), "")]
-    return problems
+    return _inspect_safe(path)[0]
 
 
 def load_mission(path) -> Mission:
     """Read a mission folder; raises SwathflowError listing every problem."""
-    problems, p = _inspect(path)
+    problems, p = _inspect_safe(path)
     if problems:
         raise SwathflowError(format_problems(path, problems))
     return Mission(path=p["root"], name=p["name"], config=p["config"], crs=p["crs"],
@@ -720,12 +732,11 @@ def format_problems(path, problems: list[Problem]) -> str:
 
 def cli_validate(args) -> int:
     """``swathflow validate MISSION``: print every problem; exit 1 if any."""
-    problems = validate_mission(args.mission)
+    problems, p = _inspect_safe(args.mission)
     if problems:
         print(format_problems(args.mission, problems))
         return 1
-    mis = load_mission(args.mission)
-    n = 0 if mis.gcps is None else len(mis.gcps)
-    print(f"mission {args.mission}: OK ({len(mis.images)} images, {n} GCP observations, "
-          f"sensor {mis.sensor.get('model')}, output {mis.crs} at {mis.gsd} m)")
+    n = 0 if p["gcps"] is None else len(p["gcps"])
+    print(f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
+          f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m)")
     return 0

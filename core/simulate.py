@@ -247,8 +247,11 @@ def make_trajectory(cfg: SimConfig, plan: Plan, terrain_mean: float, rng):
     return ds, strips
 
 
-def make_lines(cfg: SimConfig, plan: Plan, strips, traj: Trajectory):
-    """Line tables of every swing: (image_id, direction, strip, dict)."""
+def make_lines(cfg: SimConfig, plan: Plan, strips, traj: Trajectory, params: dict):
+    """Line tables of every swing: (image_id, direction, strip, dict).
+
+    The gimbal centres each swing on the true nadir (the swing range is offset by the
+    boresight's omega), and, with ``stabilise``, takes out the aircraft's roll and pitch."""
     out = []
     counter = {"L": 0, "R": 0}
     n = plan.lines_per_swing
@@ -259,7 +262,7 @@ def make_lines(cfg: SimConfig, plan: Plan, strips, traj: Trajectory):
             counter[d] += 1
             iid = f"{d}{counter[d]}"
             t = st["t_start"] + j * plan.swing_period + np.arange(n) * plan.line_period
-            s = s_cmd if d == "L" else s_cmd[::-1]
+            s = (s_cmd if d == "L" else s_cmd[::-1]) - params[f"opk_pos_{d}"][0]
             t_mid = 0.5 * (t[0] + t[-1])
             q = np.degrees(np.arctan(cfg.speed * (t_mid - t) * np.cos(np.radians(s))
                                      / cfg.agl))
@@ -377,6 +380,8 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
             plan[iid] = (cfg.gcp_control, cfg.gcp_check)
     nadir_gsd = cfg.ifov * cfg.agl
     min_sep = 6 * cfg.target_radius_px * nadir_gsd
+    # a target cut by the image edge cannot be measured: keep a margin (disk + ring + noise)
+    margin = 2 * cfg.target_radius_px + 3 * cfg.gcp_noise + 1
     points = []   # (gcp_id, E, N, role, home image)
     taken = np.empty((0, 2))
     for iid in ids:
@@ -388,8 +393,10 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
         got = []
         for _ in range(20):
             k = 4 * need
-            li = rng.uniform(0.06, 0.94, k) * (m.n_lines - 1)
-            el = rng.uniform(0.12, 0.88, k) * (m.n_elements - 1)
+            lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
+            lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
+            li = rng.uniform(lo_l, m.n_lines - 1 - lo_l, k)
+            el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
             o, d = m.ray(np.stack([li, el], -1))
             g = intersect(o, d, terrain)
             e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
@@ -423,7 +430,10 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
     rows = []
     for iid in ids:
         ij = models[iid].ground_to_image(xyz)
-        ok = np.isfinite(ij).all(-1)
+        with np.errstate(invalid="ignore"):
+            ok = (np.isfinite(ij).all(-1) & (ij[:, 0] >= margin)
+                  & (ij[:, 0] <= models[iid].n_lines - 1 - margin)
+                  & (ij[:, 1] >= margin) & (ij[:, 1] <= models[iid].n_elements - 1 - margin))
         for k in np.flatnonzero(ok):
             rows.append((pts.gcp_id[k], iid, ij[k, 0], ij[k, 1], pts.lon[k], pts.lat[k],
                          pts.h[k], pts.role[k], pts.E[k], pts.N[k]))
@@ -515,8 +525,8 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     # trajectory, line tables, models
     truth_ds, strips = make_trajectory(cfg, plan, terrain_mean, rng)
     true_traj = Trajectory.from_dataset(truth_ds)
-    swings = make_lines(cfg, plan, strips, true_traj)
     params = true_parameters(cfg, rng)
+    swings = make_lines(cfg, plan, strips, true_traj, params)
     sensor = {"model": "pendulum", "pixel_pitch": cfg.pixel_pitch,
               "focal_length": cfg.focal_length, "n_elements": cfg.n_elements,
               "k0": (cfg.n_elements - 1) / 2, "y0": 0.0}
@@ -601,6 +611,9 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
         meas.loc[idx, "element"] += size * np.cos(ang)
         gross = [{"gcp_id": obs.gcp_id[i], "image_id": obs.image_id[i], "size_px": float(s)}
                  for i, s in zip(idx, size)]
+    for col, n in (("line", "n_lines"), ("element", "n_elements")):
+        size = meas.image_id.map({k: getattr(v, n) for k, v in models.items()})
+        meas[col] = np.clip(meas[col], -0.49, size - 0.51)
     if cfg.ground_noise > 0:
         de, dn = grng.normal(0, cfg.ground_noise, (2, len(pts)))
         dh = grng.normal(0, cfg.ground_noise, len(pts))

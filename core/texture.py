@@ -9,6 +9,8 @@ GCPs); or a given orthophoto placed under the flight.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -34,8 +36,20 @@ class Texture:
         return t
 
     def __call__(self, e, n) -> np.ndarray:
-        e = np.asarray(e, float)
-        n = np.asarray(n, float)
+        e, n = np.broadcast_arrays(np.asarray(e, float), np.asarray(n, float))
+        if e.size > 2 * _CHUNK:
+            # numpy and ndimage release the GIL: evaluate chunks on two threads
+            ef, nf = e.ravel(), n.ravel()
+            parts = [(i, min(i + _CHUNK, ef.size)) for i in range(0, ef.size, _CHUNK)]
+            out = np.empty(ef.size, np.float32)
+
+            def run(p):
+                out[p[0]:p[1]] = self._eval(ef[p[0]:p[1]], nf[p[0]:p[1]])
+            list(_pool().map(run, parts))
+            return out.reshape(e.shape)
+        return self._eval(e, n)
+
+    def _eval(self, e, n) -> np.ndarray:
         v = self.base(e, n).astype(np.float32)
         tree = getattr(self, "_tree", None)
         if tree is not None:
@@ -45,6 +59,19 @@ class Texture:
             d = d.reshape(e.shape)
             v = np.where(d <= r, np.float32(1.0), np.where(d <= 2 * r, np.float32(0.0), v))
         return v
+
+
+_CHUNK = 131_072
+_POOL = None
+
+
+def _pool():
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+        _POOL = ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1),
+                                   thread_name_prefix="texture")
+    return _POOL
 
 
 def _rotate(e, n, angle, origin):
@@ -70,7 +97,7 @@ class ProceduralTexture(Texture):
         self.parcels = rng.random((256, 256)) ** 0.8
         self.parcel_size = 45.0
         self.parcel_angle = rng.uniform(0, np.pi)
-        self.warp = rng.random((2, 64, 64))
+        self.warp_phase = rng.uniform(0, 2 * np.pi, 2)
         # roads: straight bright lines
         k = 5
         self.road_angle = rng.uniform(0, np.pi, k)
@@ -83,25 +110,32 @@ class ProceduralTexture(Texture):
 
     def base(self, e, n) -> np.ndarray:
         s = self.scale
-        out = np.zeros(e.shape, np.float32)
+        de = np.asarray(e, float) - self.origin[0]
+        dn = np.asarray(n, float) - self.origin[1]
+        out = np.zeros(de.shape, np.float32)
         for (spacing, amp), tab, ang, sh in zip(self.octaves, self.tables, self.angles,
                                                 self.shifts):
-            x, y = _rotate(e, n, ang, self.origin)
             d = spacing * s
-            out += amp * self._lookup(tab, y / d + sh[0], x / d + sh[1]).astype(np.float32)
+            c, si = np.cos(ang) / d, np.sin(ang) / d
+            v = self._lookup(tab, si * de + c * dn + sh[0], c * de - si * dn + sh[1])
+            out += np.float32(amp) * v.astype(np.float32)
         # warped parcels
-        x, y = _rotate(e, n, self.parcel_angle, self.origin)
         ps = self.parcel_size * s
-        w = 1.5 * ps
-        wx = self._lookup(self.warp[0], y / (2.5 * ps), x / (2.5 * ps)) - 0.5
-        wy = self._lookup(self.warp[1], y / (2.5 * ps), x / (2.5 * ps)) - 0.5
-        par = self._lookup(self.parcels, (y + w * wy) / ps, (x + w * wx) / ps, order=0)
-        out = 0.6 * out + 0.35 * par.astype(np.float32) - 0.02
+        c, si = np.cos(self.parcel_angle) / ps, np.sin(self.parcel_angle) / ps
+        y = si * de + c * dn
+        x = c * de - si * dn
+        a, b = self.warp_phase
+        wx = 0.6 * np.sin(0.9 * y + 0.5 * x + a)
+        wy = 0.6 * np.sin(0.7 * x - 0.4 * y + b)
+        par = self._lookup(self.parcels, y + wy, x + wx, order=0)
+        out = np.float32(0.6) * out + np.float32(0.35) * par.astype(np.float32) \
+            - np.float32(0.02)
         # roads
+        on = np.zeros(de.shape, bool)
         for ang, off, wid in zip(self.road_angle, self.road_offset, self.road_width):
-            x, y = _rotate(e, n, ang, self.origin)
-            on = np.abs(y - off * s) < 0.5 * wid * s
-            out = np.where(on, np.float32(0.85), out)
+            y = np.sin(ang) * de + np.cos(ang) * dn - off * s
+            on |= np.abs(y) < 0.5 * wid * s
+        out[on] = np.float32(0.85)
         return np.clip(out, 0.0, 1.0)
 
 
