@@ -459,7 +459,8 @@ def _fill_nearest(val, ok):
 
 def _corrected(handles, sw: Swing, t, r0, c0, r1, c1):
     """Swing ``sw`` corrected by offset ``t`` on grid window ``[r0,r1) x [c0,c1)``:
-    ``out[x] = image[x + t]`` (cubic spline), and its valid mask."""
+    ``out[x] = image[x + t]`` (cubic spline), and its valid mask (every pixel the
+    interpolation leans on was valid)."""
     a = np.floor(t).astype(int)
     f = np.asarray(t, float) - a
     if f[0] < 1e-6 and f[1] < 1e-6:
@@ -467,12 +468,22 @@ def _corrected(handles, sw: Swing, t, r0, c0, r1, c1):
     p = 3
     val, ok = read_window(handles, sw, r0 + a[0] - p, c0 + a[1] - p, r1 + a[0] + p,
                           c1 + a[1] + p)
+    h, w = r1 - r0, c1 - c0
     if not ok.any():
-        return val[p:-p, p:-p], ok[p:-p, p:-p]
+        return val[p:p + h, p:p + w], ok[p:p + h, p:p + w]
     val = _fill_nearest(val, ok)
     sv = ndimage.shift(val, -f, order=3, mode="nearest")
-    so = ndimage.shift(ok.astype(np.float32), -f, order=1, mode="constant", cval=0.0)
-    return sv[p:-p, p:-p], so[p:-p, p:-p] > 0.999
+    # out[i] reads val[i + p + f]: valid where the pixels on both sides were valid
+    m = ok[p:p + h + 1, p:p + w + 1]
+    if f[0] >= 1e-6:
+        m = m[:-1] & m[1:]
+    else:
+        m = m[:-1]
+    if f[1] >= 1e-6:
+        m = m[:, :-1] & m[:, 1:]
+    else:
+        m = m[:, :-1]
+    return sv[p:p + h, p:p + w], m
 
 
 def render_tile(layout: Layout, r0, c0, r1, c1, offsets, radiometric, handles,
@@ -480,40 +491,55 @@ def render_tile(layout: Layout, r0, c0, r1, c1, offsets, radiometric, handles,
     """Blend grid window ``[r0,r1) x [c0,c1)``. ``offsets`` (n_swings, 2) and
     ``radiometric`` (n_swings,) per swing. ``mode``: ``"feather"`` (distance-weighted),
     ``"cut"`` (each pixel from the swing deepest inside its footprint: hard seams) or
-    ``"first"`` (first valid swing wins, like rasterio.merge). Returns (values, valid)."""
+    ``"first"`` (first valid swing wins, like rasterio.merge). Returns (values, valid).
+
+    A swing's weight is its distance to the nearest pixel outside its own (corrected)
+    footprint, capped at ``feather``; it is computed on the tile grown by ``feather + 2``
+    pixels, which is exact for a capped distance, so tiles join without seams.
+    """
     h, w = r1 - r0, c1 - c0
     E = int(feather) + 2
     acc = np.zeros((h, w))
     wsum = np.zeros((h, w))
     best = np.full((h, w), -1.0)
+    offsets = np.asarray(offsets, float)
     ext = np.array([s.extent for s in layout.swings], float)
-    lo = ext[:, :2] - np.asarray(offsets) - 1
-    hi = ext[:, 2:] - np.asarray(offsets) + 1
+    lo = np.floor(ext[:, :2] - offsets).astype(int) - 1      # corrected footprint bounds
+    hi = np.ceil(ext[:, 2:] - offsets).astype(int) + 1
     hit = ((lo[:, 0] < r1 + E) & (hi[:, 0] > r0 - E) & (lo[:, 1] < c1 + E) & (hi[:, 1] > c0 - E))
     if sel is not None:
         hit &= sel
     for k in np.nonzero(hit)[0]:
         sw = layout.swings[k]
-        val, ok = _corrected(handles, sw, offsets[k], r0 - E, c0 - E, r1 + E, c1 + E)
-        core = ok[E:E + h, E:E + w]
+        # the part of the grown tile this swing can reach
+        a0, b0 = max(r0 - E, lo[k, 0]), max(c0 - E, lo[k, 1])
+        a1, b1 = min(r1 + E, hi[k, 0]), min(c1 + E, hi[k, 1])
+        # the tile pixels inside it
+        i0, j0 = max(a0, r0), max(b0, c0)
+        i1, j1 = min(a1, r1), min(b1, c1)
+        if i1 <= i0 or j1 <= j0:
+            continue
+        val, ok = _corrected(handles, sw, offsets[k], a0, b0, a1, b1)
+        core = ok[i0 - a0:i1 - a0, j0 - b0:j1 - b0]
         if not core.any():
             continue
-        v = val[E:E + h, E:E + w] - radiometric[k]
+        v = val[i0 - a0:i1 - a0, j0 - b0:j1 - b0] - radiometric[k]
+        ta, tb = slice(i0 - r0, i1 - r0), slice(j0 - c0, j1 - c0)
         if mode == "first":
-            take = core & (wsum == 0)
-            acc[take] = v[take]
-            wsum[take] = 1.0
+            take = core & (wsum[ta, tb] == 0)
+            acc[ta, tb][take] = v[take]
+            wsum[ta, tb][take] = 1.0
             continue
-        dist = ndimage.distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1][E:E + h, E:E + w]
-        wt = np.minimum(dist, float(feather)) * core
+        dist = ndimage.distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1]
+        wt = np.minimum(dist[i0 - a0:i1 - a0, j0 - b0:j1 - b0], float(feather)) * core
         if mode == "cut":
-            take = core & (wt > best)
-            acc[take] = v[take]
-            best[take] = wt[take]
-            wsum[take] = 1.0
+            take = core & (wt > best[ta, tb])
+            acc[ta, tb][take] = v[take]
+            best[ta, tb][take] = wt[take]
+            wsum[ta, tb][take] = 1.0
         else:
-            acc += wt * v
-            wsum += wt
+            acc[ta, tb] += wt * v
+            wsum[ta, tb] += wt
     valid = wsum > 0
     out = np.where(valid, acc / np.where(valid, wsum, 1.0), np.nan)
     return out, valid
