@@ -103,6 +103,8 @@ class PushbroomModel(SensorModel):
     name = "pushbroom"
     kind = "push-broom"
     required_keys = ("n_elements",)
+    #: columns the per-line table (images/<id>.lines.csv) must have besides ``line``
+    line_columns = ("time",)
     #: exact correction steps follow the interpolated solve when linear interpolation of
     #: the state between lines is estimated to be off by more than this (pixels)
     exact_threshold_px: float = 1e-4

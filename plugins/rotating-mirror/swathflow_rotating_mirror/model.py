@@ -41,6 +41,8 @@ class RotatingMirrorModel(SensorModel):
     name = "rotating-mirror"
     kind = "whisk-broom"
     required_keys = ("n_elements", "ifov_deg", "dwell")
+    #: columns the per-line table (images/<id>.lines.csv) must have besides ``line``
+    line_columns = ("time",)
 
     # --- configuration and parameters -----------------------------------------------------
     @classmethod
