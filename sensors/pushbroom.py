@@ -566,12 +566,48 @@ class PushbroomModel(SensorModel):
             vp, vm = v0.copy(), v0.copy()
             vp[p] += h
             vm[p] -= h
-            fp = self.with_vector(vp)._conditions_exact(gk, lk, sk)
-            fm = self.with_vector(vm)._conditions_exact(gk, lk, sk)
+            fp = self._perturbed(vp)._conditions_exact(gk, lk, sk)
+            fm = self._perturbed(vm)._conditions_exact(gk, lk, sk)
             dF[:, :, col] = (fp - fm) / (2 * h)
         Jinv = np.linalg.inv(J[ok])
         out[ok] = -Jinv @ dF
         return out.reshape(shape + (2, len(sel)))
+
+    def ground_partials(self, ground, step: float = 0.01) -> np.ndarray:
+        """d(line, element)/d(X, Y, Z) in ECEF, ``(..., 2, 3)``, in closed form by the
+        implicit-function theorem at the solution (``step`` is not used)."""
+        ground = np.asarray(ground, float)
+        shape = ground.shape[:-1]
+        g = ground.reshape(-1, 3)
+        line, s, J = self._solve(g)
+        out = np.full((g.shape[0], 2, 3), np.nan)
+        ok = np.flatnonzero(np.isfinite(line))
+        if ok.size:
+            c, r = self._state_t(self._line_time(line[ok]))
+            gv = apply_t(r, g[ok] - c)
+            iz = -1.0 / gv[:, 2]
+            d = np.zeros((ok.size, 2, 3))          # d(r, q)/d(g_S)
+            d[:, 0, 0] = iz
+            d[:, 0, 2] = gv[:, 0] * iz * iz
+            d[:, 1, 1] = iz
+            d[:, 1, 2] = gv[:, 1] * iz * iz
+            dF = d @ np.swapaxes(r, -1, -2)         # g_S = R^T (G - C)
+            out[ok] = -np.linalg.inv(J[ok]) @ dF
+        return out.reshape(shape + (2, 3))
+
+    def _perturbed(self, v) -> "PushbroomModel":
+        """A shallow copy with other lever arm, boresight and fix corrections, for exact
+        evaluations only (no knots, no tangent table: cheaper than ``with_vector``)."""
+        import copy
+        p = self._params.with_vector(v)
+        out = copy.copy(self)
+        out._params = p
+        out._u_gps = p["u_gps"]
+        out._R_bs = r_opk(*np.radians(p["opk_cam"])) @ T
+        if self._ft.size:
+            out._d_ned = np.array([p[f"d_ned_{k}"] for k in range(self._ft.size)])
+            out._d_opk = np.array([p[f"d_opk_{k}"] for k in range(self._ft.size)])
+        return out
 
     # --- AP constraints (calibration) -------------------------------------------------------
     def continuity_residuals(self, params: ParameterSet | None = None) -> np.ndarray:
