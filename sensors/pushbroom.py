@@ -387,7 +387,7 @@ class PushbroomModel(SensorModel):
             line[sl], elem[sl], jac[sl] = self._solve_block(g[sl])
         return line, elem, jac
 
-    def _solve_block(self, g: np.ndarray, tol: float = 1e-10, max_iter: int = 10):
+    def _solve_block(self, g: np.ndarray, tol: float = 1e-7, max_iter: int = 10):
         """Bracket the knot interval with the viewing plane of the middle element, then
         Newton jointly in (line, element) with position and rotation linear between the two
         knots (the camera vector is then quadratic in the fraction), moving to the
@@ -403,6 +403,8 @@ class PushbroomModel(SensorModel):
         nv, dv = self._nvec, self._dvec
 
         def f_at(i, j):
+            if i is None:                  # all points, one line: no gathers
+                return g @ nv[j] - dv[j]
             gi = g[i]
             nj = nv[j]
             return nj[:, 0] * gi[:, 0] + nj[:, 1] * gi[:, 1] + nj[:, 2] * gi[:, 2] - dv[j]
@@ -628,16 +630,16 @@ def _matvec(m, v) -> np.ndarray:
 
 
 def _bracket(f_at, n: int, K: int):
-    """Like :func:`swathflow.linesolve.bracket_lines` (same returns), but faster for the
+    """Like :func:`swathflow.linesolve.bracket_lines` (same returns; ``f_at(None, j)``
+    evaluates all points at one line ``j``), but faster for the
     near-linear push-broom condition: each step evaluates ``m`` and ``m + 1`` at a guess
     (first the bracket's chord, then a Newton step with the local slope ``f(m+1) - f(m)``)
     and usually settles in two or three steps; from the fourth step on, a step that does not
     halve the bracket makes the next one a bisection, so the worst case stays logarithmic."""
-    idx = np.arange(n)
     lo = np.zeros(n, dtype=np.intp)
     hi = np.full(n, K - 1, dtype=np.intp)
-    flo = f_at(idx, lo)
-    fhi = f_at(idx, hi)
+    flo = f_at(None, 0)
+    fhi = f_at(None, K - 1)
     found = (np.sign(flo) != np.sign(fhi)) & np.isfinite(flo) & np.isfinite(fhi)
     x = np.zeros(n)
     with np.errstate(invalid="ignore", divide="ignore"):
