@@ -209,41 +209,70 @@ def make_plan(cfg: SimConfig) -> Plan:
 
 
 def make_trajectory(cfg: SimConfig, plan: Plan, terrain_mean: float, rng):
-    """True trajectory (xarray Dataset over time) and per-strip timing."""
+    """True trajectory (xarray Dataset over time, continuous at ``pos_rate`` through the
+    turns between strips) and per-strip timing.
+
+    On a strip the aircraft flies the planned line at constant ground speed with sway,
+    altitude wander, roll/pitch/heading oscillations and a constant crab angle; between
+    strips it follows a smooth turn (cubic Hermite in position, banked by its curvature)."""
     from .pos import _dataset
     to_ll = transformer(plan.crs, "EPSG:4326")
     az = math.radians(cfg.heading)
     fwd = np.array([math.sin(az), math.cos(az)])         # E, N unit vector along strip 1
     right = np.array([fwd[1], -fwd[0]])
-    chunks, strips = [], []
     lead = 3.0
+    period = plan.strip_duration + 2 * lead + cfg.strip_gap
+    t_first = plan.t0 - lead
+    t_last = plan.t0 + (cfg.n_strips - 1) * period + plan.strip_duration + lead
+    t = t_first + np.arange(int(round((t_last - t_first) * cfg.pos_rate)) + 1) / cfg.pos_rate
+    # smooth disturbances on the whole time axis (continuous across strips and turns)
+    sway = _sines(rng, t - plan.t0, cfg.sway_amp, (15, 40))
+    dh = _sines(rng, t - plan.t0, cfg.alt_amp, (20, 60))
+    roll = _sines(rng, t - plan.t0, cfg.roll_amp, (3, 15))
+    pitch = cfg.pitch_mean + _sines(rng, t - plan.t0, cfg.pitch_amp, (4, 20))
+    dpsi = _sines(rng, t - plan.t0, cfg.heading_amp, (5, 25))
+    crab = np.zeros_like(t)
+    en = np.zeros((t.size, 2))
+    strips, seg = [], []
     for k in range(cfg.n_strips):
-        t_start = plan.t0 + k * (plan.strip_duration + 2 * lead + cfg.strip_gap)
-        t = t_start - lead + np.arange(int(round((plan.strip_duration + 2 * lead)
-                                                 * cfg.pos_rate)) + 1) / cfg.pos_rate
+        t_start = plan.t0 + k * period
         sgn = 1.0 if k % 2 == 0 else -1.0                  # alternate flight directions
         off = (k - (cfg.n_strips - 1) / 2) * plan.spacing
         tc = t_start + plan.strip_duration / 2
-        along = sgn * cfg.speed * (t - tc)
-        sway = _sines(rng, t, cfg.sway_amp, (15, 40))
-        en = (np.asarray(plan.centre)[None] + along[:, None] * fwd[None]
-              + (off + sway)[:, None] * right[None])
-        h = terrain_mean + cfg.agl + _sines(rng, t, cfg.alt_amp, (20, 60))
-        lon, lat = to_ll.transform(en[:, 0], en[:, 1])
-        ecef = geodetic_to_ecef(np.stack([lat, lon, h], -1))
-        v = np.gradient(ecef, t, axis=0)
-        ned = np.einsum("nji,nj->ni", r_en(np.radians(lat), np.radians(lon)), v)
-        track = np.degrees(np.arctan2(ned[:, 1], ned[:, 0]))
-        crab = rng.uniform(-cfg.crab_max, cfg.crab_max)
-        roll = _sines(rng, t, cfg.roll_amp, (3, 15))
-        pitch = cfg.pitch_mean + _sines(rng, t, cfg.pitch_amp, (4, 20))
-        heading = track + crab + _sines(rng, t, cfg.heading_amp, (5, 25))
-        heading = (heading + 180.0) % 360.0 - 180.0
-        chunks.append((t, lat, lon, h, roll, pitch, heading))
+        on = (t >= t_start - lead - 1e-9) & (t <= t_start + plan.strip_duration + lead + 1e-9)
+        along = sgn * cfg.speed * (t[on] - tc)
+        en[on] = (np.asarray(plan.centre)[None] + along[:, None] * fwd[None]
+                  + (off + sway[on])[:, None] * right[None])
+        c = float(rng.uniform(-cfg.crab_max, cfg.crab_max))
+        crab[on] = c
+        seg.append(np.flatnonzero(on))
         strips.append({"strip": k + 1, "t_start": float(t_start), "direction_sign": sgn,
-                       "offset_m": float(off), "crab_deg": float(crab)})
-    cat = [np.concatenate([c[i] for c in chunks]) for i in range(7)]
-    ds = _dataset(*cat, source="simulated truth")
+                       "offset_m": float(off), "crab_deg": c})
+    for k in range(cfg.n_strips - 1):       # turns: Hermite between the strip ends
+        a, b = seg[k], seg[k + 1]
+        i0, i1 = a[-1], b[0]
+        if i1 - i0 < 2:
+            continue
+        v0 = (en[i0] - en[i0 - 1]) * cfg.pos_rate
+        v1 = (en[i1 + 1] - en[i1]) * cfg.pos_rate
+        T = t[i1] - t[i0]
+        u = (t[i0 + 1:i1] - t[i0]) / T
+        h00, h10 = 2 * u ** 3 - 3 * u ** 2 + 1, u ** 3 - 2 * u ** 2 + u
+        h01, h11 = -2 * u ** 3 + 3 * u ** 2, u ** 3 - u ** 2
+        en[i0 + 1:i1] = (h00[:, None] * en[i0] + h10[:, None] * T * v0
+                         + h01[:, None] * en[i1] + h11[:, None] * T * v1)
+        crab[i0 + 1:i1] = crab[i0] + (crab[i1] - crab[i0]) * u
+    h = terrain_mean + cfg.agl + dh
+    lon, lat = to_ll.transform(en[:, 0], en[:, 1])
+    ecef = geodetic_to_ecef(np.stack([lat, lon, h], -1))
+    v = np.gradient(ecef, t, axis=0)
+    ned = np.einsum("nji,nj->ni", r_en(np.radians(lat), np.radians(lon)), v)
+    track = np.unwrap(np.arctan2(ned[:, 1], ned[:, 0]))
+    speed = np.hypot(ned[:, 0], ned[:, 1])
+    bank = np.degrees(np.arctan(speed * np.gradient(track, t) / 9.80665))
+    heading = np.degrees(track) + crab + dpsi
+    heading = (heading + 180.0) % 360.0 - 180.0
+    ds = _dataset(t, lat, lon, h, roll + bank, pitch, heading, source="simulated truth")
     return ds, strips
 
 

@@ -218,7 +218,7 @@ def test_pos_noise_and_rate(demo_geo):
     np.testing.assert_allclose(noisy["time"], true["time"], atol=1e-6)
     assert np.allclose(np.diff(true["time"].values)[:100], 0.005)     # 200 Hz
     noisy = {k: noisy[k].values for k in noisy.data_vars}     # no xarray alignment on
-    true = {k: true[k].values for k in true.data_vars}        # float time labels
+    true = {k: true[k].values for k in ("time", *true.data_vars)}   # float time labels
     lat = np.radians(true["lat"])
     dn = (noisy["lat"] - true["lat"]) * 111_132.0
     de = (noisy["lon"] - true["lon"]) * 111_320.0 * np.cos(lat)
@@ -229,8 +229,13 @@ def test_pos_noise_and_rate(demo_geo):
         d = (noisy[k] - true[k] + 180) % 360 - 180
         assert 0.0043 < np.std(d) < 0.0057                                # 0.005 deg
     # realistic motion in the truth: roll/pitch oscillate, altitude wanders
-    assert 0.3 < np.ptp(true["roll"]) < 10
+    t = _truth(demo_geo)
+    during = (true["time"] >= t["images"][0]["t0"]) & (true["time"] <= t["images"][3]["t1"])
+    assert 0.3 < np.ptp(true["roll"][during]) < 10
     assert np.ptp(true["h"]) > 1.0
+    # continuous through the turn between the strips (no POS gaps), banked in the turn
+    assert np.diff(true["time"]).max() < 0.0051
+    assert np.abs(true["roll"][~during]).max() > np.abs(true["roll"][during]).max()
 
 
 def test_gcp_noise_and_gross_errors(demo_geo):
