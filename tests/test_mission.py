@@ -173,3 +173,19 @@ def test_load_raises_listing_all_problems(copy):
         load_mission(copy)
     msg = str(exc.value)
     assert "2 problem(s)" in msg and "R1.tif" in msg and "no-such-scanner" in msg
+
+
+def test_gcps_in_a_projected_crs(copy, tiny):
+    """[gcp].crs may be projected (x, y) with ellipsoidal z: lat/lon come back the same."""
+    from swathflow.geodesy import transformer
+    g = pd.read_csv(copy / "gcp.csv")
+    e, n = transformer("EPSG:4326", "EPSG:32651").transform(g["x"].to_numpy(), g["y"].to_numpy())
+    g["x"], g["y"] = e, n
+    g.to_csv(copy / "gcp.csv", index=False, float_format="%.4f")
+    _edit_toml(copy, 'crs = "EPSG:4979"', 'crs = "EPSG:32651"')
+    ref = load_mission(tiny).gcps
+    got = load_mission(copy).gcps
+    np.testing.assert_allclose(got["lat"], ref["lat"], atol=1e-8)
+    np.testing.assert_allclose(got["lon"], ref["lon"], atol=1e-8)
+    np.testing.assert_allclose(got[["X", "Y", "Z"]].to_numpy(), ref[["X", "Y", "Z"]].to_numpy(),
+                               atol=1e-3)

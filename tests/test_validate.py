@@ -260,3 +260,11 @@ def test_cli_exit_codes_and_no_traceback(good, m):
     r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "validate",
                         str(m / "no-such-folder")], capture_output=True, text=True)
     assert r.returncode != 0 and "Traceback" not in r.stdout + r.stderr
+
+
+def test_orthometric_dem_without_geoid(m):
+    _toml(m, 'vertical = "ellipsoidal"', 'vertical = "orthometric"')
+    p = _one(validate_mission(m), "dem.tif", "orthometric")
+    assert "undulation" in p.message or "geoid" in p.message
+    _toml(m, 'vertical = "orthometric"', 'vertical = "orthometric"\nundulation = 10.0')
+    assert validate_mission(m) == []
