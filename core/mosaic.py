@@ -707,13 +707,24 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
            mode: str = "feather", balance: bool = True, match: bool = True,
            max_shift: int = 12, block: int = 128, min_texture: float = 1.0, tile: int = 1024,
            workers: int | None = None, png: bool = True, report: bool = True,
-           cog: bool = True, strips: dict | None = None, log=None) -> dict:
+           cog: bool = True, strips: dict | None = None, log=None,
+           cache_mb: int = 128) -> dict:
     """Match, adjust and blend rectified swings ``paths`` into the mosaic ``out``.
 
-    Returns the report (also written to ``<out>.json`` when ``report``): per-node offsets
+    GDAL's block cache is capped at ``cache_mb`` so memory stays bounded (GDAL's default is
+    5 % of RAM). Returns the report (also written to ``<out>.json`` when ``report``): per-node offsets
     and radiometric offsets with their sigmas, every overlap with its measurement, status and
     residual, and the timing.
     """
+    import rasterio
+    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+        return _mosaic(paths, out, per_image, anchors, feather, mode, balance, match,
+                       max_shift, block, min_texture, tile, workers, png, report, cog, strips,
+                       log)
+
+
+def _mosaic(paths, out, per_image, anchors, feather, mode, balance, match, max_shift, block,
+            min_texture, tile, workers, png, report, cog, strips, log) -> dict:
     t0 = time.perf_counter()
     layout = scan_inputs(paths, strips)
     keys = _node_keys(layout, per_image)
