@@ -21,11 +21,26 @@ def atomic_path(path, suffix: str | None = None):
     os.close(fd)
     try:
         yield tmp
+        if os.path.exists(tmp):   # mkstemp makes 0600 files: give the usual umask'd mode
+            os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+def _read_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()   # read once: os.umask is process-wide and racy in threads
+
+
+def _umask() -> int:
+    return _UMASK
 
 
 def write_text(path, text: str) -> None:
