@@ -302,12 +302,20 @@ def _inspect(path) -> tuple[list[Problem], dict]:
             c.add(pp, "", "POS file not found", "check [pos].file in mission.toml")
         else:
             try:
+                max_gap = float(posc.get("max_gap", 1.0))
+            except (TypeError, ValueError):
+                c.add(toml, "[pos].max_gap", f"must be a number of seconds, got "
+                      f"{posc.get('max_gap')!r}", "max_gap = 1.0")
+                max_gap = 1.0
+            try:
                 ds = read_pos(pp, posc.get("format"))
-                traj = Trajectory.from_dataset(ds, max_gap=float(posc.get("max_gap", 1.0)))
+                traj = Trajectory.from_dataset(ds, max_gap=max_gap)
                 parts["pos"] = ds
             except SwathflowError as exc:
-                c.add(pp, "", str(exc).replace(str(pp) + ": ", ""),
-                      "re-export the POS (times strictly increasing, finite values)")
+                msg = str(exc).replace(str(pp) + ": ", "")
+                c.add(pp, "[pos]" if "format" in msg else "", msg,
+                      'set [pos] format = "sbet" or "csv"' if "unknown POS format" in msg
+                      else "re-export the POS (times strictly increasing, finite values)")
     parts["trajectory"] = traj
 
     # [terrain]
@@ -510,9 +518,9 @@ def _inspect(path) -> tuple[list[Problem], dict]:
             try:
                 model = cls.build(sensor, lt, traj, priors, image_id=iid, direction=e.direction,
                                   strip=e.strip, **e.attrs)
-            except SwathflowError as exc:
+            except (SwathflowError, TypeError, ValueError, KeyError) as exc:
                 c.add(toml, f"[[images]] id={iid!r}", f"the sensor model cannot be built: {exc}",
-                      "fix the image's entry or line table")
+                      "fix the image's entry, its line table or the [sensor] values")
                 continue
             if isinstance(terrain, DEM):
                 _check_dem_cover(model, terrain, iid, c)
