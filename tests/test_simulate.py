@@ -302,11 +302,27 @@ def test_rendered_targets_land_where_the_model_projects_them(tiny):
     """Independent geometry check: project the TRUE ground points of the GCPs with the
     vector-tested plugin (true trajectory, true parameters) and find the rendered survey
     target's centroid in the raw image at that place (within 0.15 px)."""
-    m, models = _true_models(tiny)
-    t = _truth(tiny)
-    tg = pd.read_csv(tiny / "truth" / "gcp.csv")
+    _check_targets(tiny)
+
+
+@pytest.mark.slow
+def test_demo_render_geometry_and_radiometry(tmp_path):
+    """The README demo, rendered: valid, targets where the model projects them (swings
+    of +-15 deg, two strips flown in opposite directions), images agree with the ortho."""
+    from swathflow.mission import validate_mission
+    out = tmp_path / "demo"
+    simulate(out, "demo", seed=0)
+    assert validate_mission(out) == []
+    _check_targets(out)
+    _check_image_vs_ortho(out)
+
+
+def _check_targets(out):
+    m, models = _true_models(out)
+    t = _truth(out)
+    tg = pd.read_csv(out / "truth" / "gcp.csv")
     radius_px = t["config"]["target_radius_px"]
-    n = 0
+    n, worst = 0, 0.0
     for iid, model in models.items():
         dn = m.image(iid)["dn"].values.astype(float) - t["radiometry"]["offset"]
         sel = tg[tg.image_id == iid]
@@ -319,8 +335,10 @@ def test_rendered_targets_land_where_the_model_projects_them(tiny):
             cl = (w * jj[win]).sum() / w.sum()
             ce = (w * ii[win]).sum() / w.sum()
             assert abs(cl - li) < 0.15 and abs(ce - el) < 0.15, (iid, li, el, cl, ce)
+            worst = max(worst, abs(cl - li), abs(ce - el))
             n += 1
-    assert n >= 16
+    print(f"{n} targets, worst centroid offset {worst:.3f} px")
+    assert n >= 8
 
 
 def test_rendered_image_agrees_with_truth_ortho(tiny):
@@ -370,6 +388,7 @@ def test_spline_interpolation_error_far_below_001px(tmp_path, preset):
     step = footprint_en(model, m.terrain, to_map, lines, ef + 1.0)
     px = np.linalg.norm(step - exact, axis=-1)          # ground size of one element
     err = np.linalg.norm(approx - exact, axis=-1) / px
+    print(f"{preset}: spline interpolation error max {np.nanmax(err):.2e} px")
     assert np.nanmax(err) < 1e-3, np.nanmax(err)
 
 
