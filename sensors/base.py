@@ -165,7 +165,7 @@ class SensorModel(ABC):
     # --- construction -----------------------------------------------------------------
     def __init__(self, sensor: Mapping[str, Any], lines: Mapping[str, Any],
                  trajectory: Trajectory, params: ParameterSet | Mapping | None = None,
-                 **image: Any):
+                 _shared: dict | None = None, **image: Any):
         problems = self.check_config(sensor)
         if problems:
             raise FormatError(f"[sensor] for model {self.name!r}: " + "; ".join(problems))
@@ -178,6 +178,8 @@ class SensorModel(ABC):
         else:
             self._params = base.updated(params or {})
         self._image = dict(image)
+        # parameter-independent precomputations, shared by every with_parameters() copy
+        self._shared = {} if _shared is None else _shared
         self._setup()
 
     @classmethod
@@ -236,7 +238,8 @@ class SensorModel(ABC):
     def with_parameters(self, params: ParameterSet | Mapping | None = None, **kw) -> "SensorModel":
         """A new model with some parameters changed (by name, or a whole ParameterSet)."""
         new = params if isinstance(params, ParameterSet) else self._params.updated(params, **kw)
-        return type(self)(self._sensor, self._lines, self._trajectory, new, **self._image)
+        return type(self)(self._sensor, self._lines, self._trajectory, new,
+                          _shared=self._shared, **self._image)
 
     def with_vector(self, v) -> "SensorModel":
         return self.with_parameters(self._params.with_vector(v))

@@ -69,17 +69,39 @@ class PendulumModel(SensorModel):
         self._R_hs = r_opk(*np.radians(p["opk_sen"])) @ T
         self._R_bp = r_opk(*np.radians(p[f"opk_pos_{direction}"]))
         self._lidx = np.arange(self.n_lines, dtype=float)
-        # exact state at every integer line: projection centre and scan-plane normal
-        c, r = self._state(self._lidx)
+        # exact state at every integer line: projection centre and scan-plane normal; the
+        # parameter-independent part (POS at the line times, gimbal) is computed once and
+        # shared with every with_parameters() copy (calibration rebuilds models often)
+        c, nrm = self._line_states()
         self._c_lines = c
-        self._n_lines = r @ np.array([0.0, self._f, self._y0])
+        self._n_lines = nrm
         self._planes = np.concatenate(
             [self._n_lines, -np.einsum("ij,ij->i", self._n_lines, c)[:, None]], axis=1)
         self._r_bp_t = np.ascontiguousarray(self._R_bp)   # v @ R == R.T @ v for row vectors
         self._r_hs = np.ascontiguousarray(self._R_hs)
-        lt = self._lines
-        self._line_cols = np.stack([lt["time"], np.radians(lt["swing"]),
-                                    np.radians(lt["pitch_comp"])], axis=-1)
+        if "line_cols" not in self._shared:
+            lt = self._lines
+            self._shared["line_cols"] = np.stack(
+                [lt["time"], np.radians(lt["swing"]), np.radians(lt["pitch_comp"])], axis=-1)
+        self._line_cols = self._shared["line_cols"]
+
+    def _line_states(self) -> tuple[np.ndarray, np.ndarray]:
+        """Projection centre and scan-plane normal ``R_ES (0, f, y0)`` (ECEF) at every
+        integer line, from the shared parameter-free part (vector rotations only)."""
+        sh = self._shared
+        if "r_eb" not in sh:
+            lt = self._lines
+            pos = self._trajectory.interpolate(lt["time"])
+            sh["x_ant"] = pos["ecef"]
+            sh["r_eb"] = r_en(np.radians(pos["lat"]), np.radians(pos["lon"])) @ r_nb(
+                np.radians(pos["roll"]), np.radians(pos["pitch"]), np.radians(pos["heading"]))
+            sh["r_ph"] = r_ph(np.radians(lt["swing"]), np.radians(lt["pitch_comp"]))
+        r_eb, r_ph_ = sh["r_eb"], sh["r_ph"]
+        lever = apply(r_ph_, self._u_sen) @ self._R_bp.T + self._u_gps
+        c = sh["x_ant"] + apply(r_eb, lever)
+        nvec = self._R_hs @ np.array([0.0, self._f, self._y0])
+        nrm = apply(r_eb, apply(r_ph_, np.broadcast_to(nvec, lever.shape)) @ self._R_bp.T)
+        return c, nrm
 
     @property
     def direction(self) -> str:
