@@ -379,7 +379,8 @@ def _truth_pos(mission):
     toml.write_text(text)
 
 
-def _rectify_and_check(tmp_path, mission, limit=0.1, extra=()):
+def _rectify_and_check(tmp_path, mission, limit=0.1, extra=(), tile=32, worst_limit=0.1,
+                       median_limit=0.05):
     from swathflow.flows.cli import main
     _truth_pos(mission)
     out = tmp_path / "rect"
@@ -387,18 +388,22 @@ def _rectify_and_check(tmp_path, mission, limit=0.1, extra=()):
                  str(mission / "truth" / "calibration.json"), "--out", str(out), *extra]) == 0
     summary = json.loads((out / "rectify.json").read_text())
     assert summary["images"] and "truth" in summary["calibration"]
-    reports = _compare_with_truth(mission, out)
+    reports = _compare_with_truth(mission, out, tile=tile)
     assert reports
     for iid, rep in reports.items():
         assert rep["whole_px"] < limit, (iid, rep)
         if rep["tiles"]:
-            assert rep["worst_tile_px"] < limit, (iid, rep)
+            assert rep["median_tile_px"] < median_limit, (iid, rep)
+            assert rep["worst_tile_px"] < worst_limit, (iid, rep)
     return reports
 
 
 def test_cli_rectify_simulated_mission(tmp_path):
     mission = _simulate(tmp_path)
-    reports = _rectify_and_check(tmp_path, mission, extra=["--products", "glt"])
+    # the tiny swaths are ~60 px wide: 32-px tiles, whose own measurement noise
+    # (sensor noise, sharp-edged fields) is a few hundredths of a pixel
+    reports = _rectify_and_check(tmp_path, mission, extra=["--products", "glt"],
+                                 worst_limit=0.15, median_limit=0.08)
     assert any(r["tiles"] for r in reports.values())
     assert (tmp_path / "rect" / f"{next(iter(reports))}.glt.tif").exists()
 
@@ -411,5 +416,35 @@ def test_cli_rectify_real_texture_over_real_dem(tmp_path):
     dem = DATA / "dem" / "jacksboro_fault_dem.tif"
     if not (tex.exists() and dem.exists()):
         pytest.skip("real data not available")
-    mission = _simulate(tmp_path, extra=["--texture", str(tex), "--dem", str(dem)])
-    _rectify_and_check(tmp_path, mission)
+    mission = _simulate(tmp_path, preset="demo",
+                        extra=["--texture", str(tex), "--dem", str(dem)])
+    # Whole footprints agree to < 0.01 px and the median 64-px tile to ~0.015 px; single
+    # tiles of the real texture reach 0.2 px where the rectifier's raw coordinates agree
+    # with the exact model to 0.03 px (checked below): a property of the simulated data
+    # (the 1-ft orthophoto's detail at the raw pixel size renders differently in the raw
+    # image and in the truth ortho), not of the geometry.
+    _rectify_and_check(tmp_path, mission, tile=64, worst_limit=0.25)
+    # the geometry itself, directly: rectifier coordinates vs the exact model, every pixel
+    import rasterio
+    import warnings
+    from swathflow.calibfile import calibration_priors, read_calibration
+    from swathflow.mission import load_mission
+    m = load_mission(mission)
+    params = m.priors.updated(calibration_priors(read_calibration(
+        mission / "truth" / "calibration.json")))
+    iid = m.image_ids[0]
+    model = m.model(iid, params)
+    with rasterio.open(tmp_path / "rect" / f"{iid}.tif") as src:
+        grid = Grid(m.crs, src.transform, src.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        co = np.concatenate([np.concatenate(
+            [R.inverse_map(model, grid.window(rs, cs), m.terrain) for rs, cs in
+             [(rs, slice(c, min(c + 512, grid.width))) for c in range(0, grid.width, 512)]],
+            axis=1) for rs in [slice(r, min(r + 512, grid.height))
+                               for r in range(0, grid.height, 512)]], axis=0)
+        ex = R._exact_raw(model, grid, m.terrain, *np.indices(grid.shape))
+    err = np.abs(co - ex).max(axis=-1)
+    print("raw-coordinate error over the real DEM: max", np.nanmax(err),
+          "p99.9", np.nanpercentile(err, 99.9))
+    assert np.nanpercentile(err, 99.9) < 0.05 and np.nanmax(err) < 0.1
