@@ -418,12 +418,11 @@ def test_cli_rectify_real_texture_over_real_dem(tmp_path):
         pytest.skip("real data not available")
     mission = _simulate(tmp_path, preset="demo",
                         extra=["--texture", str(tex), "--dem", str(dem)])
-    # Whole footprints agree to < 0.01 px and the median 64-px tile to ~0.015 px; single
-    # tiles of the real texture reach 0.2 px where the rectifier's raw coordinates agree
-    # with the exact model to 0.03 px (checked below): a property of the simulated data
-    # (the 1-ft orthophoto's detail at the raw pixel size renders differently in the raw
-    # image and in the truth ortho), not of the geometry.
-    _rectify_and_check(tmp_path, mission, tile=64, worst_limit=0.25)
+    # measured (simulator of d0753b6's time): whole footprints <= 0.017 px, median 64-px
+    # tile ~0.015 px, worst tile 0.078 px (an earlier simulator rendered some tiles 0.2 px
+    # off while the rectifier's raw coordinates there agreed with the exact model to
+    # 0.03 px: the check below separates the geometry from the rendering)
+    _rectify_and_check(tmp_path, mission, tile=64, worst_limit=0.1)
     # the geometry itself, directly: rectifier coordinates vs the exact model, every pixel
     import rasterio
     import warnings
