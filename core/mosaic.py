@@ -159,23 +159,33 @@ def scan_inputs(paths, strips: dict | None = None) -> Layout:
 
 # --- windowed reading ---------------------------------------------------------------------------
 class _Handles:
-    """Open datasets, one set per thread (GDAL handles must not be shared across threads)."""
+    """Open datasets, one small LRU set per thread (GDAL handles must not be shared across
+    threads; an open dataset costs memory, so at most ``per_thread`` stay open)."""
 
-    def __init__(self):
+    def __init__(self, per_thread: int = 16):
         self._local = threading.local()
-        self._all = []
+        self._all = set()
         self._lock = threading.Lock()
+        self.per_thread = per_thread
 
     def get(self, path):
         import rasterio
+        from collections import OrderedDict
         cache = getattr(self._local, "cache", None)
         if cache is None:
-            cache = self._local.cache = {}
+            cache = self._local.cache = OrderedDict()
         ds = cache.get(path)
-        if ds is None:
-            ds = cache[path] = rasterio.open(path)
+        if ds is not None:
+            cache.move_to_end(path)
+            return ds
+        ds = cache[path] = rasterio.open(path)
+        with self._lock:
+            self._all.add(ds)
+        while len(cache) > self.per_thread:
+            _, old = cache.popitem(last=False)
             with self._lock:
-                self._all.append(ds)
+                self._all.discard(old)
+            old.close()
         return ds
 
     def close(self):
@@ -708,7 +718,7 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
            max_shift: int = 12, block: int = 128, min_texture: float = 1.0, tile: int = 1024,
            workers: int | None = None, png: bool = True, report: bool = True,
            cog: bool = True, strips: dict | None = None, log=None,
-           cache_mb: int = 128) -> dict:
+           cache_mb: int = 64) -> dict:
     """Match, adjust and blend rectified swings ``paths`` into the mosaic ``out``.
 
     GDAL's block cache is capped at ``cache_mb`` so memory stays bounded (GDAL's default is
