@@ -9,14 +9,12 @@ texture at the output pixel centres) over the whole footprint and per 128-px til
 
     /tmp/venv/bin/python benchmarks/bench_rectify.py                 # side by side
     /tmp/venv/bin/python benchmarks/bench_rectify.py --memory        # 2048 x 20000 swing, peak RSS
-    options: --elements 1024 --lines 2800 --threads 2 --kernel bilinear
+    options: --elements 1024 --lines 2800 --threads 2 --kernel bilinear --repeat 3
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import resource
 import shutil
 import subprocess
 import sys
@@ -63,10 +61,25 @@ def _score(name, out, truth, seconds, cores):
             "mpx_per_s_per_core": round(mpx / seconds / cores, 3)}
 
 
+def _best(n, run):
+    """Run ``n`` times; the last result and the best wall time (the machine is shared).
+    A result that is a tuple ending in its own time (the peers) reports that time."""
+    best, out = float("inf"), None
+    for _ in range(max(n, 1)):
+        t0 = time.perf_counter()
+        out = run()
+        dt = time.perf_counter() - t0
+        if isinstance(out, tuple) and len(out) >= 2 and isinstance(out[1], float):
+            dt = out[1]
+        best = min(best, dt)
+    if isinstance(out, tuple) and len(out) == 3:      # gdalwarp: (array, seconds, cmd)
+        out = (out[0], best, out[2])
+    return out, best
+
+
 def _gdalwarp(raw, X, Y, grid, kernel, threads, tmp):
     import rasterio
     from swathflow.raster import write_geotiff
-    from swathflow.grid import Grid
     gdal = shutil.which("gdalwarp")
     if gdal is None:
         return None
@@ -133,23 +146,22 @@ def side_by_side(args):
     # ours
     with dask.config.set(scheduler="threads", num_workers=args.threads):
         R.rectify(model, raw, grid, terrain, args.kernel, tile=512).compute()   # warm-up
-        t0 = time.perf_counter()
-        ours = R.rectify(model, raw, grid, terrain, args.kernel, tile=512).compute()
-        rows.append(_score("swathflow exact", ours, truth, time.perf_counter() - t0,
-                           args.threads))
-    t0 = time.perf_counter()
-    poly = R.rectify_polynomial(model, raw, grid, terrain)
-    rows.append(_score("swathflow polynomial (1 core)", poly, truth,
-                       time.perf_counter() - t0, 1))
+        ours, dt = _best(args.repeat, lambda: R.rectify(model, raw, grid, terrain, args.kernel,
+                                                        tile=512).compute())
+        rows.append(_score("swathflow exact", ours, truth, dt, args.threads))
+    poly, dt = _best(args.repeat, lambda: R.rectify_polynomial(model, raw, grid, terrain))
+    rows.append(_score("swathflow polynomial (1 core)", poly, truth, dt, 1))
     t0 = time.perf_counter()
     X, Y = geoloc_arrays(model, terrain, grid.crs, corner=True)
     t_geo = time.perf_counter() - t0
     print(f"geolocation arrays (pixel corners, our model, not counted below): {t_geo:.1f} s")
-    out, dt = _rasterio(raw, X, Y, grid, args.kernel, args.threads)
+    (out, _), dt = _best(args.repeat, lambda: _rasterio(raw, X, Y, grid, args.kernel,
+                                                        args.threads))
     rows.append(_score("rasterio reproject geoloc (corners)", out, truth, dt, args.threads))
     rows[-1]["with_geoloc"] = round(dt + t_geo, 3)
     with tempfile.TemporaryDirectory() as td:
-        res = _gdalwarp(raw, X, Y, grid, args.kernel, args.threads, Path(td))
+        res, _ = _best(args.repeat, lambda: _gdalwarp(raw, X, Y, grid, args.kernel,
+                                                      args.threads, Path(td)))
         if res is None:
             print("gdalwarp not found: skipping it (apt-get install gdal-bin)")
         else:
@@ -228,6 +240,7 @@ def main():
     ap.add_argument("--gsd", type=float, default=0.75)
     ap.add_argument("--kernel", default="bilinear", choices=("nearest", "bilinear", "cubic"))
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=3, help="runs per method; best time kept")
     args = ap.parse_args()
     if args.memory:
         r = memory_run(threads=args.threads)

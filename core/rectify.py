@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from typing import Any, Mapping
+from typing import Mapping
 
 import numpy as np
 
@@ -814,7 +814,6 @@ def cli_rectify(args) -> int:
     import json
     import time
     from .calibfile import calibration_priors, read_calibration
-    from .grid import resolve_crs
     from .mission import load_mission
     mission = load_mission(args.mission)
     params, cal_tag = mission.priors, "mission priors (mission.toml [calibration])"
