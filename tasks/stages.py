@@ -121,7 +121,7 @@ def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) ->
     t0 = time.perf_counter()
     rectify_image(model, m.image(image_id), m.terrain, out, grid=grid,
                   tags={"image_id": image_id, "strip": m.images[image_id].strip,
-                        "mission": m.name,
+                        "direction": m.images[image_id].direction, "mission": m.name,
                         "calibration": f"{calibration} (sha256 {file_digest(calibration)[:16]})",
                         "parameters": json.dumps(model.parameters.values_dict())})
     mark_done(out, key, seconds=round(time.perf_counter() - t0, 3))
