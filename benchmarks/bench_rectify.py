@@ -146,9 +146,11 @@ def side_by_side(args):
     # ours
     with dask.config.set(scheduler="threads", num_workers=args.threads):
         R.rectify(model, raw, grid, terrain, args.kernel, tile=512).compute()   # warm-up
-        ours, dt = _best(args.repeat, lambda: R.rectify(model, raw, grid, terrain, args.kernel,
-                                                        tile=512).compute())
-        rows.append(_score("swathflow exact", ours, truth, dt, args.threads))
+        for tol in sorted({R.TOLERANCE_PX, *args.tolerance}, reverse=True):
+            ours, dt = _best(args.repeat, lambda: R.rectify(
+                model, raw, grid, terrain, args.kernel, tol=tol, tile=512).compute())
+            rows.append(_score(f"swathflow exact (bound {tol:g} px)", ours, truth, dt,
+                               args.threads))
     poly, dt = _best(args.repeat, lambda: R.rectify_polynomial(model, raw, grid, terrain))
     rows.append(_score("swathflow polynomial (1 core)", poly, truth, dt, 1))
     t0 = time.perf_counter()
@@ -241,6 +243,8 @@ def main():
     ap.add_argument("--kernel", default="bilinear", choices=("nearest", "bilinear", "cubic"))
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3, help="runs per method; best time kept")
+    ap.add_argument("--tolerance", type=float, nargs="*", default=[0.005],
+                    help="extra coordinate-interpolation bounds (px) to time beside the default")
     args = ap.parse_args()
     if args.memory:
         r = memory_run(threads=args.threads)
