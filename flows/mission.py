@@ -23,6 +23,9 @@ QUIET_PREFECT = {
 }
 for _k, _v in QUIET_PREFECT.items():
     os.environ.setdefault(_k, _v)
+# raw scanner images have no geotransform by nature (see flows/cli.py)
+import warnings  # noqa: E402
+warnings.filterwarnings("ignore", message="Dataset has no geotransform")
 
 from prefect import flow  # noqa: E402
 
