@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -16,6 +17,26 @@ from prefect.cache_policies import NO_CACHE
 
 from swathflow.cache import is_fresh, mark_done, stage_key
 from swathflow.errors import SwathflowError
+
+
+_MISSIONS: dict = {}
+_MISSIONS_LOCK = threading.Lock()
+
+
+def _load(mission_path: str):
+    """load_mission, memoised per process on the mission folder's file stamps: every task
+    of a run needs the mission, and loading it (POS, DEM, GCPs, checks) costs seconds."""
+    from swathflow.mission import load_mission
+    root = Path(mission_path).resolve()
+    stamp = tuple(sorted((str(p), p.stat().st_mtime_ns, p.stat().st_size)
+                         for p in root.rglob("*") if p.is_file()))
+    key = (str(root), hash(stamp))
+    with _MISSIONS_LOCK:
+        if key not in _MISSIONS:
+            if len(_MISSIONS) > 8:
+                _MISSIONS.clear()
+            _MISSIONS[key] = load_mission(root)
+        return _MISSIONS[key]
 
 
 def _mission_files(mission) -> list:
@@ -34,12 +55,8 @@ def _image_files(mission, iid) -> list:
 
 @task(name="ingest", cache_policy=NO_CACHE)
 def ingest(mission_path: str) -> dict:
-    """Validate the mission (every problem listed at once) and summarise it."""
-    from swathflow.mission import format_problems, load_mission, validate_mission
-    problems = validate_mission(mission_path)
-    if problems:
-        raise SwathflowError(format_problems(mission_path, problems))
-    m = load_mission(mission_path)
+    """Load and validate the mission (every problem listed at once) and summarise it."""
+    m = _load(mission_path)
     return {"name": m.name, "images": list(m.images), "sensor": m.sensor.get("model"),
             "gcps": 0 if m.gcps is None else int(len(m.gcps)), "crs": m.crs, "gsd": m.gsd}
 
@@ -51,9 +68,8 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
     line before the heavy stages start)."""
     import pandas as pd
     from swathflow.io import atomic_path
-    from swathflow.mission import load_mission
     from swathflow.pos import interpolate_pos as interp
-    m = load_mission(mission_path)
+    m = _load(mission_path)
     paths = []
     for iid in m.images:
         out = Path(out_dir) / "pos" / f"{iid}.eo.csv"
@@ -76,8 +92,7 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
     """Per-swing-direction calibration from the mission's control points, or the given
     calibration file (checked), or, without control points, the mission's priors."""
     from swathflow.calibfile import read_calibration, write_calibration
-    from swathflow.mission import load_mission
-    m = load_mission(mission_path)
+    m = _load(mission_path)
     out = Path(out_dir) / "calibration" / "calibration.json"
     if calibration:
         doc = read_calibration(calibration)
@@ -108,9 +123,8 @@ def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) ->
     from swathflow.calibfile import calibration_priors, read_calibration
     from swathflow.cache import file_digest
     from swathflow.grid import footprint_grid
-    from swathflow.mission import load_mission
     from swathflow.rectify import rectify_image
-    m = load_mission(mission_path)
+    m = _load(mission_path)
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
     key = stage_key("rectify", _mission_files(m) + _image_files(m, image_id) + [calibration])
     if is_fresh(out, key):
