@@ -1,0 +1,668 @@
+"""Push-broom (three-line camera) calibration: papers.md section 2, spec/geometry.md's
+push-broom section.
+
+Unknowns: the lever arm ``u_gps``, the boresight ``opk_cam``, the per-segment cubic APs
+``ax_<view>_<i>`` / ``bx_<view>_<i>`` of every CCD line, the LIM orientation-fix corrections
+``d_ned_<k>`` / ``d_opk_<k>`` (every calibration parameter carries its prior as a
+pseudo-observation), and the ground coordinates (ECEF) of every tie point. Observations: the
+image coordinates of control points (known ground) and of tie points (ground unknown),
+observed minus computed through ``ground_to_image``. The AP continuity (C0) and smoothness
+(C1) conditions at every segment boundary are hard equality constraints
+(:func:`swathflow.sensors.pushbroom.continuity_matrix`), solved exactly.
+
+The Jacobian is sparse (a tie point's rows touch its own three coordinates and the
+parameters of one image, and an image depends only on the fixes around its time), so the
+generic engine :func:`swathflow.adjust.solve` runs on sparse normal equations (SuperLU).
+Internally every parameter is scaled by its prior sigma (AP coefficients span 12 orders of
+magnitude otherwise).
+
+Two solutions: ``joint`` (everything at once) and the paper's iterative ``two-step``
+scheme (exterior: lever arm, boresight and fix corrections with the APs held; then
+interior: the APs with the exterior held; repeated until the parameters stop changing;
+tie coordinates are free in both steps). Its covariance is the joint one at its solution
+(the per-step covariances are conditional on the other block, hence too small).
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+import scipy.sparse as sp
+
+from .adjust import Problem, RankDeficiencyError, Solution, solve
+from .calibration import (CalibrationError, CalibrationResult, build_unknowns,
+                          residual_table, summarize)
+from .errors import FormatError
+
+TIE_COLUMNS = ("tie_id", "image_id", "line", "element")
+METHODS = ("joint", "two-step", "both")
+
+
+# --- tie points ---------------------------------------------------------------------------
+def read_ties(path, images: Sequence[str] | None = None) -> pd.DataFrame:
+    """Read a tie-point table (``tie_id,image_id,line,element``; see
+    docs/mission-format-pushbroom.md). Raises FormatError naming the file, row and fix."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FormatError(f"{path}: tie-point file not found (check [ties].file in "
+                          f"mission.toml)")
+    try:
+        df = pd.read_csv(path, dtype={"tie_id": str, "image_id": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: cannot be read as CSV: {exc}") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    miss = [c for c in TIE_COLUMNS if c not in df.columns]
+    if miss:
+        raise FormatError(f"{path}: missing column(s) {', '.join(miss)}; the header must "
+                          f"contain {','.join(TIE_COLUMNS)}")
+    for c in ("line", "element"):
+        v = pd.to_numeric(df[c], errors="coerce").to_numpy(float)
+        bad = ~np.isfinite(v)
+        if bad.any():
+            raise FormatError(f"{path}: file row {int(np.flatnonzero(bad)[0]) + 2}, column "
+                              f"{c}: not a finite number; delete unmeasured rows")
+        df[c] = v
+    for c in ("tie_id", "image_id"):
+        bad = df[c].isna().to_numpy()
+        if bad.any():
+            raise FormatError(f"{path}: file row {int(np.flatnonzero(bad)[0]) + 2}: empty "
+                              f"{c}")
+    df["tie_id"] = df["tie_id"].astype(str)
+    df["image_id"] = df["image_id"].astype(str)
+    if images is not None:
+        bad = ~df["image_id"].isin(list(images)).to_numpy()
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise FormatError(f"{path}: file row {i + 2}: unknown image id "
+                              f"{df['image_id'][i]!r}; use one of {', '.join(images)}")
+    dup = df.duplicated(["tie_id", "image_id"]).to_numpy()
+    if dup.any():
+        raise FormatError(f"{path}: file row {int(np.flatnonzero(dup)[0]) + 2}: tie point "
+                          f"measured twice in one image; keep one row per tie and image")
+    return df.reset_index(drop=True)
+
+
+def mission_ties(mission) -> pd.DataFrame | None:
+    """The mission's tie points (``[ties] file = "ties.csv"``), or None."""
+    tc = mission.config.get("ties")
+    if tc is None:
+        return None
+    if not isinstance(tc, dict) or "file" not in tc:
+        raise FormatError(f"{mission.path / 'mission.toml'}: [ties] needs file = "
+                          f"\"ties.csv\"")
+    p = mission.path / tc["file"]
+    return read_ties(p, list(mission.images))
+
+
+def intersect_rays(models: Mapping, obs: pd.DataFrame, id_col: str = "tie_id"):
+    """Least-squares intersection of the rays of every point's image observations:
+    ``(ids, ECEF (n, 3), rays per point)``; points with fewer than two rays are left out."""
+    o_all, d_all, k_all = [], [], []
+    ids, inv = np.unique(obs[id_col].to_numpy(str), return_inverse=True)
+    for iid, g in obs.groupby("image_id", sort=False):
+        o, d = models[iid].ray(g[["line", "element"]].to_numpy(float))
+        o_all.append(o)
+        d_all.append(d)
+        k_all.append(inv[g.index.to_numpy()])
+    o, d, k = np.concatenate(o_all), np.concatenate(d_all), np.concatenate(k_all)
+    ok = np.isfinite(o).all(1) & np.isfinite(d).all(1)
+    o, d, k = o[ok], d[ok], k[ok]
+    M = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    A = np.zeros((ids.size, 3, 3))
+    b = np.zeros((ids.size, 3))
+    np.add.at(A, k, M)
+    np.add.at(b, k, np.einsum("nij,nj->ni", M, o))
+    n = np.bincount(k, minlength=ids.size)
+    good = n >= 2
+    X = np.full((ids.size, 3), np.nan)
+    X[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0]
+    return ids, X, n
+
+
+# --- the adjustment -----------------------------------------------------------------------
+@dataclass
+class _Setup:
+    models: dict
+    unk: object
+    p0: np.ndarray
+    scale: np.ndarray
+    n_par: int
+    tie_ids: np.ndarray
+    T0: np.ndarray
+    spans: list                      # (iid, rows slice, ground (n, 3) or None, tie index)
+    l_obs: np.ndarray                # (2 n_obs,) line, element interleaved
+    comp: np.ndarray                 # component label per observation
+    point_names: np.ndarray
+    cons_A: np.ndarray               # C0/C1 rows over the model vector
+    cons_labels: list
+    ap_mask: np.ndarray              # over the parameters
+    cache: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return self.n_par + 3 * self.tie_ids.size
+
+    def params(self, z) -> np.ndarray:
+        return self.p0 + self.scale * z[:self.n_par]
+
+    def ties(self, z) -> np.ndarray:
+        return self.T0 + z[self.n_par:].reshape(-1, 3)
+
+    def fn(self, z, jacobian=True):
+        key = z.tobytes()
+        ent = self.cache.get(key)
+        if ent is None:
+            self.cache.clear()
+            p = self.params(z)
+            T = self.ties(z)
+            comp = np.empty_like(self.l_obs)
+            mods, grounds = {}, []
+            for iid, sl, G, ti in self.spans:
+                m = self.models[iid].with_vector(p)
+                g = G if ti is None else T[ti]
+                mods[iid] = m
+                grounds.append(g)
+                comp[sl] = m.ground_to_image(g, clip=False).ravel()
+            ent = self.cache[key] = [comp, mods, grounds, None]
+        comp, mods, grounds, J = ent
+        r = self.l_obs - comp
+        if jacobian and J is None:
+            J = self._jacobian(mods, grounds)
+            ent[3] = J
+        return r, (J if jacobian else None)
+
+    def _jacobian(self, mods, grounds):
+        rows, cols, vals = [], [], []
+        for (iid, sl, G, ti), g in zip(self.spans, grounds):
+            m = mods[iid]
+            r0 = sl.start
+            nobs = g.shape[0]
+            D = m.parameter_partials(g) * self.scale          # (n, 2, P)
+            D = D.reshape(2 * nobs, self.n_par)
+            rr, cc = np.nonzero(np.nan_to_num(D))
+            rows.append(rr + r0)
+            cols.append(cc)
+            vals.append(D[rr, cc])
+            if ti is not None:
+                Dg = m.ground_partials(g).reshape(2 * nobs, 3)   # (2n, 3)
+                rr = np.repeat(np.arange(2 * nobs), 3)
+                cc = self.n_par + 3 * np.repeat(ti, 2 * 3) + np.tile(np.arange(3), 2 * nobs)
+                rows.append(rr + r0)
+                cols.append(cc)
+                vals.append(Dg.ravel())
+        rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
+        vals = np.where(np.isfinite(vals), vals, 0.0)
+        return sp.csr_matrix((vals, (rows, cols)), shape=(self.l_obs.size, self.n))
+
+    def problem(self, z0, free_params: np.ndarray, obs_sigma: float, tie_sigma: float):
+        """A Problem starting at ``z0`` with only ``free_params`` (and the ties) free."""
+        P = Problem(self._names(), z0, self._units())
+        fixed = np.zeros(self.n, bool)
+        fixed[:self.n_par] = ~free_params
+        P.fix(fixed)
+        sig = np.where(np.char.startswith(self.comp.astype(str), "tie"), tie_sigma, obs_sigma)
+        P.add_observations("image", self.fn, sig, component=self.comp,
+                           point=np.repeat(np.arange(self.l_obs.size // 2), 2),
+                           point_names=self.point_names, robust=True)
+        prior_sig = np.full(self.n, np.inf)
+        prior_sig[:self.n_par] = np.where(self.unk.fixed, np.inf, 1.0)
+        P.add_priors(np.zeros(self.n), prior_sig, name="priors")
+        # C0/C1: hard constraints on the free APs, in the scaled unknowns
+        if self.cons_A.size:
+            A = self.cons_A * self.scale[None]
+            keep = np.any(A[:, free_params] != 0, axis=1)
+            if keep.any():
+                A = A[keep]
+                d = -(self.cons_A[keep] @ self.p0)
+                nrm = np.abs(A).max(axis=1)
+                Af = np.zeros((A.shape[0], self.n))
+                Af[:, :self.n_par] = A / nrm[:, None]
+                P.add_constraint(sp.csr_matrix(Af), d / nrm)
+        return P
+
+    def _names(self):
+        return list(self.unk.names) + [f"{t}.{c}" for t in self.tie_ids for c in "XYZ"]
+
+    def _units(self):
+        return list(self.unk.units) + ["m"] * (3 * self.tie_ids.size)
+
+
+def _scale(priors, model) -> np.ndarray:
+    s = priors.sigmas().astype(float)
+    fallback = model.fd_step_sizes() * 1e3
+    return np.where(np.isfinite(s) & (s > 0), s, fallback)
+
+
+def _setup(models, gcps, ties, priors, fixed, calibration_images) -> tuple[_Setup, dict]:
+    first = next(iter(models.values()))
+    unk = build_unknowns(priors, fixed=fixed)
+    if unk.names != priors.flat_names():
+        raise CalibrationError("push-broom calibration: unexpected parameter layout")
+    p0 = priors.vector()
+    scale = _scale(priors, first)
+    n_par = p0.size
+    info = {"dropped_ties": []}
+    cal = set(calibration_images)
+    ctrl = gcps[(gcps["role"] == "control") & gcps["image_id"].isin(cal)] \
+        if gcps is not None else pd.DataFrame(columns=["gcp_id", "image_id"])
+    # tie points: initial ground by ray intersection with the prior parameters
+    tie_ids = np.zeros(0, str)
+    T0 = np.zeros((0, 3))
+    tobs = None
+    if ties is not None and len(ties):
+        tobs = ties[ties["image_id"].isin(cal)].reset_index(drop=True)
+        start = {iid: m.with_vector(p0) for iid, m in models.items()}
+        ids, X, nray = intersect_rays(start, tobs)
+        good = np.isfinite(X).all(1)
+        info["dropped_ties"] = [str(i) for i in ids[~good]]
+        tie_ids, T0 = ids[good], X[good]
+        tobs = tobs[tobs["tie_id"].isin(set(tie_ids))].reset_index(drop=True)
+    tpos = {t: k for k, t in enumerate(tie_ids)}
+    spans, l_obs, comp, names = [], [], [], []
+    k = 0
+    for iid in calibration_images:
+        for kind, df in (("control", ctrl), ("tie", tobs)):
+            if df is None:
+                continue
+            g = df[df["image_id"] == iid]
+            if not len(g):
+                continue
+            sl = slice(2 * k, 2 * (k + len(g)))
+            if kind == "control":
+                spans.append((iid, sl, g[["X", "Y", "Z"]].to_numpy(float), None))
+                names += [f"{p}@{iid}" for p in g["gcp_id"]]
+                comp += ["y", "x"] * len(g)
+            else:
+                spans.append((iid, sl, None, np.array([tpos[t] for t in g["tie_id"]])))
+                names += [f"tie {p}@{iid}" for p in g["tie_id"]]
+                comp += ["tie y", "tie x"] * len(g)
+            l_obs.append(g[["line", "element"]].to_numpy(float).ravel())
+            k += len(g)
+    if k == 0:
+        raise CalibrationError("no control or tie points on the calibration images: add "
+                               "control points to gcp.csv (role control) or tie points "
+                               "([ties] file)")
+    from swathflow.sensors.pushbroom import continuity_matrix
+    A, labels = continuity_matrix(first.sensor, priors)
+    ap = np.array([n.startswith(("ax_", "bx_")) for n in unk.names])
+    st = _Setup(dict(models), unk, p0, scale, n_par, tie_ids, T0, spans,
+                np.concatenate(l_obs), np.array(comp, dtype=object),
+                np.array(names, dtype=object), A, labels, ap)
+    return st, info
+
+
+def _check_gcps(gcps: pd.DataFrame, models) -> pd.DataFrame:
+    need = ("gcp_id", "image_id", "line", "element", "X", "Y", "Z", "role")
+    miss = [c for c in need if c not in gcps.columns]
+    if miss:
+        raise FormatError(f"control-point table: missing column(s) {', '.join(miss)}")
+    g = gcps.reset_index(drop=True).copy()
+    g["image_id"] = g["image_id"].astype(str)
+    g["gcp_id"] = g["gcp_id"].astype(str)
+    g["role"] = g["role"].astype(str).str.strip().str.lower()
+    bad = ~g["role"].isin(["control", "check"]) | ~g["image_id"].isin(list(models))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise FormatError(f"control-point table row {i}: role must be control or check and "
+                          f"image_id one of {', '.join(models)}")
+    return g
+
+
+def _vce(vce):
+    return ["x", "y", "tie x", "tie y"] if vce else False
+
+
+def _run(P, vce, robust, alpha, tol=1e-2, max_iter=50):
+    try:
+        return solve(P, vce=_vce(vce), robust=robust, alpha=alpha, sparse=True, tol=tol,
+                     max_iter=max_iter)
+    except RankDeficiencyError as exc:
+        raise CalibrationError(
+            f"the observations cannot determine the parameters: {exc}. Add control or tie "
+            f"points (spread across the CCD lines and along the strips), give finite prior "
+            f"sigmas, or fix parameters (--fix NAME)") from None
+
+
+def solve_joint(st: _Setup, z0, free, *, vce, robust, alpha, obs_sigma, tie_sigma):
+    P = st.problem(z0, free, obs_sigma, tie_sigma)
+    return _run(P, vce, robust, alpha), P
+
+
+def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
+                   max_rounds: int = 50, tol_sigma: float = 0.05, step_iter: int = 2):
+    """The paper's iterative scheme; returns (final Solution at the two-step solution with
+    the joint covariance, rounds history). Each step takes at most ``step_iter``
+    Gauss-Newton iterations with the a-priori weights; the rounds stop when no parameter
+    changed by more than ``tol_sigma`` of its (conditional) sigma. Variance components,
+    when asked for, are estimated once at the end (at the two-step solution)."""
+    z = z0.copy()
+    ext = free & ~st.ap_mask
+    inn = free & st.ap_mask
+    rounds = []
+    for r in range(max_rounds):
+        zr = z.copy()
+        sig = np.ones(st.n_par)
+        for name, blk in (("exterior", ext), ("interior", inn)):
+            if not blk.any():
+                continue
+            sol = _run(st.problem(z, blk, obs_sigma, tie_sigma), False, False, alpha,
+                       max_iter=step_iter)
+            z = sol.x.copy()
+            sig[blk] = sol.sigma[:st.n_par][blk]
+        # change of the parameters in units of their (conditional) sigmas of this round
+        dz = np.abs(z[:st.n_par] - zr[:st.n_par])
+        step = float(np.max(dz[free] / np.maximum(sig[free], 1e-12))) if free.any() else 0.0
+        rounds.append({"round": r + 1, "max_change_sigma": step,
+                       "sigma0": sol.sigma0, "iterations": sol.iterations})
+        if step < tol_sigma:
+            break
+    # statistics at the two-step solution with every unknown free (no step taken)
+    P = st.problem(z, free, obs_sigma, tie_sigma)
+    final = _run(P, vce, False, alpha, tol=np.inf)
+    final.x[:] = z
+    return final, rounds
+
+
+# --- results -----------------------------------------------------------------------------
+@dataclass
+class PushbroomCalibrationResult(CalibrationResult):
+    """A :class:`~swathflow.calibration.CalibrationResult` (same report and file) plus the
+    push-broom extras: tie points, C0/C1 residuals, the method and the other solution."""
+
+    method: str = "joint"
+    ties: pd.DataFrame | None = None             # tie ground coordinates and sigmas
+    tie_residuals: pd.DataFrame | None = None
+    continuity: pd.DataFrame | None = None       # label, residual (model units)
+    rounds: list = field(default_factory=list)   # two-step history
+    alternative: "PushbroomCalibrationResult | None" = None
+    timings: dict = field(default_factory=dict)
+    dropped_ties: list = field(default_factory=list)
+
+    @property
+    def max_continuity_residual(self) -> float:
+        c = self.continuity
+        return float(np.abs(c["residual"]).max()) if c is not None and len(c) else 0.0
+
+    def check_rms(self) -> tuple[float, float]:
+        """RMS of the check-point residuals after calibration, (x, y) pixels."""
+        r = self.residuals
+        q = r[(r["stage"] == "after") & (r["role"] == "check")]
+        return (float(np.sqrt(np.nanmean(q["x"] ** 2))),
+                float(np.sqrt(np.nanmean(q["y"] ** 2))))
+
+    def calibration_document(self) -> dict:
+        doc = super().calibration_document()
+        doc["method"] = self.method
+        doc["continuity"] = {"max_abs": self.max_continuity_residual,
+                             "residuals": dict(zip(self.continuity["label"],
+                                                   self.continuity["residual"]))}
+        if self.ties is not None:
+            doc["tie_points"] = {"n": int(len(self.ties)),
+                                 "observations": int(len(self.tie_residuals)),
+                                 "rms_x": _rms(self.tie_residuals["x"]),
+                                 "rms_y": _rms(self.tie_residuals["y"]),
+                                 "dropped": self.dropped_ties}
+        if self.rounds:
+            doc["two_step_rounds"] = self.rounds
+        if self.alternative is not None:
+            a = self.alternative
+            doc["alternative"] = {"method": a.method, "values": a.values, "sigmas": a.sigmas,
+                                  "sigma0": a.sigma0, "rounds": a.rounds}
+        doc["timings_s"] = self.timings
+        return doc
+
+    def extra_html(self) -> str:
+        from .report import _table
+        out = ["<h2>Push-broom calibration</h2>",
+               f"<p>Method <b>{self.method}</b>. Residuals: x = element (across track along "
+               f"the CCD line), y = line (along track). C0/C1 constraints (hard): largest "
+               f"residual {self.max_continuity_residual:.3e}.</p>"]
+        if self.ties is not None:
+            out.append(f"<p>{len(self.ties)} tie points ({len(self.tie_residuals)} image "
+                       f"observations): RMS x {_rms(self.tie_residuals['x']):.3f}, y "
+                       f"{_rms(self.tie_residuals['y']):.3f} px; "
+                       f"{len(self.dropped_ties)} dropped (fewer than two rays).</p>")
+        if self.continuity is not None and len(self.continuity):
+            out.append(_table(self.continuity, 3, left=("label",)))
+        if self.rounds:
+            out.append("<h3>Two-step rounds</h3>")
+            out.append(_table(pd.DataFrame(self.rounds), 4))
+        if self.alternative is not None:
+            a = self.alternative
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = (self.values - a.values) / np.where(self.sigmas > 0, self.sigmas, np.nan)
+            tab = pd.DataFrame({"name": self.names, self.method: self.values,
+                                "sigma": self.sigmas, a.method: a.values,
+                                f"{a.method} sigma": a.sigmas, "difference / sigma": d})
+            out.append(f"<h3>{_e(self.method)} vs {_e(a.method)}</h3>")
+            out.append(_table(tab, 6, left=("name",)))
+        if self.timings:
+            out.append("<p class='note'>Timings (s): " + ", ".join(
+                f"{k} {v:.2f}" for k, v in self.timings.items()) + "</p>")
+        return "\n".join(out)
+
+    def write(self, out_dir) -> dict[str, str]:
+        from .calibfile import write_calibration
+        from .io import write_text
+        from .report import render_report
+        os.makedirs(out_dir, exist_ok=True)
+        doc = self.calibration_document()
+        cal = os.path.join(out_dir, "calibration.json")
+        write_calibration(cal, doc.pop("sensor"), doc.pop("parameters"), **doc)
+        html = render_report(self).replace("</body>", self.extra_html() + "</body>", 1)
+        rep = os.path.join(out_dir, "report.html")
+        write_text(rep, html)
+        if self.ties is not None:
+            from .io import atomic_path
+            with atomic_path(os.path.join(out_dir, "ties.csv")) as tmp:
+                self.ties.to_csv(tmp, index=False)
+        return {"calibration": cal, "report": rep}
+
+
+def _e(x) -> str:
+    import html
+    return html.escape(str(x))
+
+
+def _rms(v) -> float:
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
+
+
+def _result(st: _Setup, sol: Solution, models, gcps, priors, method, options,
+            calibration_images, rounds=(), timings=None, dropped=()):
+    n = st.n_par
+    S = st.scale
+    x = st.params(sol.x)
+    cov = sol.cov[:n, :n] * np.outer(S, S)
+    fixedp = st.unk.fixed | ~options["free"]
+    psol = Solution(list(st.unk.names), list(st.unk.units), x, st.p0.copy(), fixedp, cov,
+                    sol.sigma0, sol.redundancy, sol.components, sol.residuals,
+                    sol.normalized, sol.used, sol.rejected, sol.iterations, sol.evaluations,
+                    sol.converged, sol.history)
+    sig = psol.sigma
+    params = priors.with_vector(x)
+    upd, i = {}, 0
+    for b in params.blocks:
+        upd[b.name] = {"sigma": list(sig[i:i + b.size])}
+        i += b.size
+    params = params.updated(upd)
+    vec_after = {iid: x for iid in models}
+    vec_before = {iid: st.p0 for iid in models}
+    if gcps is not None and len(gcps):
+        res = pd.concat([residual_table(models, vec_before, gcps, "before"),
+                         residual_table(models, vec_after, gcps, "after")], ignore_index=True)
+    else:
+        res = residual_table(models, vec_after, gcps.iloc[:0] if gcps is not None else
+                             pd.DataFrame(columns=["image_id"]), "after")
+    res["calibration_image"] = res["image_id"].isin(set(calibration_images))
+    # rejected points (robust phase / snooping), GCPs and ties alike
+    rej_rows = []
+    after = res[res["stage"] == "after"]
+    for r in sol.rejected:
+        name = str(r["name"])
+        pid, _, iid = name.rpartition("@")
+        is_tie = pid.startswith("tie ")
+        pid = pid[4:] if is_tie else pid
+        q = after[(after["gcp_id"] == pid) & (after["image_id"] == iid)]
+        rej_rows.append({"name": name, "statistic": r["statistic"], "critical": r["critical"],
+                         "phase": r["phase"], "gcp_id": pid, "image_id": iid,
+                         "x": float(q["x"].iloc[0]) if len(q) else np.nan,
+                         "y": float(q["y"].iloc[0]) if len(q) else np.nan})
+    rej = pd.DataFrame(rej_rows, columns=["name", "statistic", "critical", "phase", "gcp_id",
+                                          "image_id", "x", "y"])
+    bad = set(zip(rej["gcp_id"], rej["image_id"]))
+    res["rejected"] = [(g, i) in bad and s == "after" and ro == "control" for g, i, s, ro in
+                       zip(res["gcp_id"], res["image_id"], res["stage"], res["role"])]
+    res["role"] = np.where(res["rejected"], "rejected", res["role"])
+    summary = summarize(res)
+    # tie points: ground coordinates, sigmas, residuals
+    ties = tie_res = None
+    if st.tie_ids.size:
+        T = st.ties(sol.x)
+        tc = np.diag(sol.cov)[n:].reshape(-1, 3)
+        from .geodesy import ecef_to_geodetic
+        llh = ecef_to_geodetic(T)
+        ties = pd.DataFrame({"tie_id": st.tie_ids, "X": T[:, 0], "Y": T[:, 1], "Z": T[:, 2],
+                             "lat": llh[:, 0], "lon": llh[:, 1], "h": llh[:, 2],
+                             "sigma_X": np.sqrt(np.clip(tc[:, 0], 0, None)),
+                             "sigma_Y": np.sqrt(np.clip(tc[:, 1], 0, None)),
+                             "sigma_Z": np.sqrt(np.clip(tc[:, 2], 0, None))})
+        r = sol.residuals["image"]
+        rows = []
+        for iid, sl, G, ti in st.spans:
+            if ti is None:
+                continue
+            rr = r[sl].reshape(-1, 2)
+            rows.append(pd.DataFrame({"tie_id": st.tie_ids[ti], "image_id": iid,
+                                      "x": rr[:, 1], "y": rr[:, 0]}))
+        tie_res = pd.concat(rows, ignore_index=True)
+    from swathflow.sensors.pushbroom import continuity_matrix
+    A, labels = continuity_matrix(next(iter(models.values())).sensor, params)
+    cont = pd.DataFrame({"label": labels, "residual": A @ x})
+    opts = {k: v for k, v in options.items() if k != "free"}
+    return PushbroomCalibrationResult(
+        "pushbroom", st.unk, psol, params, cov, res, summary, rej, vec_after,
+        list(calibration_images), opts, None, method=method, ties=ties,
+        tie_residuals=tie_res, continuity=cont, rounds=list(rounds),
+        timings=dict(timings or {}), dropped_ties=list(dropped))
+
+
+def calibrate_pushbroom(models: Mapping[str, object], gcps: pd.DataFrame | None,
+                        ties: pd.DataFrame | None = None, priors=None, *,
+                        method: str = "joint", fixed: Sequence[str] = (),
+                        robust: bool = True, vce: bool = True, obs_sigma_px: float = 1.0,
+                        tie_sigma_px: float | None = None, alpha: float = 0.001,
+                        calibration_images: Sequence[str] | None = None,
+                        max_rounds: int = 50) -> PushbroomCalibrationResult:
+    """Calibrate a push-broom camera from control points and tie points.
+
+    models: image id -> PushbroomModel (every view and strip). gcps: rows gcp_id, image_id,
+    line, element, X, Y, Z (ECEF), role (control/check; check points are only evaluated).
+    ties: rows tie_id, image_id, line, element (ground unknown; two or more images each).
+    priors: ParameterSet of prior values and sigmas (default: the first model's).
+    method: "joint", "two-step" (the paper's iterative scheme), or "both" (joint, with the
+    two-step solution as ``result.alternative``).
+    """
+    if method not in METHODS:
+        raise CalibrationError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if not models:
+        raise CalibrationError("no images")
+    models = {str(k): v for k, v in models.items()}
+    first = next(iter(models.values()))
+    if getattr(first, "name", "") != "pushbroom":
+        raise CalibrationError("calibrate_pushbroom needs push-broom sensor models")
+    priors = priors if priors is not None else first.parameters
+    if gcps is not None:
+        gcps = _check_gcps(gcps, models)
+    if calibration_images is None:
+        calibration_images = list(models)
+    calibration_images = [str(c) for c in calibration_images]
+    for c in calibration_images:
+        if c not in models:
+            raise CalibrationError(f"calibration image {c!r} is not in the mission")
+    t0 = time.perf_counter()
+    st, info = _setup(models, gcps, ties, priors, fixed, calibration_images)
+    free = ~st.unk.fixed
+    n_ctrl = int(np.sum(st.comp == "x"))
+    if n_ctrl == 0:
+        raise CalibrationError("no control points (role 'control') on the calibration "
+                               "images: tie points alone do not fix the datum; add control "
+                               "points to gcp.csv")
+    tie_sigma = float(tie_sigma_px if tie_sigma_px is not None else obs_sigma_px)
+    kw = dict(vce=vce, alpha=alpha, obs_sigma=float(obs_sigma_px), tie_sigma=tie_sigma)
+    timings = {"setup": time.perf_counter() - t0}
+    z0 = np.zeros(st.n)
+    options = {"model": str(st.n_par), "fixed": list(fixed), "robust": robust, "vce": vce,
+               "obs_sigma_px": obs_sigma_px, "tie_sigma_px": tie_sigma, "alpha": alpha,
+               "unknowns_total": st.n, "tie_points": int(st.tie_ids.size),
+               "observations": int(st.l_obs.size), "free": free}
+    results = {}
+    if method in ("joint", "both"):
+        t1 = time.perf_counter()
+        sol, _ = solve_joint(st, z0, free, robust=robust, **kw)
+        timings["joint"] = time.perf_counter() - t1
+        results["joint"] = (sol, [])
+    if method in ("two-step", "both"):
+        t1 = time.perf_counter()
+        sol, rounds = solve_two_step(st, z0, free, max_rounds=max_rounds, **kw)
+        timings["two-step"] = time.perf_counter() - t1
+        results["two-step"] = (sol, rounds)
+    out = {}
+    for name, (sol, rounds) in results.items():
+        out[name] = _result(st, sol, models, gcps, priors, name,
+                            {**options, "method": name}, calibration_images, rounds, timings,
+                            info["dropped_ties"])
+    main = out["joint" if method in ("joint", "both") else "two-step"]
+    if method == "both":
+        main.alternative = out["two-step"]
+    main.timings["total"] = time.perf_counter() - t0
+    return main
+
+
+# --- command line ------------------------------------------------------------------------
+def cli_calibrate_pushbroom(args, mission=None) -> int:
+    """``swathflow calibrate MISSION --out DIR [--method joint|two-step|both]`` for a
+    push-broom mission (dispatched from :func:`swathflow.calibration.cli_calibrate`)."""
+    from .mission import load_mission
+    mission = mission if mission is not None else load_mission(args.mission)
+    ties = mission_ties(mission)
+    models = {iid: mission.model(iid) for iid in mission.image_ids}
+    if mission.gcps is None or not len(mission.gcps):
+        raise CalibrationError(f"{args.mission}: no control points (add [gcp] file = "
+                               f"\"gcp.csv\" to mission.toml)")
+    cal_images = None
+    if getattr(args, "images", None):
+        cal_images = [s.strip() for s in args.images.split(",") if s.strip()]
+    method = str(getattr(args, "method", None) or "joint")
+    res = calibrate_pushbroom(models, mission.gcps, ties, mission.priors, method=method,
+                              fixed=list(getattr(args, "fix", None) or []),
+                              robust=not getattr(args, "no_robust", False),
+                              vce=not getattr(args, "no_vce", False),
+                              obs_sigma_px=float(getattr(args, "sigma_px", 1.0) or 1.0),
+                              calibration_images=cal_images)
+    paths = res.write(args.out)
+    cx, cy = res.check_rms()
+    print(f"calibrated {res.options['model']} push-broom parameters ({res.method}) and "
+          f"{res.options['tie_points']} tie points from {res.options['observations'] // 2} "
+          f"image points in {res.timings.get('total', float('nan')):.1f} s (sigma0 "
+          f"{res.sigma0:.3f}, {len(res.rejected)} rejected, C0/C1 max residual "
+          f"{res.max_continuity_residual:.1e})")
+    print(f"  check points: RMS x {cx:.3f} y {cy:.3f} px")
+    if res.tie_residuals is not None:
+        print(f"  tie points:   RMS x {_rms(res.tie_residuals['x']):.3f} y "
+              f"{_rms(res.tie_residuals['y']):.3f} px")
+    if res.alternative is not None:
+        a = res.alternative
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d = np.abs(res.values - a.values) / np.where(res.sigmas > 0, res.sigmas, np.nan)
+        print(f"  two-step: {len(a.rounds)} rounds, largest difference from the joint "
+              f"solution {np.nanmax(d):.3f} sigma")
+    print(f"wrote {paths['calibration']} and {paths['report']}")
+    return 0
