@@ -681,6 +681,9 @@ def cli_calibrate(args) -> int:
     """``swathflow calibrate MISSION --out DIR``."""
     from .mission import load_mission
     mission = load_mission(args.mission)
+    if mission.sensor.get("model") == "pushbroom":     # three-line camera: sparse, ties
+        from .calibration_pushbroom import cli_calibrate_pushbroom
+        return cli_calibrate_pushbroom(args, mission)
     images = list(getattr(mission, "images"))
     ids = [getattr(im, "id", None) or getattr(im, "image_id", None) or im
            if not isinstance(im, str) else im for im in images]

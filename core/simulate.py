@@ -765,6 +765,9 @@ def _write_toml(out, cfg, plan, gsd, pos_name, image_entries, sensor):
 
 def cli_simulate(args) -> int:
     """``swathflow simulate OUT --preset NAME --seed N [--texture F --dem F]``."""
+    if str(args.preset).startswith("pushbroom"):      # three-line camera presets
+        from .simulate_pushbroom import cli_simulate_pushbroom
+        return cli_simulate_pushbroom(args)
     overrides = {}
     for key in ("gcp_noise", "gross_fraction", "image_format", "pos_format"):
         v = getattr(args, key, None)

@@ -93,6 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also estimate one variance component for the priors")
     s.add_argument("--sigma-px", type=float, default=1.0,
                    help="a-priori sigma of image coordinates in pixels (default 1)")
+    s.add_argument("--method", choices=("joint", "two-step", "both"), default="joint",
+                   help="push-broom cameras: joint adjustment (default), the paper's "
+                        "iterative two-step scheme, or both (compared in the report)")
     s.set_defaults(func=_call("swathflow.calibration:cli_calibrate"))
 
     s = sub.add_parser("rectify", help="orthorectify every swing to a COG")
