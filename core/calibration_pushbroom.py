@@ -317,7 +317,10 @@ def _vce(vce):
     return ["x", "y", "tie x", "tie y"] if vce else False
 
 
-def _run(P, vce, robust, alpha, tol=1e-2, max_iter=50):
+def _run(P, vce, robust, alpha, tol=None, max_iter=50):
+    # convergence: the step's length in sigma units (sqrt(dx' N dx)) below 1 % of a sigma
+    # per unknown; the model's piecewise-linear POS interpolation puts a floor under it
+    tol = 1e-2 * math.sqrt(max(int((~P.fixed).sum()), 1)) if tol is None else tol
     try:
         return solve(P, vce=_vce(vce), robust=robust, alpha=alpha, sparse=True, tol=tol,
                      max_iter=max_iter)
