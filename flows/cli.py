@@ -152,7 +152,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import warnings
     from swathflow.errors import SwathflowError
+    # raw scanner images carry no geotransform by nature: rasterio's warning about it is
+    # noise here (catch_warnings around each open is not thread-safe under Dask threads)
+    warnings.filterwarnings("ignore", message="Dataset has no geotransform")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
