@@ -101,7 +101,9 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
                                  f"the mission uses {m.sensor.get('model')!r}")
         return str(Path(calibration).resolve())
     gcp_file = m.config.get("gcp", {}).get("file")
+    ties_file = m.config.get("ties", {}).get("file")
     key = stage_key("calibrate", _mission_files(m) + [m.path / gcp_file if gcp_file else None]
+                    + [m.path / ties_file if ties_file else None]
                     + [f for iid in m.images for f in _image_files(m, iid)[1:]])
     if is_fresh(out, key):
         return str(out)
@@ -109,9 +111,13 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
         write_calibration(out, m.sensor.get("model", ""), m.priors.to_dict(),
                           note="no control points: the mission's prior values, uncalibrated")
     else:
-        from swathflow.calibration import calibrate as run
         models = {iid: m.model(iid) for iid in m.images}
-        res = run(models, m.gcps, m.priors)
+        if m.sensor.get("model") == "pushbroom":     # tie points, sparse, C0/C1 constraints
+            from swathflow.calibration_pushbroom import calibrate_pushbroom, mission_ties
+            res = calibrate_pushbroom(models, m.gcps, mission_ties(m), m.priors)
+        else:
+            from swathflow.calibration import calibrate as run
+            res = run(models, m.gcps, m.priors)
         res.write(out.parent)
     mark_done(out, key)
     return str(out)
