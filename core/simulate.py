@@ -363,6 +363,22 @@ def render_image(model, terrain, texture, to_map, cfg: SimConfig, rng) -> np.nda
     return out
 
 
+def write_swing(out: Path, iid: str, model, terrain, texture, to_map, cfg, rng,
+                columns: dict) -> tuple[str, str]:
+    """Render one image (or a blank one for geometry-only runs) and write it with its line
+    table (``line`` plus ``columns``); returns both paths relative to ``out``."""
+    ext = ".tif" if cfg.image_format == "tif" else ".img"
+    if cfg.render:
+        arr = render_image(model, terrain, texture, to_map, cfg, rng)
+    else:
+        arr = np.full(model.shape, int(cfg.offset), np.uint16)
+    write_raw_image(out / "images" / f"{iid}{ext}", arr, cfg.image_format)
+    df = pd.DataFrame({"line": np.arange(model.n_lines), **columns})
+    with atomic_path(out / "images" / f"{iid}.lines.csv") as tmp:
+        df.to_csv(tmp, index=False, float_format="%.9f")
+    return f"images/{iid}{ext}", f"images/{iid}.lines.csv"
+
+
 def write_raw_image(path: Path, array: np.ndarray, fmt: str = "tif") -> None:
     """A raw image (no georeferencing): GeoTIFF, or ENVI (``.img`` + ``.hdr``), atomically."""
     import rasterio
@@ -583,20 +599,12 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     say(f"rendering {len(models)} images of {plan.lines_per_swing} x {cfg.n_elements}"
         + ("" if cfg.render else " (geometry only: blank images)"))
     image_entries = []
-    ext = ".tif" if cfg.image_format == "tif" else ".img"
     for k, (iid, d, s, lt) in enumerate(swings):
-        m = models[iid]
-        if cfg.render:
-            arr = render_image(m, terrain, tex, to_map, cfg,
-                               np.random.default_rng([int(seed), 2, k]))
-        else:
-            arr = np.full(m.shape, int(cfg.offset), np.uint16)
-        write_raw_image(out / "images" / f"{iid}{ext}", arr, cfg.image_format)
-        df = pd.DataFrame({"line": np.arange(m.n_lines), "time": lt["time"],
-                           "swing": lt["swing"], "pitch_comp": lt["pitch_comp"]})
-        with atomic_path(out / "images" / f"{iid}.lines.csv") as tmp:
-            df.to_csv(tmp, index=False, float_format="%.9f")
-        image_entries.append((iid, f"images/{iid}{ext}", f"images/{iid}.lines.csv", d, s))
+        paths = write_swing(out, iid, models[iid], terrain, tex, to_map, cfg,
+                            np.random.default_rng([int(seed), 2, k]),
+                            {"time": lt["time"], "swing": lt["swing"],
+                             "pitch_comp": lt["pitch_comp"]})
+        image_entries.append((iid, *paths, d, s))
     timings["images"] = time.perf_counter() - clock - sum(timings.values())
 
     # footprint -> output grid, truth ortho

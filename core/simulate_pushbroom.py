@@ -35,7 +35,7 @@ from .errors import SwathflowError
 from .geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
 from .io import atomic_path, write_text
 from .pos import Trajectory, write_pos_csv, write_sbet
-from .simulate import Plan, make_trajectory, render_image, write_raw_image
+from .simulate import Plan, make_trajectory, write_swing
 
 VIEWS = {"forward": 25.0, "nadir": 0.0, "backward": -25.0}
 VIEW_LETTER = {"forward": "F", "nadir": "N", "backward": "B"}
@@ -391,20 +391,11 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
     tex = ProceduralTexture(seed, nadir_gsd, plan.centre).with_targets(g_en, radius)
     say(f"rendering {len(models)} push-broom images of {plan.lines_per_swing} x "
         f"{cfg.n_elements}" + ("" if cfg.render else " (geometry only: blank images)"))
-    ext = ".tif" if cfg.image_format == "tif" else ".img"
     entries = []
     for k, (iid, view, s, lt) in enumerate(images):
-        m = models[iid]
-        if cfg.render:
-            arr = render_image(m, terrain, tex, to_map, cfg,
-                               np.random.default_rng([int(seed), 82, k]))
-        else:
-            arr = np.full(m.shape, int(cfg.offset), np.uint16)
-        write_raw_image(out / "images" / f"{iid}{ext}", arr, cfg.image_format)
-        df = pd.DataFrame({"line": np.arange(m.n_lines), "time": lt["time"]})
-        with atomic_path(out / "images" / f"{iid}.lines.csv") as tmp:
-            df.to_csv(tmp, index=False, float_format="%.9f")
-        entries.append((iid, f"images/{iid}{ext}", f"images/{iid}.lines.csv", view, s))
+        paths = write_swing(out, iid, models[iid], terrain, tex, to_map, cfg,
+                            np.random.default_rng([int(seed), 82, k]), {"time": lt["time"]})
+        entries.append((iid, *paths, view, s))
 
     # footprint -> truth ortho
     from .intersect import intersect
