@@ -374,7 +374,6 @@ def rectify_polynomial(model, image, grid: Grid, terrain, samples: int = 9, degr
 
     Holds the output grid in memory (sum and count arrays); reads the raw image in blocks
     of ``block_lines`` lines."""
-    from scipy import ndimage
     source = image if isinstance(image, RawSource) else RawSource(image)
     terrain = open_terrain(terrain)
     nl, ne = model.shape
@@ -540,7 +539,6 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     is streamed into a tiled GeoTIFF beside its target (memory bounded by the tiles in
     flight), then laid out by GDAL's COG driver with internal overviews, atomically."""
     import contextlib
-    import dask
     import dask.array as da
     import rasterio
     from rasterio.shutil import copy as rio_copy

@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import xarray as xr
 
 from .errors import SwathflowError
 from .geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for

@@ -13,7 +13,6 @@ Each check raises ``AssertionError`` with a message saying what broke.
 from __future__ import annotations
 
 import json
-import math
 import sys
 
 import numpy as np

@@ -7,7 +7,6 @@ output whose inputs have not changed (:mod:`swathflow.cache`), and never hashes 
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from pathlib import Path

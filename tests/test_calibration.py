@@ -6,7 +6,6 @@ points come from the TRUE model at random image points; image coordinates get N(
 """
 import json
 import math
-import os
 
 import numpy as np
 import pandas as pd

@@ -1,6 +1,5 @@
 """The mission flow for real: a Prefect flow run, a local Dask cluster (worker processes),
 COG outputs through rasterio, checked against the simulator's truth."""
-import json
 import os
 import shutil
 import signal
