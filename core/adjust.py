@@ -111,7 +111,9 @@ class Problem:
             self.fixed[self.index(list(which))] = True
 
     def add_observations(self, name: str, fn: Callable, sigma, component=None, point=None,
-                         point_names=None, robust: bool = True) -> Group:
+                         point_names=None, robust=True) -> Group:
+        """``robust``: whether the blunder tests may reject this group's points: one flag,
+        or an array of flags indexed by point number."""
         sigma = np.asarray(sigma, float).ravel()
         m = sigma.size
         if np.any(~(sigma > 0)):
@@ -386,7 +388,8 @@ def _points(problem: Problem, offsets) -> _PointIndex:
         gs.append(np.full(uniq.size, gi))
         ps.append(uniq)
         rows.append(mat)
-        rob.append(np.full(uniq.size, g.robust))
+        r = np.asarray(g.robust)        # one flag for the group, or one per point number
+        rob.append(np.full(uniq.size, bool(r)) if r.ndim == 0 else r[uniq].astype(bool))
     if not rows:
         return _PointIndex(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 1), int),
                            np.zeros(0, bool))

@@ -113,9 +113,7 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
         models = {iid: m.model(iid) for iid in m.images}
         if m.sensor.get("model") == "pushbroom":     # tie points, sparse, C0/C1 constraints
             from swathflow.calibration_pushbroom import calibrate_pushbroom, mission_ties
-            # robust snooping is off for push-broom: rejecting one observation of a
-            # two-ray tie point leaves its depth undetermined (open in issue 8)
-            res = calibrate_pushbroom(models, m.gcps, mission_ties(m), m.priors, robust=False)
+            res = calibrate_pushbroom(models, m.gcps, mission_ties(m), m.priors)
         else:
             from swathflow.calibration import calibrate as run
             res = run(models, m.gcps, m.priors)

@@ -128,6 +128,33 @@ def test_snooping_2d_points():
     assert np.all(np.abs(s.x - truth) < 3 * s.sigma)
 
 
+def test_per_point_robust_flags_protect_points_from_rejection():
+    """robust may be one flag per point: a blunder on a protected point stays in (and shows
+    in its residual), a blunder on an unprotected one is rejected."""
+    rng = np.random.default_rng(4)
+    n = 200
+    u = rng.uniform(-1, 1, (n, 2))
+    truth = np.array([0.3, -0.2, 1.5])
+    obs = truth[2] * u + truth[:2] + rng.normal(0, 0.01, (n, 2))
+    obs[7] += [0.2, -0.15]
+    obs[11] += [-0.2, 0.2]
+
+    def fn(x, jacobian=True):
+        J = np.zeros((n, 2, 3))
+        J[:, 0, 0] = 1
+        J[:, 1, 1] = 1
+        J[:, :, 2] = u
+        return (obs - (x[2] * u + x[:2])).ravel(), J.reshape(-1, 3) if jacobian else None
+
+    robust = np.ones(n, bool)
+    robust[11] = False
+    P = Problem(["tx", "ty", "s"], [0, 0, 1])
+    P.add_observations("pts", fn, np.full(2 * n, 0.01), point=np.repeat(np.arange(n), 2),
+                       point_names=[f"P{i}" for i in range(n)], robust=robust)
+    s = solve(P, vce=False, robust=True)
+    assert [r["name"] for r in s.rejected] == ["P7"]
+
+
 def test_nonlinear_far_start_converges():
     rng = np.random.default_rng(2)
     t = np.linspace(0, 4, 80)
