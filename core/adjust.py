@@ -641,7 +641,6 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
             rp = pts.robust & point_ok
             prev = None
             for it in range(25):
-                mask = obs_mask()
                 w0 = 1.0 / (sigma ** 2 * s2[comp_idx])
                 valid = pts.obs >= 0
                 vv = np.where(valid, (r ** 2 * w0)[np.where(valid, pts.obs, 0)], 0.0)

@@ -514,10 +514,10 @@ def _toml_value(v) -> str:
         return "true" if v else "false"
     if isinstance(v, str):
         return json.dumps(v)
-    if isinstance(v, (list, tuple)):
+    if isinstance(v, (list, tuple, np.ndarray)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, float):
-        return repr(v)
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
     return str(v)
 
 

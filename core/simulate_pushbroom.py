@@ -33,9 +33,10 @@ import pandas as pd
 
 from .errors import SwathflowError
 from .geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
-from .io import atomic_path, write_text
+from .io import write_text
 from .pos import Trajectory, write_pos_csv, write_sbet
-from .simulate import Plan, make_trajectory, write_swing
+from .simulate import (Plan, _plain, _toml_value, _write_csv, make_trajectory,  # shared
+                       write_swing)
 
 VIEWS = {"forward": 25.0, "nadir": 0.0, "backward": -25.0}
 VIEW_LETTER = {"forward": "F", "nadir": "N", "backward": "B"}
@@ -507,18 +508,6 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
     return truth
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, (float, np.floating)):
-        return repr(float(v))
-    return str(v)
-
-
 def _write_toml(out, cfg, plan, pos_name, entries, sensor, priors):
     L = [f"# simulated by swathflow simulate (preset {cfg.preset}); the truth is in truth/",
          "", "[mission]", f'name = "sim-{cfg.preset}"', f'crs = "{plan.crs}"',
@@ -538,25 +527,6 @@ def _write_toml(out, cfg, plan, pos_name, entries, sensor, priors):
         L += ["", "[[images]]", f'id = "{iid}"', f'file = "{f}"', f'lines = "{lf}"',
               f'view = "{view}"', f"strip = {s}"]
     write_text(out / "mission.toml", "\n".join(L) + "\n")
-
-
-def _write_csv(path, df, fmt):
-    df = df.copy()
-    for c, f in fmt.items():
-        if c in df:
-            df[c] = df[c].map(lambda v, f=f: f % v)
-    with atomic_path(path) as tmp:
-        df.to_csv(tmp, index=False)
-
-
-def _plain(x):
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    return x
 
 
 def cli_simulate_pushbroom(args) -> int:

@@ -102,42 +102,15 @@ def test_robust_flags_gross_errors_by_name():
     assert np.all(np.abs(s.x - xt) < 3 * s.sigma)
 
 
-def test_snooping_2d_points():
-    # 2-D points (x, y observations of one point) are tested and rejected together
+def _shift_scale_points(blunders: dict, robust=True, n: int = 200):
+    """2-D points observed as ``s * u + t`` (unknowns tx, ty, s) with 0.01 noise and the
+    given blunders ``{point: (dx, dy)}``; returns the problem and the truth."""
     rng = np.random.default_rng(4)
-    n = 200
-    u = rng.uniform(-1, 1, (n, 2))
-    # unknowns: shift (2) and scale (1): obs = s * u + t
-    truth = np.array([0.3, -0.2, 1.5])
-    obs = truth[2] * u + truth[:2] + rng.normal(0, 0.01, (n, 2))
-    obs[7] += [0.2, -0.15]
-
-    def fn(x, jacobian=True):
-        comp = x[2] * u + x[:2]
-        J = np.zeros((n, 2, 3))
-        J[:, 0, 0] = 1
-        J[:, 1, 1] = 1
-        J[:, :, 2] = u
-        return (obs - comp).ravel(), J.reshape(-1, 3) if jacobian else None
-
-    P = Problem(["tx", "ty", "s"], [0, 0, 1])
-    P.add_observations("pts", fn, np.full(2 * n, 0.01), point=np.repeat(np.arange(n), 2),
-                       point_names=[f"P{i}" for i in range(n)])
-    s = solve(P, vce=False, robust=True)
-    assert [r["name"] for r in s.rejected] == ["P7"]
-    assert np.all(np.abs(s.x - truth) < 3 * s.sigma)
-
-
-def test_per_point_robust_flags_protect_points_from_rejection():
-    """robust may be one flag per point: a blunder on a protected point stays in (and shows
-    in its residual), a blunder on an unprotected one is rejected."""
-    rng = np.random.default_rng(4)
-    n = 200
     u = rng.uniform(-1, 1, (n, 2))
     truth = np.array([0.3, -0.2, 1.5])
     obs = truth[2] * u + truth[:2] + rng.normal(0, 0.01, (n, 2))
-    obs[7] += [0.2, -0.15]
-    obs[11] += [-0.2, 0.2]
+    for p, d in blunders.items():
+        obs[p] += d
 
     def fn(x, jacobian=True):
         J = np.zeros((n, 2, 3))
@@ -146,11 +119,26 @@ def test_per_point_robust_flags_protect_points_from_rejection():
         J[:, :, 2] = u
         return (obs - (x[2] * u + x[:2])).ravel(), J.reshape(-1, 3) if jacobian else None
 
-    robust = np.ones(n, bool)
-    robust[11] = False
     P = Problem(["tx", "ty", "s"], [0, 0, 1])
     P.add_observations("pts", fn, np.full(2 * n, 0.01), point=np.repeat(np.arange(n), 2),
                        point_names=[f"P{i}" for i in range(n)], robust=robust)
+    return P, truth
+
+
+def test_snooping_2d_points():
+    # 2-D points (x, y observations of one point) are tested and rejected together
+    P, truth = _shift_scale_points({7: (0.2, -0.15)})
+    s = solve(P, vce=False, robust=True)
+    assert [r["name"] for r in s.rejected] == ["P7"]
+    assert np.all(np.abs(s.x - truth) < 3 * s.sigma)
+
+
+def test_per_point_robust_flags_protect_points_from_rejection():
+    """robust may be one flag per point: a blunder on a protected point stays in, a blunder
+    on an unprotected one is rejected."""
+    robust = np.ones(200, bool)
+    robust[11] = False
+    P, _ = _shift_scale_points({7: (0.2, -0.15), 11: (-0.2, 0.2)}, robust=robust)
     s = solve(P, vce=False, robust=True)
     assert [r["name"] for r in s.rejected] == ["P7"]
 

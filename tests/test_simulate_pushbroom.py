@@ -7,7 +7,6 @@ import re
 
 import numpy as np
 import pandas as pd
-import pytest
 
 from swathflow.calibfile import calibration_priors, read_calibration
 from swathflow.mission import load_mission, validate_mission
