@@ -212,6 +212,10 @@ class Solution:
     evaluations: int
     converged: bool
     history: list[dict] = field(default_factory=list)
+    #: the Gauss-Newton step computed at ``x`` and not taken because it was shorter than the
+    #: tolerance (zeros for fixed unknowns; None when the last step was taken): how far ``x``
+    #: is from the solution, to first order
+    remaining: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -467,7 +471,7 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
     use_sparse = sparse
     history: list[dict] = []
     x = P.x0.copy()
-    state = {"evals": 0, "iters": 0}
+    state = {"evals": 0, "iters": 0, "remaining": None}
 
     def obs_mask():
         ok = np.ones(m, bool)
@@ -513,6 +517,7 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
             use_sparse = sp.issparse(J)
         lam = 0.0
         conv = False
+        state["remaining"] = None
         for it in range(max_it):
             mask = obs_mask()
             w, act = weights(r, mask)
@@ -526,6 +531,8 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
                 step = float(np.sqrt(max(dxf @ (ne.N @ dxf), 0.0)))
                 if step < tol and lam == 0.0:
                     conv = True
+                    state["remaining"] = np.zeros(n)
+                    state["remaining"][free] = dxf
                     break
                 state["iters"] += 1
                 dx = np.zeros(n)
@@ -537,6 +544,17 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
                 cost_old = float(np.sum(np.where(both, w * r ** 2, 0.0)))
                 cost_new = float(np.sum(np.where(both, wn * rn ** 2, 0.0)))
                 lost = int(act.sum() - both.sum())
+                if damping and step < tol and lost == 0 and \
+                        cost_new > cost_old * (1 + 1e-9) + 1e-12:
+                    # a step below the tolerance that does not lower the cost: x is the
+                    # solution within the tolerance (a rough, e.g. piecewise-linear,
+                    # model would otherwise be walked uphill)
+                    conv = True
+                    ne0 = ne if lam == 0.0 else _Normal(J, w, free, cons, 0.0,
+                                                       bool(use_sparse), names_free, rcond)
+                    state["remaining"] = np.zeros(n)
+                    state["remaining"][free] = ne0.solve(g, None if not cons else cres(x))
+                    break
                 if not damping or cost_old == 0 or (step < tol and lost == 0) or (
                         cost_new <= cost_old * (1 + 1e-9) + 1e-12 and (lost == 0 or tries >= 4)):
                     break
@@ -744,4 +762,5 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
     return Solution(list(P.names), list(P.units), x, P.x0.copy(), P.fixed.copy(), cov,
                     float(math.sqrt(s0sq)) if np.isfinite(s0sq) and s0sq >= 0 else float("nan"),
                     redundancy, components, res, nrm, used, rej_list, state["iters"],
-                    state["evals"], bool(converged), history)
+                    state["evals"], bool(converged), history,
+                    state["remaining"] if converged else None)

@@ -96,6 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--method", choices=("joint", "two-step", "both"), default="joint",
                    help="push-broom cameras: joint adjustment (default), the paper's "
                         "iterative two-step scheme, or both (compared in the report)")
+    s.add_argument("--max-rounds", type=int, default=50,
+                   help="two-step scheme: stop after this many rounds even when it is not "
+                        "yet within 0.1 sigma of the joint optimum (default 50)")
     s.set_defaults(func=_call("swathflow.calibration:cli_calibrate"))
 
     s = sub.add_parser("rectify", help="orthorectify every swing to a COG")

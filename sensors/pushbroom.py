@@ -551,10 +551,9 @@ class PushbroomModel(SensorModel):
         gk, lk, sk = g[ok], line[ok], s[ok]
         segk = np.clip(np.searchsorted(self._seg, sk, side="right") - 1, 0, self._seg.size - 1)
         dsk = sk - self._seg[segk]
-        v0 = self._params.vector()
-        steps = self.fd_step_sizes()
-        blocks = [(b.name, i) for b in self._params.blocks for i in range(b.size)]
         dF = np.zeros((ok.size, 2, len(sel)))
+        blocks = [(b.name, i) for b in self._params.blocks for i in range(b.size)]
+        geo = []
         for col, p in enumerate(sel):
             if not self._relevant[p]:
                 continue
@@ -563,17 +562,67 @@ class PushbroomModel(SensorModel):
                 seg = int(bname.rsplit("_", 1)[1])
                 row = 0 if bname.startswith("ax_") else 1
                 dF[:, row, col] = np.where(segk == seg, -dsk ** comp, 0.0)
-                continue
-            h = steps[p]
-            vp, vm = v0.copy(), v0.copy()
-            vp[p] += h
-            vm[p] -= h
-            fp = self._perturbed(vp)._conditions_exact(gk, lk, sk)
-            fm = self._perturbed(vm)._conditions_exact(gk, lk, sk)
-            dF[:, :, col] = (fp - fm) / (2 * h)
+            else:
+                geo.append((col, p, bname, comp))
+        if geo:
+            self._geometric_partials(gk, lk, sk, geo, dF)
         Jinv = np.linalg.inv(J[ok])
         out[ok] = -Jinv @ dF
         return out.reshape(shape + (2, len(sel)))
+
+    def _geometric_partials(self, g, line, s, cols, dF) -> None:
+        """Central differences of the conditions at fixed (line, element) for the lever
+        arm, boresight and fix-correction columns ``cols`` = [(column, flat index, block,
+        component)], written into ``dF``. The trajectory is interpolated once; a fix
+        correction is differenced only where its interpolation weight is non-zero."""
+        t = self._line_time(np.clip(line, 0, self.n_lines - 1))
+        pos = self._trajectory.interpolate(t)
+        ren = r_en(np.radians(pos["lat"]), np.radians(pos["lon"]))
+        rnb = r_nb(np.radians(pos["roll"]), np.radians(pos["pitch"]),
+                   np.radians(pos["heading"]))
+        x = pos["ecef"]
+        do = np.zeros(t.shape + (3,))
+        if self._ft.size:
+            dn, do = self._corrections(t)
+            x = x + apply(ren, dn)
+        tx, ty, _, _ = self.view_tangents(s)
+        opk = np.radians(np.asarray(self._params["opk_cam"], float))
+        steps = self.fd_step_sizes()
+
+        def cond(i, x_, do_, u, R_bs):
+            reb = ren[i] @ (rnb[i] @ r_opk(do_[..., 0], do_[..., 1], do_[..., 2]))
+            gv = apply_t(reb @ R_bs, g[i] - x_ - apply(reb, u))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                return np.stack([gv[:, 0] / -gv[:, 2] - tx[i],
+                                 gv[:, 1] / -gv[:, 2] - ty[i]], axis=-1)
+
+        every = np.arange(t.size)
+        for col, p, bname, k in cols:
+            h = steps[p]
+            e = np.zeros(3)
+            e[k] = h
+            i, xs, dos, us, rs = every, (x, x), (do, do), (self._u_gps,) * 2, (self._R_bs,) * 2
+            if bname == "u_gps":
+                us = (self._u_gps + e, self._u_gps - e)
+            elif bname == "opk_cam":
+                rs = tuple(r_opk(*(opk + sgn * np.radians(e))) @ T for sgn in (1, -1))
+            else:                                  # d_ned_<j> / d_opk_<j>
+                j = int(bname.rsplit("_", 1)[1])
+                w = np.interp(t, self._ft, np.eye(self._ft.size)[j])
+                i = np.flatnonzero(w != 0)
+                if not i.size:
+                    continue
+                if bname.startswith("d_ned_"):
+                    d = apply(ren[i], w[i, None] * e)
+                    xs = (x[i] + d, x[i] - d)
+                else:
+                    d = w[i, None] * np.radians(e)
+                    dos = (do[i] + d, do[i] - d)
+            xs = tuple(a if a.shape[0] == i.size else a[i] for a in xs)
+            dos = tuple(a if a.shape[0] == i.size else a[i] for a in dos)
+            fp = cond(i, xs[0], dos[0], us[0], rs[0])
+            fm = cond(i, xs[1], dos[1], us[1], rs[1])
+            dF[i, :, col] = (fp - fm) / (2 * h)
 
     def ground_partials(self, ground, step: float = 0.01) -> np.ndarray:
         """d(line, element)/d(X, Y, Z) in ECEF, ``(..., 2, 3)``, in closed form by the
@@ -596,20 +645,6 @@ class PushbroomModel(SensorModel):
             dF = d @ np.swapaxes(r, -1, -2)         # g_S = R^T (G - C)
             out[ok] = -np.linalg.inv(J[ok]) @ dF
         return out.reshape(shape + (2, 3))
-
-    def _perturbed(self, v) -> "PushbroomModel":
-        """A shallow copy with other lever arm, boresight and fix corrections, for exact
-        evaluations only (no knots, no tangent table: cheaper than ``with_vector``)."""
-        import copy
-        p = self._params.with_vector(v)
-        out = copy.copy(self)
-        out._params = p
-        out._u_gps = p["u_gps"]
-        out._R_bs = r_opk(*np.radians(p["opk_cam"])) @ T
-        if self._ft.size:
-            out._d_ned = np.array([p[f"d_ned_{k}"] for k in range(self._ft.size)])
-            out._d_opk = np.array([p[f"d_opk_{k}"] for k in range(self._ft.size)])
-        return out
 
     # --- AP constraints (calibration) -------------------------------------------------------
     def continuity_residuals(self, params: ParameterSet | None = None) -> np.ndarray:

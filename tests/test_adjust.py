@@ -29,6 +29,27 @@ def test_linear_matches_closed_form(sparse):
     assert s.sigma0 == pytest.approx(np.sqrt(v @ v / 0.25 / (len(y) - 3)), rel=1e-8)
 
 
+@pytest.mark.parametrize("sparse", [False, True])
+def test_remaining_is_the_step_not_taken(sparse):
+    """With an infinite tolerance no step is taken; ``remaining`` is the step to the
+    closed-form solution, and zero for a fixed unknown."""
+    A, xt, y = _poly()
+    x0 = np.array([1.0, -2.0, 0.5])
+    P = Problem(["a", "b", "c"], x0)
+    P.add_linear("obs", sp.csr_matrix(A) if sparse else A, y, 0.5)
+    s = solve(P, vce=False, tol=np.inf)
+    assert np.array_equal(s.x, x0) and s.converged
+    assert np.allclose(s.remaining, np.linalg.solve(A.T @ A, A.T @ y) - x0, atol=1e-9)
+    P.fix(["c"])
+    s = solve(P, vce=False, tol=np.inf)
+    Af = A[:, :2]
+    ref = np.linalg.solve(Af.T @ Af, Af.T @ (y - A @ x0))
+    assert np.allclose(s.remaining[:2], ref, atol=1e-9) and s.remaining[2] == 0.0
+    # at convergence what remains is below the tolerance
+    s = solve(P, vce=False, tol=1e-6)
+    assert s.converged and np.abs(s.remaining).max() < 1e-6
+
+
 def test_prior_gives_weighted_mean():
     # one unknown, three observations of sigma 2 and a prior 10 +- 1: weighted mean
     P = Problem(["x"], [0.0])

@@ -94,13 +94,14 @@ def test_two_step_agrees_with_joint(tmp_path):
                               robust=False, vce=False, obs_sigma_px=NOISE)
     alt = res.alternative
     assert alt.method == "two-step" and len(alt.rounds) >= 2
+    assert alt.solution.converged, alt.rounds[-3:]
     assert res.max_continuity_residual < 1e-9 and alt.max_continuity_residual < 1e-9
     d = np.abs(res.values - alt.values) / res.sigmas
     free = res.sigmas > 0
-    # block alternation converges linearly: after its stopping rule the remaining
-    # difference is a fraction of the joint sigmas (measured: 1.5 at most, u_gps[0])
-    assert np.max(d[free]) < 2.0, sorted(zip(d, res.names))[-5:]
-    assert np.median(d[free]) < 0.2
+    # within their sigmas: the rounds stop at 0.1 sigma from the joint optimum (to first
+    # order); measured 0.07 at most (34 rounds), median 0.006
+    assert np.max(d[free]) < 0.25, sorted(zip(d, res.names))[-5:]
+    assert np.median(d[free]) < 0.05
     truth = _truth_vector(path, res.parameters)
     for r in (res, alt):
         z = (r.values - truth) / r.sigmas
