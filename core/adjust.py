@@ -403,18 +403,23 @@ def _points(problem: Problem, offsets) -> _PointIndex:
                        np.concatenate(rob))
 
 
-def _block_stat(v, qvv_blocks, obs_idx):
-    """v_p' Qvv_p^-1 v_p per point with padding, and its degrees of freedom."""
-    valid = obs_idx >= 0
-    vp = np.where(valid, v[np.where(valid, obs_idx, 0)], 0.0)
-    B = qvv_blocks.copy()
-    eye = np.eye(B.shape[1])[None]
-    B = np.where(valid[:, :, None] & valid[:, None, :], B, eye)
-    ok = np.all(np.linalg.eigvalsh(B) > 1e-12 * np.abs(B).max(axis=(1, 2))[:, None], axis=1)
-    B[~ok] = np.eye(B.shape[1])
-    t = np.einsum("pi,pi->p", vp, np.linalg.solve(B, vp[..., None])[..., 0])
-    t[~ok] = 0.0
-    return t, valid.sum(1)
+def _block_stat(v, q_blocks, obs_idx, qll, r_min: float = 0.01):
+    """v_p' Q_p^+ v_p per point (padding ignored) and its degrees of freedom.
+
+    The blocks are whitened by the a-priori variances ``qll`` (per point, (P, k)); for
+    Qvv their eigenvalues are the redundancy numbers (0..1), and directions below
+    ``r_min`` are left out of the test: an observation without redundancy (the last ray
+    of a tie point) cannot be tested, and dividing its convergence noise by a zero
+    variance would reject it."""
+    valid = (obs_idx >= 0) & np.isfinite(qll) & (qll > 0)
+    vp = np.where(valid, v[np.where(obs_idx >= 0, obs_idx, 0)], 0.0)
+    s = np.where(valid, 1.0 / np.sqrt(np.where(valid, qll, 1.0)), 0.0)
+    R = q_blocks * s[:, :, None] * s[:, None, :]
+    lam, V = np.linalg.eigh(R)
+    keep = lam > r_min
+    proj = np.einsum("pki,pk->pi", V, vp * s)
+    t = np.sum(np.where(keep, proj ** 2 / np.where(keep, lam, 1.0), 0.0), axis=1)
+    return t, keep.sum(1)
 
 
 def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = False,
@@ -618,7 +623,7 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
         qvv = -blocks.copy()
         qvv[:, idx, idx] += qdiag
         rr = np.where(np.isfinite(r), r, 0.0)
-        T, k_p = _block_stat(rr, qvv, pts.obs)
+        T, k_p = _block_stat(rr, qvv, pts.obs, qdiag)
         return T, k_p, blocks, qdiag
 
     def statistics(x, r, J):
@@ -706,8 +711,9 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
         if not readmitted and rejected:
             qpl = blocks.copy()
             qpl[:, idx, idx] += qdiag
-            Tp, _ = _block_stat(rr, qpl, pts.obs)
-            back = [p for p in rejected if Tp[p] <= crit[p]]
+            Tp, kp = _block_stat(rr, qpl, pts.obs, qdiag)
+            crit_p = stats.chi2.ppf(1 - alpha, np.maximum(kp, 1))
+            back = [p for p in rejected if Tp[p] <= crit_p[p]]
             readmitted = True
             if back:
                 for p in back:

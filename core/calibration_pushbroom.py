@@ -41,6 +41,10 @@ from .calibration import (CalibrationError, CalibrationResult, build_unknowns,
 from .errors import FormatError
 
 TIE_COLUMNS = ("tie_id", "image_id", "line", "element")
+#: a weak prior (m) on the tie coordinates around their first intersection: it adds no
+#: information where two or more rays meet, and keeps a tie determined when blunder
+#: detection rejects all but one of its rays (that ray then fits exactly)
+TIE_PRIOR_M = 1000.0
 METHODS = ("joint", "two-step", "both")
 
 
@@ -209,12 +213,11 @@ class _Setup:
         P.fix(fixed)
         is_tie = np.char.startswith(self.comp.astype(str), "tie")
         sig = np.where(is_tie, tie_sigma, obs_sigma)
-        # blunder tests on control points only: rejecting one observation of a two-ray tie
-        # point would leave its depth undetermined
+        # blunder tests on every image point, control and tie alike
         P.add_observations("image", self.fn, sig, component=self.comp,
                            point=np.repeat(np.arange(self.l_obs.size // 2), 2),
-                           point_names=self.point_names, robust=~is_tie[0::2])
-        prior_sig = np.full(self.n, np.inf)
+                           point_names=self.point_names, robust=True)
+        prior_sig = np.full(self.n, TIE_PRIOR_M)
         prior_sig[:self.n_par] = np.where(self.unk.fixed, np.inf, 1.0)
         P.add_priors(np.zeros(self.n), prior_sig, name="priors")
         # C0/C1: hard constraints on the free APs, in the scaled unknowns
@@ -466,10 +469,14 @@ class PushbroomCalibrationResult(CalibrationResult):
                              "residuals": dict(zip(self.continuity["label"],
                                                    self.continuity["residual"]))}
         if self.ties is not None:
+            tr = self.tie_residuals[self.tie_residuals["used"]]
             doc["tie_points"] = {"n": int(len(self.ties)),
                                  "observations": int(len(self.tie_residuals)),
-                                 "rms_x": _rms(self.tie_residuals["x"]),
-                                 "rms_y": _rms(self.tie_residuals["y"]),
+                                 "rejected_observations": int(len(self.tie_residuals)
+                                                              - len(tr)),
+                                 "single_ray": [str(t) for t in self.ties["tie_id"][
+                                     self.ties["rays"] < 2]],
+                                 "rms_x": _rms(tr["x"]), "rms_y": _rms(tr["y"]),
                                  "dropped": self.dropped_ties}
         if self.rounds:
             doc["two_step_rounds"] = self.rounds
@@ -488,10 +495,14 @@ class PushbroomCalibrationResult(CalibrationResult):
                f"the CCD line), y = line (along track). C0/C1 constraints (hard): largest "
                f"residual {self.max_continuity_residual:.3e}.</p>"]
         if self.ties is not None:
+            tr = self.tie_residuals[self.tie_residuals["used"]]
+            single = int((self.ties["rays"] < 2).sum())
             out.append(f"<p>{len(self.ties)} tie points ({len(self.tie_residuals)} image "
-                       f"observations): RMS x {_rms(self.tie_residuals['x']):.3f}, y "
-                       f"{_rms(self.tie_residuals['y']):.3f} px; "
-                       f"{len(self.dropped_ties)} dropped (fewer than two rays).</p>")
+                       f"observations, {len(self.tie_residuals) - len(tr)} rejected as "
+                       f"blunders): RMS x {_rms(tr['x']):.3f}, y {_rms(tr['y']):.3f} px; "
+                       f"{len(self.dropped_ties)} dropped before the adjustment and "
+                       f"{single} left with one ray after rejection (fewer than two "
+                       f"rays: no tie).</p>")
         if self.continuity is not None and len(self.continuity):
             out.append(_table(self.continuity, 3, left=("label",)))
         if self.rounds:
@@ -601,14 +612,19 @@ def _result(st: _Setup, sol: Solution, models, gcps, priors, method, options,
                              "sigma_Y": np.sqrt(np.clip(tc[:, 1], 0, None)),
                              "sigma_Z": np.sqrt(np.clip(tc[:, 2], 0, None))})
         r = sol.residuals["image"]
+        used = sol.used["image"]
         rows = []
         for iid, sl, G, ti in st.spans:
             if ti is None:
                 continue
             rr = r[sl].reshape(-1, 2)
             rows.append(pd.DataFrame({"tie_id": st.tie_ids[ti], "image_id": iid,
-                                      "x": rr[:, 1], "y": rr[:, 0]}))
+                                      "x": rr[:, 1], "y": rr[:, 0],
+                                      "used": used[sl].reshape(-1, 2).all(1)}))
         tie_res = pd.concat(rows, ignore_index=True)
+        # rays left after blunder rejection: a tie seen by fewer than two is not a tie
+        rays = tie_res.groupby("tie_id")["used"].sum()
+        ties["rays"] = rays.reindex(ties["tie_id"]).fillna(0).astype(int).to_numpy()
     from swathflow.sensors.pushbroom import continuity_matrix
     A, labels = continuity_matrix(next(iter(models.values())).sensor, params)
     cont = pd.DataFrame({"label": labels, "residual": A @ x})
@@ -724,8 +740,9 @@ def cli_calibrate_pushbroom(args, mission=None) -> int:
           f"{res.max_continuity_residual:.1e})")
     print(f"  check points: RMS x {cx:.3f} y {cy:.3f} px")
     if res.tie_residuals is not None:
-        print(f"  tie points:   RMS x {_rms(res.tie_residuals['x']):.3f} y "
-              f"{_rms(res.tie_residuals['y']):.3f} px")
+        tr = res.tie_residuals[res.tie_residuals["used"]]
+        print(f"  tie points:   RMS x {_rms(tr['x']):.3f} y {_rms(tr['y']):.3f} px "
+              f"({len(res.tie_residuals) - len(tr)} tie observations rejected)")
     if res.alternative is not None:
         a = res.alternative
         with np.errstate(invalid="ignore", divide="ignore"):

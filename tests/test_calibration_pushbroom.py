@@ -84,6 +84,42 @@ def test_cli_joint_calibration_recovers_truth(small, tmp_path):
     assert np.mean((d / s) ** 2) < 3.0                       # about 1 for honest sigmas
 
 
+def test_tie_blunders_are_found(small):
+    """Gross errors on tie observations are rejected by name, and only those. Across the
+    CCD line (element) a three-ray tie locates its bad ray; along track (line) the three
+    rays have one redundancy between them, so the tie is flagged but any of its rays may
+    be the one removed."""
+    m = load_mission(small)
+    models = {i: m.model(i) for i in m.image_ids}
+    ties = mission_ties(m)
+    three = ties.groupby("tie_id")["image_id"].transform("size") == 3
+    rows = ties.index[three][[2, 20, 41, 70]]
+    bad_elem, bad_ties = [], set()
+    for k, i in enumerate(rows):
+        col = "element" if k % 2 else "line"
+        ties.loc[i, col] += 25.0 if k < 2 else -25.0
+        bad_ties.add(ties.at[i, "tie_id"])
+        if col == "element":
+            bad_elem.append(f"tie {ties.at[i, 'tie_id']}@{ties.at[i, 'image_id']}")
+    assert len(bad_ties) == 4
+    res = calibrate_pushbroom(models, m.gcps, ties, m.priors, robust=True, vce=False,
+                              obs_sigma_px=NOISE)
+    names = [r["name"] for r in res.solution.rejected]
+    assert len(names) == 4, names
+    assert {n.split("@")[0][4:] for n in names} == bad_ties, names
+    assert set(bad_elem) <= set(names), names
+    truth = _truth_vector(small, res.parameters)
+    z = (res.values - truth) / res.sigmas
+    sel = [i for i, n in enumerate(res.names) if n.startswith(("u_gps", "opk_cam", "ax_",
+                                                                "bx_"))]
+    assert np.all(np.abs(z[sel]) < 3.0)
+    cx, cy = res.check_rms()
+    assert cx < 1.6 * NOISE and cy < 1.6 * NOISE
+    doc = res.calibration_document()["tie_points"]
+    assert doc["rejected_observations"] == 4 and doc["single_ray"] == []
+    assert doc["rms_x"] < 1.6 * NOISE and doc["rms_y"] < 1.6 * NOISE
+
+
 @pytest.mark.slow
 def test_two_step_agrees_with_joint(tmp_path):
     """The paper's iterative two-step scheme beside the joint solution (same weights)."""
