@@ -501,10 +501,16 @@ def _dem_grid(plan: Plan, cfg: SimConfig):
     """A north-up DEM grid (transform, shape) that covers the flight with a wide margin."""
     half_w = (cfg.n_strips - 1) / 2 * plan.spacing + plan.swath * 0.9 + 0.3 * cfg.agl
     half_l = plan.strip_length / 2 + 0.5 * cfg.agl + 50
-    r = math.hypot(half_w, half_l) * 1.05 + 5 * cfg.dem_cell
-    c = cfg.dem_cell
-    e0 = math.floor((plan.centre[0] - r) / c) * c
-    n1 = math.ceil((plan.centre[1] + r) / c) * c
+    return square_grid(plan.centre, math.hypot(half_w, half_l), cfg.dem_cell)
+
+
+def square_grid(centre, radius: float, cell: float):
+    """A north-up square grid (transform, shape) of ``cell`` size, snapped to the cell,
+    covering a circle of ``radius`` (plus 5 % and 5 cells) around ``centre`` (E, N)."""
+    r = radius * 1.05 + 5 * cell
+    c = cell
+    e0 = math.floor((centre[0] - r) / c) * c
+    n1 = math.ceil((centre[1] + r) / c) * c
     size = int(math.ceil(2 * r / c)) + 1
     return (c, 0.0, e0, 0.0, -c, n1), (size, size)
 
@@ -753,21 +759,44 @@ def _write_csv(path, df, fmt):
 
 
 def _write_toml(out, cfg, plan, gsd, pos_name, image_entries, sensor):
-    L = ["# simulated by swathflow simulate "
-         f"(preset {cfg.preset}); the truth is in truth/", "",
-         "[mission]", f'name = "sim-{cfg.preset}"', f'crs = "{plan.crs}"', f"gsd = {gsd!r}", "",
-         "[sensor]"]
-    L += [f"{k} = {_toml_value(v)}" for k, v in sensor.items()]
+    _write_mission_toml(out, cfg.preset, plan.crs, gsd, pos_name,
+                        [f"{k} = {_toml_value(v)}" for k, v in sensor.items()], PRIORS,
+                        image_entries, "direction")
+
+
+def _write_mission_toml(out, preset, crs, gsd, pos_name, sensor_lines, priors, images,
+                        image_key, ties=False):
+    """mission.toml of a simulated bundle (pendulum and push-broom): ``sensor_lines`` are
+    the [sensor] section's lines, ``images`` (id, file, lines file, ``image_key`` value,
+    strip) tuples."""
+    L = [f"# simulated by swathflow simulate (preset {preset}); the truth is in truth/", "",
+         "[mission]", f'name = "sim-{preset}"', f'crs = "{crs}"', f"gsd = {gsd!r}", "",
+         "[sensor]", *sensor_lines]
     L += ["", "[pos]", f'file = "{pos_name}"',
           f'format = "{"sbet" if pos_name.endswith(".sbet") else "csv"}"', "",
           "[terrain]", 'dem = "dem.tif"', 'vertical = "ellipsoidal"', "",
-          "[gcp]", 'file = "gcp.csv"', 'crs = "EPSG:4979"', "", "[calibration]"]
-    for k, (v, s) in PRIORS.items():
+          "[gcp]", 'file = "gcp.csv"', 'crs = "EPSG:4979"', ""]
+    if ties:
+        L += ["[ties]", 'file = "ties.csv"', ""]
+    L.append("[calibration]")
+    for k, (v, s) in priors.items():
         L.append(f"{k} = {{ value = {_toml_value(v)}, sigma = {_toml_value(s)} }}")
-    for iid, f, lf, d, s in image_entries:
+    for iid, f, lf, d, s in images:
         L += ["", "[[images]]", f'id = "{iid}"', f'file = "{f}"', f'lines = "{lf}"',
-              f'direction = "{d}"', f"strip = {s}"]
+              f'{image_key} = "{d}"', f"strip = {s}"]
     write_text(out / "mission.toml", "\n".join(L) + "\n")
+
+
+def _cli_overrides(args, keys) -> dict:
+    """Simulator keyword overrides from the command line: ``keys`` given on it, and
+    --geometry-only / --render."""
+    out = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
+    if getattr(args, "geometry_only", False):
+        out["render"] = False
+    if getattr(args, "render", False):
+        out["render"] = True
+        out["write_ortho"] = True
+    return out
 
 
 def cli_simulate(args) -> int:
@@ -775,20 +804,10 @@ def cli_simulate(args) -> int:
     if str(args.preset).startswith("pushbroom"):      # three-line camera presets
         from .simulate_pushbroom import cli_simulate_pushbroom
         return cli_simulate_pushbroom(args)
-    overrides = {}
-    for key in ("gcp_noise", "gross_fraction", "image_format", "pos_format"):
-        v = getattr(args, key, None)
-        if v is not None:
-            overrides[key] = v
+    overrides = _cli_overrides(args, ("gcp_noise", "gross_fraction", "image_format",
+                                      "pos_format", "direction_omega"))
     if getattr(args, "no_direction_effect", False):
         overrides["direction_effect"] = False
-    if getattr(args, "direction_omega", None) is not None:
-        overrides["direction_omega"] = args.direction_omega
-    if getattr(args, "geometry_only", False):
-        overrides["render"] = False
-    if getattr(args, "render", False):
-        overrides["render"] = True
-        overrides["write_ortho"] = True
     t0 = time.perf_counter()
     truth = simulate(args.out, args.preset, args.seed, texture=args.texture, dem=args.dem,
                      progress=lambda m: print(m, flush=True), **overrides)

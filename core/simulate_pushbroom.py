@@ -35,7 +35,8 @@ from .errors import SwathflowError
 from .geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
 from .io import write_text
 from .pos import Trajectory, write_pos_csv, write_sbet
-from .simulate import (Plan, _plain, _toml_value, _write_csv, make_trajectory,  # shared
+from .simulate import (Plan, _cli_overrides, _plain, _toml_value, _write_csv,  # shared
+                       _write_mission_toml, make_trajectory, square_grid,
                        write_swing)
 
 VIEWS = {"forward": 25.0, "nadir": 0.0, "backward": -25.0}
@@ -242,12 +243,7 @@ def prior_table(cfg: PushbroomConfig, n_fix: int) -> dict:
 def _dem_grid(plan: Plan, cfg: PushbroomConfig):
     half_w = (cfg.n_strips - 1) / 2 * plan.spacing + plan.swath + 0.2 * cfg.agl + 50
     half_l = plan.strip_length / 2 + 0.6 * cfg.agl + 50
-    r = math.hypot(half_w, half_l) * 1.05 + 5 * cfg.dem_cell
-    c = cfg.dem_cell
-    e0 = math.floor((plan.centre[0] - r) / c) * c
-    n1 = math.ceil((plan.centre[1] + r) / c) * c
-    size = int(math.ceil(2 * r / c)) + 1
-    return (c, 0.0, e0, 0.0, -c, n1), (size, size)
+    return square_grid(plan.centre, math.hypot(half_w, half_l), cfg.dem_cell)
 
 
 # ------------------------------------------------------------------------------------------
@@ -509,39 +505,19 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
 
 
 def _write_toml(out, cfg, plan, pos_name, entries, sensor, priors):
-    L = [f"# simulated by swathflow simulate (preset {cfg.preset}); the truth is in truth/",
-         "", "[mission]", f'name = "sim-{cfg.preset}"', f'crs = "{plan.crs}"',
-         f"gsd = {cfg.gsd!r}", "", "[sensor]"]
-    L += [f"{k} = {_toml_value(v)}" for k, v in sensor.items() if k not in ("views", "fixes")]
-    L += ["", "[sensor.views]"] + [f"{k} = {_toml_value(float(v))}"
-                                   for k, v in sensor["views"].items()]
-    L += ["", "[sensor.fixes]", f"time = {_toml_value(sensor['fixes']['time'])}"]
-    L += ["", "[pos]", f'file = "{pos_name}"',
-          f'format = "{"sbet" if pos_name.endswith(".sbet") else "csv"}"', "",
-          "[terrain]", 'dem = "dem.tif"', 'vertical = "ellipsoidal"', "",
-          "[gcp]", 'file = "gcp.csv"', 'crs = "EPSG:4979"', "",
-          "[ties]", 'file = "ties.csv"', "", "[calibration]"]
-    for k, (v, s) in priors.items():
-        L.append(f"{k} = {{ value = {_toml_value(v)}, sigma = {_toml_value(s)} }}")
-    for iid, f, lf, view, s in entries:
-        L += ["", "[[images]]", f'id = "{iid}"', f'file = "{f}"', f'lines = "{lf}"',
-              f'view = "{view}"', f"strip = {s}"]
-    write_text(out / "mission.toml", "\n".join(L) + "\n")
+    lines = [f"{k} = {_toml_value(v)}" for k, v in sensor.items() if k not in ("views", "fixes")]
+    lines += ["", "[sensor.views]"] + [f"{k} = {_toml_value(float(v))}"
+                                       for k, v in sensor["views"].items()]
+    lines += ["", "[sensor.fixes]", f"time = {_toml_value(sensor['fixes']['time'])}"]
+    _write_mission_toml(out, cfg.preset, plan.crs, cfg.gsd, pos_name, lines, priors, entries,
+                        "view", ties=True)
 
 
 def cli_simulate_pushbroom(args) -> int:
     """``swathflow simulate OUT --preset pushbroom[-demo|-calib|-bench]``."""
-    overrides = {}
-    for key in ("gcp_noise", "image_format", "pos_format"):
-        v = getattr(args, key, None)
-        if v is not None:
-            overrides[key] = v
+    overrides = _cli_overrides(args, ("gcp_noise", "image_format", "pos_format"))
     if getattr(args, "geometry_only", False):
-        overrides["render"] = False
         overrides["write_ortho"] = False
-    if getattr(args, "render", False):
-        overrides["render"] = True
-        overrides["write_ortho"] = True
     for key in ("texture", "dem"):
         if getattr(args, key, None):
             raise SwathflowError(f"--{key} is not supported by the push-broom presets yet")

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from spec_vectors import load_cases, pos_dataset
+from truth_ortho import overlap_with_truth
 from swathflow import rectify as R
 from swathflow.grid import Grid, ecef_to_map, footprint_grid
 from swathflow.pos import Trajectory
@@ -348,17 +349,7 @@ def _compare_with_truth(mission_dir, out_dir, tile=32):
             rect = src.read(1)
             t = src.transform
         # place the image's window inside the truth grid (both snapped to the GSD)
-        col0 = (t.c - truth.transform.c) / truth.transform.a
-        row0 = (t.f - truth.transform.f) / truth.transform.e
-        assert abs(col0 - round(col0)) < 1e-6 and abs(row0 - round(row0)) < 1e-6
-        col0, row0 = int(round(col0)), int(round(row0))
-        r0, c0 = max(row0, 0), max(col0, 0)
-        r1 = min(row0 + rect.shape[0], truth.data.shape[0])
-        c1 = min(col0 + rect.shape[1], truth.data.shape[1])
-        sub_t = truth.data[r0:r1, c0:c1]
-        sub_r = rect[r0 - row0:r1 - row0, c0 - col0:c1 - col0]
-        sub_r = np.where(np.isfinite(sub_t), sub_r, np.nan)
-        sub_t = np.where(np.isfinite(sub_t), sub_t, np.nanmean(sub_t))
+        sub_r, sub_t = overlap_with_truth(rect, t, truth)
         reports[tif.stem] = R.shift_report(sub_r, sub_t, tile=tile, margin=tile // 4)
         print(tif.stem, reports[tif.stem])
     return reports

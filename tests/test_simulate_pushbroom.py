@@ -12,6 +12,7 @@ from swathflow.calibfile import calibration_priors, read_calibration
 from swathflow.mission import load_mission, validate_mission
 from swathflow.sensors.pushbroom import continuity_residuals
 from swathflow.simulate_pushbroom import simulate_pushbroom
+from truth_ortho import overlap_with_truth
 
 
 def _truth_pos(mission):
@@ -78,17 +79,7 @@ def test_cli_simulate_validate_rectify_nadir_against_truth(tmp_path):
         t = src.transform
         if src.nodata is not None:
             rect[rect == src.nodata] = np.nan
-    col0 = (t.c - truth.transform.c) / truth.transform.a
-    row0 = (t.f - truth.transform.f) / truth.transform.e
-    assert abs(col0 - round(col0)) < 1e-6 and abs(row0 - round(row0)) < 1e-6
-    col0, row0 = int(round(col0)), int(round(row0))
-    r0, c0 = max(row0, 0), max(col0, 0)
-    r1 = min(row0 + rect.shape[0], truth.data.shape[0])
-    c1 = min(col0 + rect.shape[1], truth.data.shape[1])
-    st = truth.data[r0:r1, c0:c1]
-    sr = rect[r0 - row0:r1 - row0, c0 - col0:c1 - col0]
-    sr = np.where(np.isfinite(st), sr, np.nan)
-    st = np.where(np.isfinite(st), st, np.nanmean(st))
+    sr, st = overlap_with_truth(rect, t, truth)
     assert np.isfinite(sr).mean() > 0.3          # a slanted strip in a north-up box
     shift = phase_shift(sr, st)
     assert np.hypot(*shift) < 0.05, shift                  # measured 0.004 px
