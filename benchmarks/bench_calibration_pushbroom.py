@@ -54,8 +54,10 @@ def main() -> None:
         if res.alternative is not None:
             alt = res.alternative
             d = np.abs(res.values - alt.values) / np.where(res.sigmas > 0, res.sigmas, np.nan)
-            print(f"two-step: {res.timings['two-step']:.1f} s, {len(alt.rounds)} rounds; "
-                  f"largest difference from the joint solution {np.nanmax(d):.2f} sigma")
+            print(f"two-step: {res.timings['two-step']:.1f} s, {len(alt.rounds)} rounds "
+                  f"({'converged' if alt.solution.converged else 'NOT converged'}: last "
+                  f"joint step {alt.rounds[-1]['gap_sigma']:.3f} sigma); largest difference "
+                  f"from the joint solution {np.nanmax(d):.2f} sigma")
         print(f"total: {wall:.1f} s wall, {cpu:.1f} s CPU")
         tru = json.loads((path / "truth" / "truth.json").read_text())["parameters"]
         tv = np.concatenate([tru[b.name] for b in res.parameters.blocks])

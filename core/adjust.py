@@ -70,6 +70,8 @@ class Group:
     point_names: np.ndarray        # (n_points,) names for reports
     robust: bool = True
     linear: bool = False
+    counted: bool = True           # False: a regularising prior, outside sigma0 and the
+    #                                redundancy (its value carries no information)
 
     @property
     def size(self) -> int:
@@ -111,9 +113,11 @@ class Problem:
             self.fixed[self.index(list(which))] = True
 
     def add_observations(self, name: str, fn: Callable, sigma, component=None, point=None,
-                         point_names=None, robust=True) -> Group:
+                         point_names=None, robust=True, counted: bool = True) -> Group:
         """``robust``: whether the blunder tests may reject this group's points: one flag,
-        or an array of flags indexed by point number."""
+        or an array of flags indexed by point number. ``counted=False``: a regularising
+        group (a weak prior that only keeps unknowns determined): it weighs in the
+        solution but not in sigma0, the redundancy or the variance components."""
         sigma = np.asarray(sigma, float).ravel()
         m = sigma.size
         if np.any(~(sigma > 0)):
@@ -127,12 +131,12 @@ class Problem:
               if point_names is None else np.asarray(point_names, dtype=object))
         if comp.size != m or pt.size != m or pn.size < npts:
             raise AdjustmentError(f"group {name}: component/point arrays need {m} entries")
-        g = Group(name, fn, sigma, comp, pt, pn, robust)
+        g = Group(name, fn, sigma, comp, pt, pn, robust, counted=counted)
         self.groups.append(g)
         return g
 
     def add_linear(self, name: str, A, b, sigma, component=None, robust: bool = False,
-                   point=None, point_names=None) -> Group:
+                   point=None, point_names=None, counted: bool = True) -> Group:
         """Soft linear observations ``A x = b +- sigma`` (constraints, pseudo-observations)."""
         A = A.tocsr() if sp.issparse(A) else np.atleast_2d(np.asarray(A, float))
         b = np.asarray(b, float).ravel()
@@ -143,14 +147,15 @@ class Problem:
             return b - A @ x, (A if jacobian else None)
 
         g = self.add_observations(name, fn, np.broadcast_to(np.asarray(sigma, float), b.shape),
-                                  component, point, point_names, robust)
+                                  component, point, point_names, robust, counted)
         g.linear = True
         return g
 
-    def add_priors(self, values, sigmas, name: str = "priors", component: str | None = None
-                   ) -> Group | None:
+    def add_priors(self, values, sigmas, name: str = "priors", component: str | None = None,
+                   counted: bool = True) -> Group | None:
         """A pseudo-observation ``x_i = values_i +- sigmas_i`` for every unknown with a
-        finite sigma (a sigma of inf or NaN means no prior)."""
+        finite sigma (a sigma of inf or NaN means no prior); ``counted`` as in
+        :meth:`add_observations`."""
         values = np.broadcast_to(np.asarray(values, float), (self.n,))
         sigmas = np.broadcast_to(np.asarray(sigmas, float), (self.n,))
         idx = np.flatnonzero(np.isfinite(sigmas) & (sigmas > 0))
@@ -159,7 +164,8 @@ class Problem:
         A = sp.csr_matrix((np.ones(idx.size), (np.arange(idx.size), idx)),
                           shape=(idx.size, self.n))
         return self.add_linear(name, A, values[idx], sigmas[idx], component or name,
-                               point_names=np.array([self.names[i] for i in idx], dtype=object))
+                               point_names=np.array([self.names[i] for i in idx], dtype=object),
+                               counted=counted)
 
     def add_constraint(self, A, d) -> None:
         """Hard linear equality constraints ``A x = d`` (satisfied exactly)."""
@@ -457,12 +463,14 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
     comp = np.concatenate([g.component for g in P.groups])
     labels = list(dict.fromkeys(comp.tolist()))
     comp_idx = np.array([labels.index(c) for c in comp], int)
+    counted = np.concatenate([np.full(g.size, g.counted) for g in P.groups])
+    uncounted = set(comp[~counted].tolist())
     if vce is True:
-        est = set(labels)
+        est = set(labels) - uncounted
     elif vce is False or vce is None:
         est = set()
     else:
-        est = set(vce)
+        est = set(vce) - uncounted
     s2 = np.ones(len(labels))
     pts = _points(P, offsets)
     point_ok = np.ones(len(pts.group), bool)       # not rejected
@@ -596,7 +604,7 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
             dxf = Q @ np.asarray(Jf.T @ (w * rr)).ravel() if not cons else \
                 ne.solve(np.asarray(Jf.T @ (w * rr)).ravel(), cres(x))
             v = rr - np.asarray(Jf @ dxf).ravel()
-            red = np.where(act, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+            red = np.where(act & counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
             changed = False
             for k, lab in enumerate(labels):
                 sel = (comp_idx == k) & act
@@ -729,9 +737,10 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
     cov = np.zeros((n, n))
     red = np.full(m, np.nan)
     if Q is not None:
-        red = np.where(act, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
-    redundancy = float(act.sum() - free.sum() + ne.nc) if Q is None else float(red.sum())
-    vpv = float(np.sum(np.where(act, w * r ** 2, 0.0)))
+        red = np.where(act & counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+    redundancy = (float((act & counted).sum() - free.sum() + ne.nc) if Q is None
+                  else float(red.sum()))
+    vpv = float(np.sum(np.where(act & counted, w * r ** 2, 0.0)))
     s0sq = vpv / redundancy if redundancy > 0 else float("nan")
     if scale_covariance is None:
         scale_covariance = not any(lab in est for lab in labels)

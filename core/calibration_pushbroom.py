@@ -217,9 +217,12 @@ class _Setup:
         P.add_observations("image", self.fn, sig, component=self.comp,
                            point=np.repeat(np.arange(self.l_obs.size // 2), 2),
                            point_names=self.point_names, robust=True)
-        prior_sig = np.full(self.n, TIE_PRIOR_M)
+        prior_sig = np.full(self.n, np.inf)
         prior_sig[:self.n_par] = np.where(self.unk.fixed, np.inf, 1.0)
         P.add_priors(np.zeros(self.n), prior_sig, name="priors")
+        tie_sig = np.full(self.n, np.inf)
+        tie_sig[self.n_par:] = TIE_PRIOR_M
+        P.add_priors(np.zeros(self.n), tie_sig, name="tie priors", counted=False)
         # C0/C1: hard constraints on the free APs, in the scaled unknowns
         if self.cons_A.size:
             A = self.cons_A * self.scale[None]
@@ -325,13 +328,14 @@ def _vce(vce):
     return ["x", "y", "tie x", "tie y"] if vce else False
 
 
-def _run(P, vce, robust, alpha, tol=None, max_iter=50, damping=True):
+def _run(P, vce, robust, alpha, tol=None, max_iter=50, damping=True, covariance=True):
     # convergence: the step's length in sigma units (sqrt(dx' N dx)) below 1 % of a sigma
     # per unknown; the model's piecewise-linear POS interpolation puts a floor under it
     tol = 1e-2 * math.sqrt(max(int((~P.fixed).sum()), 1)) if tol is None else tol
     try:
         return solve(P, vce=_vce(vce), robust=robust, alpha=alpha, sparse=True, tol=tol,
-                     max_iter=max_iter, damping=damping)
+                     max_iter=max_iter, damping=damping,
+                     max_dense_cov=4000 if covariance else 0)
     except RankDeficiencyError as exc:
         raise CalibrationError(
             f"the observations cannot determine the parameters: {exc}. Add control or tie "
@@ -376,7 +380,7 @@ def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
     wts = None
     prev_norm = np.inf
     converged = False
-    final = None
+    final = joint_sig = None
     for r in range(max_rounds):
         zin = z.copy()
         sig = np.ones(st.n_par)
@@ -384,14 +388,15 @@ def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
             if not blk.any():
                 continue
             # a tiny tolerance: a sub-step is always taken (a larger one stalls the rounds)
+            # (conditional sigmas, for the extrapolation's scaling, in the first round only)
             sol = _run(st.problem(z, blk, obs_sigma, tie_sigma), False, False, alpha,
-                       tol=1e-9, max_iter=step_iter, damping=r == 0)
+                       tol=1e-9, max_iter=step_iter, damping=r == 0, covariance=r == 0)
             z = sol.x.copy()
             sig[blk] = sol.sigma[:st.n_par][blk]
         if wts is None:
             wts = 1.0 / np.maximum(sig[idx], 1e-12)
         f = (z[idx] - zin[idx]) * wts          # the round's change, in conditional sigmas
-        gap, final = _gap(st, z, free, obs_sigma, tie_sigma, alpha)
+        gap, final, joint_sig = _gap(st, z, free, obs_sigma, tie_sigma, alpha, joint_sig)
         rounds.append({"round": r + 1, "gap_sigma": gap,
                        "max_change_sigma": float(np.max(np.abs(f))) if idx.size else 0.0,
                        "sigma0": final.sigma0})
@@ -416,23 +421,26 @@ def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
         # the extrapolated values are the next round's start; z (the tie points too) is
         # re-solved by its first step
     z = final.x.copy()          # the last values measured (the extrapolation not taken)
-    if vce:     # variance components at the two-step solution (no step taken)
+    if vce or not final.cov.any():  # statistics at the two-step solution (no step taken)
         final = _run(st.problem(z, free, obs_sigma, tie_sigma), vce, False, alpha,
                      tol=np.inf)
         final.x[:] = z
     return final, rounds, converged
 
 
-def _gap(st: _Setup, z, free, obs_sigma, tie_sigma, alpha):
-    """The joint solution's statistics at ``z`` without a step, and the first-order
-    distance from ``z`` to the joint optimum: the largest |joint Gauss-Newton step| over
-    the free parameters, in joint sigmas."""
+def _gap(st: _Setup, z, free, obs_sigma, tie_sigma, alpha, sig=None):
+    """The first-order distance from ``z`` to the joint optimum: the largest |joint
+    Gauss-Newton step| over the free parameters, in joint sigmas; with the joint
+    solution's statistics at ``z`` (no step taken) and the sigmas used. Given ``sig``
+    (the joint sigmas change little from round to round) the covariance is not formed."""
     P = st.problem(z, free, obs_sigma, tie_sigma)
-    sol = _run(P, False, False, alpha, tol=np.inf)
+    sol = _run(P, False, False, alpha, tol=np.inf, covariance=sig is None)
     sol.x[:] = z
-    sig = sol.sigma[:st.n_par][free]
+    if sig is None:
+        sig = sol.sigma[:st.n_par][free]
     rem = np.abs(sol.remaining[:st.n_par][free]) if sol.remaining is not None else np.inf
-    return float(np.max(rem / np.maximum(sig, 1e-300))) if free.any() else 0.0, sol
+    gap = float(np.max(rem / np.maximum(sig, 1e-300))) if free.any() else 0.0
+    return gap, sol, sig
 
 
 # --- results -----------------------------------------------------------------------------

@@ -50,6 +50,28 @@ def test_remaining_is_the_step_not_taken(sparse):
     assert s.converged and np.abs(s.remaining).max() < 1e-6
 
 
+def test_uncounted_prior_leaves_sigma0_alone():
+    """A weak regularising prior (counted=False) adds nothing to the redundancy: sigma0
+    stays the closed form's; counted, its near-zero residuals would deflate sigma0."""
+    A, xt, y = _poly(n=20)
+    v = y - A @ np.linalg.solve(A.T @ A, A.T @ y)
+    s0 = np.sqrt(v @ v / 0.25 / (len(y) - 3))
+    out = {}
+    for counted in (False, True):
+        P = Problem(["a", "b", "c"], [0, 0, 0])
+        P.add_linear("obs", A, y, 0.5)
+        P.add_priors([0, 0, 0], 1e6, name="weak", counted=counted)
+        out[counted] = solve(P, vce=False)
+    assert out[False].sigma0 == pytest.approx(s0, rel=1e-6)
+    # asked to estimate every component, the weak prior's is left alone
+    P = Problem(["a", "b", "c"], [0, 0, 0])
+    P.add_linear("obs", A, y, 0.5)
+    P.add_priors([0, 0, 0], 1e6, name="weak", counted=False)
+    c = solve(P, vce=True).components
+    assert c["obs"]["estimated"] and not c["weak"]["estimated"] and c["weak"]["s2"] == 1.0
+    assert out[True].sigma0 < 0.95 * s0      # sqrt(17 / 20): 3 redundancy, no residual
+
+
 def test_prior_gives_weighted_mean():
     # one unknown, three observations of sigma 2 and a prior 10 +- 1: weighted mean
     P = Problem(["x"], [0.0])
