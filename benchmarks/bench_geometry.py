@@ -1,6 +1,6 @@
 """Throughput of the pendulum model's ground_to_image and image_to_ground (points per second).
 
-Reproduce:  python benchmarks/bench_geometry.py [--points 1000000] [--threads 1]
+Reproduce:  python benchmarks/bench_geometry.py [--points 1000000] [--threads 1] [--repeat 3]
 Prints points/s for ground_to_image (constant height), image_to_ground (constant height)
 and image_to_ground (a DEM), on one core unless --threads says otherwise.
 """
@@ -17,6 +17,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--threads", type=int, default=1, help="BLAS/OpenMP threads (default 1)")
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="runs per figure; the first call pays page faults on fresh memory, "
+                         "later ones show the steady state of a long run (default 3)")
     args = ap.parse_args(argv)
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(args.threads)
@@ -39,10 +42,13 @@ def main(argv=None) -> int:
     def timed(label, fn):
         fn_small = fn(slice(0, 1000))          # warm-up
         del fn_small
-        t, c = time.perf_counter(), time.process_time()
-        out = fn(slice(None))
-        dt, dc = time.perf_counter() - t, time.process_time() - c
-        rows.append((label, n / dt, dt, n / dc))
+        runs = []
+        for _ in range(args.repeat):           # the first call also pays page faults
+            t, c = time.perf_counter(), time.process_time()
+            out = fn(slice(None))
+            runs.append((time.perf_counter() - t, time.process_time() - c))
+        (dt, dc), best = runs[0], min(runs)
+        rows.append((label, n / dt, dt, n / dc, n / best[1]))
         return out
 
     ground = timed("image_to_ground, constant height",
@@ -69,12 +75,14 @@ def main(argv=None) -> int:
 
     print(f"swathflow geometry benchmark: {n:,} points, pendulum model, "
           f"{args.threads} thread(s), {os.cpu_count()} cores on this machine")
-    print(f"  {'':<48} {'wall':>16} {'per CPU-second':>22}")
-    for label, rate, dt, cpu_rate in rows:
-        print(f"  {label:<48} {rate / 1e6:7.3f} M points/s {cpu_rate / 1e6:9.3f} M points/CPU-s"
-              f"  ({dt:6.2f} s)")
+    print(f"  {'':<48} {'first call, wall':>18} {'per CPU-second':>22} "
+          f"{'best of ' + str(args.repeat) + ', per CPU-s':>24}")
+    for label, rate, dt, cpu_rate, best_rate in rows:
+        print(f"  {label:<48} {rate / 1e6:9.3f} M points/s {cpu_rate / 1e6:9.3f} M points/CPU-s"
+              f" {best_rate / 1e6:9.3f} M points/CPU-s  ({dt:6.2f} s)")
     print(f"  round-trip worst error: {err:.2e} px")
-    print(f"reproduce: python benchmarks/bench_geometry.py --points {n} --threads {args.threads}")
+    print(f"reproduce: python benchmarks/bench_geometry.py --points {n} --threads {args.threads}"
+          f" --repeat {args.repeat}")
     return 0
 
 

@@ -184,13 +184,14 @@ class Trajectory:
     def interpolate(self, t) -> dict[str, np.ndarray]:
         """Position (ECEF and lat/lon) and attitude at times ``t`` (any shape)."""
         i, w = self._locate(t)
-        w1 = w[..., None]
-        ecef = self.ecef[i] * (1 - w1) + self.ecef[i + 1] * w1
-        att = self.attitude[i] * (1 - w1) + self.attitude[i + 1] * w1
-        lat = self.lat[i] * (1 - w) + self.lat[i + 1] * w
-        lon = self.lon[i] * (1 - w) + self.lon[i + 1] * w
-        return {"ecef": ecef, "lat": lat, "lon": lon, "roll": att[..., 0],
-                "pitch": att[..., 1], "heading": att[..., 2]}
+        tab = self.__dict__.get("_table")
+        if tab is None:         # one gather per end instead of one per column
+            tab = np.column_stack([self.ecef, self.lat, self.lon, self.attitude])
+            object.__setattr__(self, "_table", tab)
+        a = tab[i]
+        v = a + (tab[i + 1] - a) * w[..., None]
+        return {"ecef": v[..., 0:3], "lat": v[..., 3], "lon": v[..., 4], "roll": v[..., 5],
+                "pitch": v[..., 6], "heading": v[..., 7]}
 
     def to_dataset(self) -> xr.Dataset:
         if self.source is not None:
