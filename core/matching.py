@@ -75,24 +75,48 @@ def mmgd_search(ref, ref_ok, mov, mov_ok, max_shift: int, min_pixels: int = 64):
     ``S = max_shift`` pixels on each side. For every candidate shift ``s`` the mean absolute
     difference ``|ref[x] - mov[x + s] - median(...)|`` is taken over the jointly valid
     pixels (the median removes a radiometric offset). Returns ``(s, cost_map)``; ``s`` is
-    None when no shift leaves ``min_pixels`` common pixels.
+    None when no shift leaves ``min_pixels`` common pixels. The shifts of one row whose
+    windows are entirely valid are evaluated together (one partition for all of them).
     """
+    from numpy.lib.stride_tricks import sliding_window_view
     S = int(max_shift)
     h, w = ref.shape
     cost = np.full((2 * S + 1, 2 * S + 1), np.inf)
+    ref_full = bool(ref_ok.all()) and h * w >= min_pixels
     for i, dr in enumerate(range(-S, S + 1)):
-        for j, dc in enumerate(range(-S, S + 1)):
-            m = mov[S + dr:S + dr + h, S + dc:S + dc + w]
-            ok = ref_ok & mov_ok[S + dr:S + dr + h, S + dc:S + dc + w]
-            n = int(ok.sum())
-            if n < min_pixels:
+        rows = mov[S + dr:S + dr + h]
+        rows_ok = mov_ok[S + dr:S + dr + h]
+        full = []
+        for j in range(2 * S + 1):
+            okw = rows_ok[:, j:j + w]
+            if ref_full and okw.all():
+                full.append(j)
                 continue
-            diff = ref[ok] - m[ok]
-            cost[i, j] = np.mean(np.abs(diff - np.median(diff)))
+            ok = ref_ok & okw
+            if int(ok.sum()) < min_pixels:
+                continue
+            diff = ref[ok] - rows[:, j:j + w][ok]
+            cost[i, j] = _mean_abs_from_median(diff[None])[0]
+        if full:
+            win = sliding_window_view(rows, w, axis=1)[:, full, :]       # (h, k, w)
+            diff = (ref[:, None, :] - win).transpose(1, 0, 2).reshape(len(full), -1)
+            cost[i, full] = _mean_abs_from_median(diff)
     if not np.isfinite(cost).any():
         return None, cost
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
     return (int(i) - S, int(j) - S), cost
+
+
+def _mean_abs_from_median(d):
+    """Per row of ``d`` (k, n): mean |d - median(d)| (the median as np.median takes it)."""
+    n = d.shape[1]
+    k = n // 2
+    if n % 2:
+        med = np.partition(d, k, axis=1)[:, k]
+    else:
+        p = np.partition(d, (k - 1, k), axis=1)
+        med = 0.5 * (p[:, k - 1] + p[:, k])
+    return np.abs(d - med[:, None]).mean(axis=1)
 
 
 # --- phase correlation ------------------------------------------------------------------------

@@ -581,10 +581,21 @@ def _resolve_anchors(layout, keys, nodes, anchors):
     return sorted(out)
 
 
+def _active_client():
+    """The Dask distributed client of this context (the mission flow's cluster), if any."""
+    try:
+        from distributed import get_client
+        return get_client()
+    except (ImportError, ValueError):
+        return None
+
+
 def plan(layout: Layout, per_image: bool = False, anchors=(), max_shift: int = 12,
          block: int = 128, min_texture: float = 1.0, workers: int | None = None,
          log=None):
-    """Match every overlap and solve the network. Returns (network, pairs, matches, keys)."""
+    """Match every overlap and solve the network. Returns (network, pairs, matches, keys).
+    The overlaps are matched on the active Dask distributed client's workers when there is
+    one (the mission flow's cluster), else on ``workers`` local threads."""
     import dask
     keys = _node_keys(layout, per_image)
     nodes = list(dict.fromkeys(keys))
@@ -593,9 +604,20 @@ def plan(layout: Layout, per_image: bool = False, anchors=(), max_shift: int = 1
         pairs = find_overlaps(layout, groups=keys, handles=handles)
         if log:
             log(f"{len(layout.swings)} swings, {len(nodes)} nodes, {len(pairs)} overlaps")
-        tasks = [dask.delayed(match_pair)(layout, i, j, win, handles, max_shift, block,
-                                          48, min_texture) for i, j, win, _ in pairs]
-        matches = list(dask.compute(*tasks, scheduler="threads", num_workers=workers))
+        client = _active_client()
+        if client is not None:
+            # worker processes (the matching is mostly small numpy steps that hold the GIL:
+            # threads do not add up); each task opens its own files
+            lay = client.scatter(layout, broadcast=True)
+            futures = [client.submit(match_pair, lay, i, j, win, None, max_shift, block, 48,
+                                     min_texture, pure=False) for i, j, win, _ in pairs]
+            matches = client.gather(futures)
+        else:
+            # the layout as one graph key: dask would otherwise walk its swings per task
+            lay = dask.delayed(layout, traverse=False)
+            tasks = [dask.delayed(match_pair)(lay, i, j, win, handles, max_shift, block,
+                                              48, min_texture) for i, j, win, _ in pairs]
+            matches = list(dask.compute(*tasks, scheduler="threads", num_workers=workers))
     finally:
         handles.close()
     obs = [(nodes.index(keys[i]), nodes.index(keys[j]), m)

@@ -117,3 +117,27 @@ def test_combine_blocks_all_low_texture():
     res = combine_blocks([BlockMatch(True, offset=(0.0, float(k)), sigma=(0.02, 0.02),
                                      radiometric=0.0, peak=0.5) for k in range(5)])
     assert not res.ok and res.status == "inconsistent"
+
+
+def test_mmgd_cost_map_is_the_definition():
+    """The batched search gives, shift by shift, the definition's cost (masks, radiometric
+    offset through the median, too few common pixels -> inf)."""
+    rng = np.random.default_rng(3)
+    for trial in range(12):
+        h, w, S = int(rng.integers(8, 40)), int(rng.integers(8, 40)), int(rng.integers(1, 5))
+        ref = rng.normal(size=(h, w))
+        mov = rng.normal(size=(h + 2 * S, w + 2 * S)) + 7.0
+        rok = rng.random((h, w)) > (0.0 if trial % 3 == 0 else rng.uniform(0, 0.5))
+        mok = rng.random(mov.shape) > (0.0 if trial % 2 == 0 else rng.uniform(0, 0.5))
+        want = np.full((2 * S + 1, 2 * S + 1), np.inf)
+        for i, dr in enumerate(range(-S, S + 1)):
+            for j, dc in enumerate(range(-S, S + 1)):
+                m = mov[S + dr:S + dr + h, S + dc:S + dc + w]
+                ok = rok & mok[S + dr:S + dr + h, S + dc:S + dc + w]
+                if ok.sum() >= 10:
+                    diff = ref[ok] - m[ok]
+                    want[i, j] = np.mean(np.abs(diff - np.median(diff)))
+        _, got = mmgd_search(ref, rok, mov, mok, S, min_pixels=10)
+        assert np.array_equal(np.isfinite(got), np.isfinite(want)), trial
+        f = np.isfinite(want)
+        assert np.allclose(got[f], want[f], rtol=1e-12, atol=1e-12), trial

@@ -89,6 +89,22 @@ def test_offsets_recovered_within_0_2_px(scene, result):
     assert rep["sigma0"] is not None and rep["sigma0"] < 3
 
 
+def test_matching_on_a_dask_cluster(scene):
+    """Inside a Dask distributed context (the mission flow's), the overlaps are matched on
+    the cluster's worker processes: same offsets as the threads, and the truth's."""
+    from swathflow.flows.mission import dask_client
+    lay = M.scan_inputs(scene["paths"])
+    with dask_client(n_workers=2) as client:
+        assert M._active_client() is client
+        net, pairs, matches, _ = M.plan(lay, anchors=["0"])
+        assert len(client.run(lambda: 1)) == 2   # two real worker processes
+    assert M._active_client() is None
+    local, *_ = M.plan(lay, anchors=["0"], workers=1)
+    assert np.array_equal(np.asarray(net.offsets), np.asarray(local.offsets))
+    for k, key in enumerate(net.nodes):
+        assert np.hypot(*(np.asarray(net.offsets[k]) - scene["shifts"][int(key)])) < 0.2
+
+
 def test_low_texture_overlap_reported_and_skipped(result):
     _, rep = result
     lake = [o for o in rep["overlaps"] if (o["ref"], o["mov"]) == ("S0_1", "S1_1")]
