@@ -5,8 +5,10 @@
 --memory  mosaics synthetic areas of 1x, 4x and 16x the base area in fresh subprocesses
           and prints each one's peak RSS (the mosaic is streamed tile by tile, so the peak
           should not grow with the area).
---peers   on the 4x area, one run each of: swathflow (match + network + feathering + COG),
-          swathflow without matching (blending only), gdalbuildvrt + gdal_translate,
+--peers   on the 4x area, one run each of: swathflow as the CLI runs it (overlaps matched
+          on a local Dask cluster; its RSS is the main process's only), swathflow in one
+          process (threads; match + network + feathering + COG), swathflow without
+          matching (blending only), gdalbuildvrt + gdal_translate,
           gdalwarp, and rasterio.merge.merge (the last three do no blending); prints time,
           output megapixels per second and the time ratio to swathflow.
 --paper   You & Li's job (papers.md section 3): 24 strips of 6 km at 2 m pixels, swath of
@@ -51,11 +53,15 @@ def generate(folder, n_strips, length, swath=180, overlap=0.2, seed=1, swing_row
 
 
 _CHILD = r"""
-import json, sys
+import contextlib, json, sys
+from swathflow.cluster import dask_client
 from swathflow.mosaic import mosaic
 a = json.loads(sys.argv[1])
-rep = mosaic(a["paths"], a["out"], anchors=a.get("anchors", ["0"]), match=a.get("match", True),
-             png=a.get("png", True), workers=a.get("workers"))
+# as `swathflow mosaic` does: the overlaps are matched on a local Dask cluster
+ctx = dask_client() if a.get("cluster") and a.get("match", True) else contextlib.nullcontext()
+with ctx:
+    rep = mosaic(a["paths"], a["out"], anchors=a.get("anchors", ["0"]),
+                 match=a.get("match", True), png=a.get("png", True), workers=a.get("workers"))
 print(json.dumps({k: rep[k] for k in ("seconds", "mpx_per_s", "shape")} |
                  {"nodes": rep.get("nodes"), "skipped": len(rep.get("skipped", []))}))
 """
@@ -108,8 +114,10 @@ def bench_peers(work, n_strips=12, length=2048):
     mpx = H * W / 1e6
     paths = g["paths"]
     results = []
-    sec, rss, rep = mosaic_subprocess(paths, os.path.join(work, "sf.tif"))
-    results.append(("swathflow (match+network+feather, COG+PNG)", sec, rss))
+    sec, rss, rep = mosaic_subprocess(paths, os.path.join(work, "sf.tif"), cluster=True)
+    results.append(("swathflow CLI (local cluster: match+network+feather, COG+PNG)", sec, rss))
+    sec1, rss1, _ = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"))
+    results.append(("swathflow, one process (threads)", sec1, rss1))
     sec2, rss2, _ = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), match=False,
                                       png=False)
     results.append(("swathflow blend only (feather, COG)", sec2, rss2))
@@ -150,9 +158,9 @@ def bench_peers(work, n_strips=12, length=2048):
     results.append(("rasterio.merge.merge (GTiff, in memory)", time.perf_counter() - t0,
                     float(pr.stdout.split()[-1]) / 1024))
     print(f"grid {H} x {W} = {mpx:.2f} Mpx, {len(paths)} swings")
-    print(f"{'tool':<46} {'seconds':>8} {'Mpx/s':>7} {'time / swathflow':>17} {'peak RSS MB':>12}")
+    print(f"{'tool':<62} {'seconds':>8} {'Mpx/s':>7} {'time / swathflow':>17} {'peak RSS MB':>12}")
     for name, s, r in results:
-        print(f"{name:<46} {s:>8.2f} {mpx / s:>7.2f} {s / sec:>17.2f} "
+        print(f"{name:<62} {s:>8.2f} {mpx / s:>7.2f} {s / sec:>17.2f} "
               f"{'' if r is None else f'{r:.0f}':>12}")
     shutil.rmtree(d, ignore_errors=True)
     return results

@@ -369,7 +369,8 @@ def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
 
     ``accelerate`` > 0 extrapolates over the last that many rounds (Anderson acceleration
     of the round as a fixed-point map; each round is still the paper's two steps);
-    0 gives the plain alternation, which needs thousands of rounds on these missions.
+    0 gives the plain alternation (on the two-strip test mission still 1 joint sigma away
+    after 45 rounds).
     Variance components, when asked for, are estimated once at the end."""
     z = z0.copy()
     ext = free & ~st.ap_mask

@@ -24,6 +24,7 @@ Radiometric offset ``b``: ``image = truth + b``; the mosaic subtracts ``b``.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -34,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from .cluster import dask_client
 from .errors import FormatError, SwathflowError
 from .io import atomic_path, write_text
 from .matching import OverlapMatch, combine_blocks, match_block
@@ -921,15 +923,13 @@ def cli_mosaic(args) -> int:
         mission = args.source
     strips = mission_strips(mission) if mission else None
     log = (lambda s: print(s, flush=True)) if not getattr(args, "quiet", False) else None
-    rep = mosaic(paths, out, per_image=getattr(args, "per_image", False),
-                 anchors=getattr(args, "anchor", None) or (),
-                 feather=getattr(args, "feather", 64),
-                 mode="cut" if getattr(args, "no_feather", False) else "feather",
-                 balance=not getattr(args, "no_balance", False),
-                 match=not getattr(args, "no_match", False),
-                 max_shift=getattr(args, "max_shift", 12),
-                 tile=getattr(args, "tile", 1024), workers=getattr(args, "workers", None),
-                 strips=strips, log=log)
+    workers = getattr(args, "workers", None)
+    address = getattr(args, "dask_address", None)
+    # the overlap matching holds the GIL: worker processes, as in the mission flow
+    cluster = not getattr(args, "no_match", False) and (
+        address or (workers or os.cpu_count() or 1) > 1)
+    with (dask_client(address, n_workers=workers) if cluster else contextlib.nullcontext()):
+        rep = _cli_run(args, paths, out, strips, log, workers)
     if log:
         for nd in rep.get("nodes", []):
             log(f"  node {nd['node']}: offset (row, col) = {nd['offset']} px, "
@@ -938,3 +938,14 @@ def cli_mosaic(args) -> int:
             f"{rep['mpx_per_s']} Mpx/s), {os.path.splitext(out)[0]}.png and "
             f"{os.path.splitext(out)[0]}.json")
     return 0
+
+
+def _cli_run(args, paths, out, strips, log, workers) -> dict:
+    return mosaic(paths, out, per_image=getattr(args, "per_image", False),
+                  anchors=getattr(args, "anchor", None) or (),
+                  feather=getattr(args, "feather", 64),
+                  mode="cut" if getattr(args, "no_feather", False) else "feather",
+                  balance=not getattr(args, "no_balance", False),
+                  match=not getattr(args, "no_match", False),
+                  max_shift=getattr(args, "max_shift", 12),
+                  tile=getattr(args, "tile", 1024), workers=workers, strips=strips, log=log)

@@ -136,7 +136,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-shift", type=int, default=12,
                    help="largest offset searched, pixels (default 12)")
     s.add_argument("--tile", type=int, default=1024, help="tile size in pixels (default 1024)")
-    s.add_argument("--workers", type=int, help="threads (default: all cores)")
+    s.add_argument("--workers", type=int,
+                   help="render threads and local Dask worker processes for the overlap "
+                        "matching (default: all cores; 1: everything in this process)")
+    s.add_argument("--dask-address",
+                   help="match the overlaps on an existing Dask scheduler (default: a local "
+                        "cluster of --workers processes)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_call("swathflow.mosaic:cli_mosaic"))
 

@@ -29,6 +29,7 @@ warnings.filterwarnings("ignore", message="Dataset has no geotransform")
 
 from prefect import flow  # noqa: E402
 
+from swathflow.cluster import dask_client  # noqa: E402
 from swathflow.tasks import stages  # noqa: E402
 
 
@@ -64,22 +65,6 @@ class Progress:
         if self.tty:
             self.stream.write(f"  {self.timings[stage]:.1f} s\n")
             self.stream.flush()
-
-
-@contextlib.contextmanager
-def dask_client(address: str | None = None, n_workers: int | None = None):
-    """A Dask client: on ``address``, or on a local cluster sized to the machine
-    (one single-threaded worker process per core), closed on exit."""
-    from distributed import Client, LocalCluster
-    if address:
-        with Client(address) as client:
-            yield client
-        return
-    n = n_workers or max(1, min(os.cpu_count() or 1, 4))
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=None, silence_logs=40) as cluster, \
-            Client(cluster) as client:
-        yield client
 
 
 @flow(name="swathflow-mission", log_prints=False)

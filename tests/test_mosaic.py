@@ -92,7 +92,7 @@ def test_offsets_recovered_within_0_2_px(scene, result):
 def test_matching_on_a_dask_cluster(scene):
     """Inside a Dask distributed context (the mission flow's), the overlaps are matched on
     the cluster's worker processes: same offsets as the threads, and the truth's."""
-    from swathflow.flows.mission import dask_client
+    from swathflow.cluster import dask_client
     lay = M.scan_inputs(scene["paths"])
     with dask_client(n_workers=2) as client:
         assert M._active_client() is client
