@@ -43,7 +43,7 @@ def bracket_lines(f_at: Callable[[np.ndarray, np.ndarray], np.ndarray], n_points
     return lo, flo, fhi, found
 
 
-def plane_brackets(points: np.ndarray, planes: np.ndarray, nodes: int = 16,
+def plane_brackets(points: np.ndarray, planes: np.ndarray, nodes: int = 8,
                    chunk: int = 65536) -> tuple[np.ndarray, ...]:
     """Narrow brackets from a coarse pass over evenly spaced lines, then one chord step.
 

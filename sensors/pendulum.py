@@ -14,7 +14,7 @@ from swathflow.errors import FormatError
 from swathflow.linesolve import bracket_lines, plane_brackets, secant_lines
 from swathflow.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
 
-from .base import Parameter, ParameterSet, SensorModel
+from .base import CHUNK, Parameter, ParameterSet, SensorModel
 
 
 class PendulumModel(SensorModel):
@@ -248,10 +248,15 @@ class PendulumModel(SensorModel):
         ground = np.asarray(ground, float)
         shape = ground.shape[:-1]
         g = ground.reshape(-1, 3)
+        out = np.full((g.shape[0], 2), np.nan)
+        # in chunks: the temporaries stay in the CPU cache
+        for s in range(0, g.shape[0], CHUNK):
+            out[s:s + CHUNK] = self._ground_to_image(g[s:s + CHUNK], clip)
+        return out.reshape(shape + (2,))
+
+    def _ground_to_image(self, g, clip: bool) -> np.ndarray:
         n = g.shape[0]
         out = np.full((n, 2), np.nan)
-        if n == 0:
-            return out.reshape(shape + (2,))
         planes = self._planes
 
         def f_int(i, j):
@@ -276,7 +281,7 @@ class PendulumModel(SensorModel):
                 line = np.where(off, np.nan, line)
             out[k, 0] = line
             out[k, 1] = elem
-        return out.reshape(shape + (2,))
+        return out
 
     @classmethod
     def example_model(cls, direction: str = "L", n_lines: int = 800) -> "PendulumModel":
