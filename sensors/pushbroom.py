@@ -97,6 +97,15 @@ def _check_view(name: str, cfg: Mapping[str, Any]) -> list[str]:
 
 
 # --- the model ----------------------------------------------------------------------------------
+def _compose(x, ren, rnb, do, u_gps, R_bs):
+    """Projection centre and R_ES from the antenna position ``x``, R_EN, R_NB, the fix
+    attitude correction ``do`` (rad, or None), the lever arm and R_BS."""
+    if do is not None:
+        rnb = rnb @ r_opk(do[..., 0], do[..., 1], do[..., 2])
+    reb = ren @ rnb
+    return x + apply(reb, u_gps), reb @ R_bs
+
+
 class PushbroomModel(SensorModel):
     """Push-broom line camera (GFXJ three-line camera): APs per CCD segment, LIM fixes."""
 
@@ -299,17 +308,21 @@ class PushbroomModel(SensorModel):
 
     def _state_t(self, t) -> tuple[np.ndarray, np.ndarray]:
         """Projection centre C (ECEF) and R_ES (camera S to ECEF) at times ``t``."""
+        return _compose(*self._frames(t), self._u_gps, self._R_bs)
+
+    def _frames(self, t):
+        """The parameter-free part of the state at times ``t`` plus the fix corrections:
+        fix-corrected antenna position (ECEF), R_EN, R_NB and the fix attitude correction
+        (rad; None without fixes)."""
         pos = self._trajectory.interpolate(t)
         ren = r_en(np.radians(pos["lat"]), np.radians(pos["lon"]))
         rnb = r_nb(np.radians(pos["roll"]), np.radians(pos["pitch"]),
                    np.radians(pos["heading"]))
-        x = pos["ecef"]
+        x, do = pos["ecef"], None
         if self._ft.size:
             dn, do = self._corrections(t)
             x = x + apply(ren, dn)
-            rnb = rnb @ r_opk(do[..., 0], do[..., 1], do[..., 2])
-        reb = ren @ rnb
-        return x + apply(reb, self._u_gps), reb @ self._R_bs
+        return x, ren, rnb, do
 
     def _line_time(self, line) -> np.ndarray:
         return np.interp(line, self._lidx, self._ltime)
@@ -576,22 +589,15 @@ class PushbroomModel(SensorModel):
         component)], written into ``dF``. The trajectory is interpolated once; a fix
         correction is differenced only where its interpolation weight is non-zero."""
         t = self._line_time(np.clip(line, 0, self.n_lines - 1))
-        pos = self._trajectory.interpolate(t)
-        ren = r_en(np.radians(pos["lat"]), np.radians(pos["lon"]))
-        rnb = r_nb(np.radians(pos["roll"]), np.radians(pos["pitch"]),
-                   np.radians(pos["heading"]))
-        x = pos["ecef"]
-        do = np.zeros(t.shape + (3,))
-        if self._ft.size:
-            dn, do = self._corrections(t)
-            x = x + apply(ren, dn)
+        x, ren, rnb, do = self._frames(t)
+        do = np.zeros(t.shape + (3,)) if do is None else do
         tx, ty, _, _ = self.view_tangents(s)
         opk = np.radians(np.asarray(self._params["opk_cam"], float))
         steps = self.fd_step_sizes()
 
         def cond(i, x_, do_, u, R_bs):
-            reb = ren[i] @ (rnb[i] @ r_opk(do_[..., 0], do_[..., 1], do_[..., 2]))
-            gv = apply_t(reb @ R_bs, g[i] - x_ - apply(reb, u))
+            c, r = _compose(x_, ren[i], rnb[i], do_, u, R_bs)
+            gv = apply_t(r, g[i] - c)
             with np.errstate(invalid="ignore", divide="ignore"):
                 return np.stack([gv[:, 0] / -gv[:, 2] - tx[i],
                                  gv[:, 1] / -gv[:, 2] - ty[i]], axis=-1)
