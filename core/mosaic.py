@@ -917,7 +917,8 @@ def mission_strips(path) -> dict:
 def cli_mosaic(args) -> int:
     paths = _find_inputs(args.source)
     out = os.fspath(args.out)
-    paths = [p for p in paths if os.path.abspath(p) != os.path.abspath(out)]
+    # absolute: the overlaps may be matched by worker processes elsewhere
+    paths = [os.path.abspath(p) for p in paths if os.path.abspath(p) != os.path.abspath(out)]
     mission = getattr(args, "mission", None)
     if mission is None and os.path.isfile(os.path.join(os.fspath(args.source), "mission.toml")):
         mission = args.source
