@@ -138,7 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tile", type=int, default=1024, help="tile size in pixels (default 1024)")
     s.add_argument("--workers", type=int,
                    help="render threads and local Dask worker processes for the overlap "
-                        "matching (default: all cores; 1: everything in this process)")
+                        "matching (default: all cores, at most 4 processes; 1: everything "
+                        "in this process)")
     s.add_argument("--dask-address",
                    help="match the overlaps on an existing Dask scheduler (default: a local "
                         "cluster of --workers processes)")
