@@ -1,6 +1,6 @@
 """Property tests: rotations, geodesy, and image -> ground -> image round trips."""
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 
 from swathflow.geodesy import ecef_to_geodetic, geodetic_to_ecef
 from swathflow.rotations import r_en, r_nb, r_opk, rx, ry, rz
@@ -51,6 +51,10 @@ params = st.fixed_dictionaries({
 
 
 @settings(max_examples=40, deadline=None)
+# found by hypothesis in CI: 1.2e-3 px when a POS sample put a kink inside a line
+@example(params={k: [0.0] * 3 for k in ("u_gps", "u_sen", "opk_sen", "opk_pos_L", "opk_pos_R")},
+         swing=10.0, direction="L", heading=0.0, roll=4.0, y0=0.0, focal=0.5, height=300.0,
+         seed=0)
 @given(params=params, swing=st.floats(10, 60), direction=st.sampled_from("LR"),
        heading=st.floats(-180, 180), roll=st.floats(0, 4), y0=st.floats(-3e-5, 3e-5),
        focal=st.floats(0.05, 0.5), height=st.floats(300, 4000), seed=st.integers(0, 99))
