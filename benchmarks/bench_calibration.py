@@ -11,7 +11,6 @@ import importlib.util
 import os
 import time
 
-import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 spec = importlib.util.spec_from_file_location(
@@ -32,7 +31,7 @@ def main():
         res = calibrate(models, obs, pri)
         full = time.perf_counter() - t
         t = time.perf_counter()
-        res2 = calibrate(models, obs, pri, robust=False, vce=False)
+        calibrate(models, obs, pri, robust=False, vce=False)
         plain = time.perf_counter() - t
         m = models["L1"].with_parameters(tc.TRUTH)
         g = obs[obs["image_id"] == "L1"][["X", "Y", "Z"]].to_numpy()

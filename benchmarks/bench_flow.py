@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     for n in [int(x) for x in args.workers.split(",")]:
         with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                           dashboard_address=None, silence_logs=40) as cluster, \
-                Client(cluster) as client:
+                Client(cluster):
             out = work / f"out-flow-{n}"
             shutil.rmtree(out, ignore_errors=True)
             t = time.perf_counter()

@@ -35,7 +35,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
-from mosaic_synth import grid_shape, make_swings, random_shifts  # noqa: E402
+from mosaic_synth import make_swings, random_shifts  # noqa: E402
 
 SWING_ROWS = 512
 
