@@ -197,11 +197,12 @@ class PendulumModel(SensorModel):
 
         One exact evaluation at the chord of the bracket; the root is then the inverse
         quadratic interpolation through the condition at ``j``, the chord point and
-        ``j + 1`` (the secant against the bracket end on the other side where that leaves
-        the bracket), and the camera vector there is the quadratic through the camera
-        vectors at the same three lines (exact at the integer lines from their frames).
-        This agrees with a fully converged solve to far below 0.001 px (checked in the
-        tests; a linear interpolation left 1.2e-3 px on a wobbling swing).
+        ``j + 1``, and the camera vector there is the quadratic through the camera vectors
+        at the same three lines (exact at the integer lines from their frames). Where that
+        root leaves the bracket or differs from the secant step against the far bracket end
+        by more than ``ROUGH_LINE``, the point is solved exactly (secant iterations). This
+        agrees with a fully converged solve to far below 0.001 px (checked in the tests; a
+        linear interpolation alone left 1.2e-3 px on a wobbling swing).
         """
         nvec = np.array([0.0, self._f, self._y0])
         with np.errstate(invalid="ignore", divide="ignore"):
