@@ -333,9 +333,10 @@ def _run(P, vce, robust, alpha, tol=None, max_iter=50, damping=True, covariance=
     # per unknown; the model's piecewise-linear POS interpolation puts a floor under it
     tol = 1e-2 * math.sqrt(max(int((~P.fixed).sum()), 1)) if tol is None else tol
     try:
+        # no covariance: the engine forms none above max_dense_cov unknowns
+        extra = {} if covariance else {"max_dense_cov": 0}
         return solve(P, vce=_vce(vce), robust=robust, alpha=alpha, sparse=True, tol=tol,
-                     max_iter=max_iter, damping=damping,
-                     max_dense_cov=4000 if covariance else 0)
+                     max_iter=max_iter, damping=damping, **extra)
     except RankDeficiencyError as exc:
         raise CalibrationError(
             f"the observations cannot determine the parameters: {exc}. Add control or tie "
@@ -382,6 +383,7 @@ def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
     prev_norm = np.inf
     converged = False
     final = joint_sig = None
+    best = None                       # (gap, solution) of the round closest to the optimum
     for r in range(max_rounds):
         zin = z.copy()
         sig = np.ones(st.n_par)
@@ -401,6 +403,8 @@ def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
         rounds.append({"round": r + 1, "gap_sigma": gap,
                        "max_change_sigma": float(np.max(np.abs(f))) if idx.size else 0.0,
                        "sigma0": final.sigma0})
+        if best is None or gap < best[0]:
+            best = (gap, final)
         if gap < gap_sigma:
             converged = True
             break
@@ -421,7 +425,9 @@ def solve_two_step(st: _Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
         z[idx] = (Xh[-1] + f - (dX + dF) @ gamma) / wts
         # the extrapolated values are the next round's start; z (the tie points too) is
         # re-solved by its first step
-    z = final.x.copy()          # the last values measured (the extrapolation not taken)
+    if not converged and best is not None and best[0] < gap:
+        final = best[1]
+    z = final.x.copy()          # the values measured closest to the joint optimum
     if vce or not final.cov.any():  # statistics at the two-step solution (no step taken)
         final = _run(st.problem(z, free, obs_sigma, tie_sigma), vce, False, alpha,
                      tol=np.inf)

@@ -596,8 +596,10 @@ class PushbroomModel(SensorModel):
         steps = self.fd_step_sizes()
 
         def cond(i, x_, do_, u, R_bs):
-            c, r = _compose(x_, ren[i], rnb[i], do_, u, R_bs)
-            gv = apply_t(r, g[i] - c)
+            # the centre relative to the ground point: differences of small numbers (ECEF
+            # coordinates would cost the central differences 1e-9 m of rounding)
+            c, r = _compose(x_ - g[i], ren[i], rnb[i], do_, u, R_bs)
+            gv = apply_t(r, -c)
             with np.errstate(invalid="ignore", divide="ignore"):
                 return np.stack([gv[:, 0] / -gv[:, 2] - tx[i],
                                  gv[:, 1] / -gv[:, 2] - ty[i]], axis=-1)
