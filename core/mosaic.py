@@ -270,58 +270,29 @@ def find_overlaps(layout: Layout, groups=None, min_pixels: int = 256, handles=No
     return pairs
 
 
-def _blocks_for(handles, a: Swing, b: Swing, win, block: int, max_blocks: int,
-                min_fraction: float = 0.3):
-    """Block windows inside overlap ``win`` with enough common coverage, evenly thinned to
-    at most ``max_blocks``."""
-    r0, c0, r1, c1 = win
-    hb = min(block, r1 - r0)
-    wb = min(block, c1 - c0)
-    rows = list(range(r0, r1 - hb + 1, hb)) or [r0]
-    cols = list(range(c0, c1 - wb + 1, wb)) or [c0]
-    if rows[-1] + hb < r1:
-        rows.append(r1 - hb)
-    if cols[-1] + wb < c1:
-        cols.append(c1 - wb)
-    step = max(1, min(hb, wb) // 8)
-    _, oka = read_window(handles, a, r0, c0, r1, c1, step=step)
-    _, okb = read_window(handles, b, r0, c0, r1, c1, step=step)
-    joint = oka & okb
-    out = []
-    for br in rows:
-        for bc in cols:
-            sub = joint[(br - r0) // step:(br - r0 + hb) // step or 1,
-                        (bc - c0) // step:(bc - c0 + wb) // step or 1]
-            if sub.size and sub.mean() >= min_fraction:
-                out.append((br, bc, br + hb, bc + wb))
-    if len(out) > max_blocks:
-        keep = np.unique(np.round(np.linspace(0, len(out) - 1, max_blocks)).astype(int))
-        out = [out[k] for k in keep]
-    return out
-
-
 def match_pair(layout: Layout, i: int, j: int, win, handles=None, max_shift: int = 12,
-               block: int = 128, max_blocks: int = 48, min_texture: float = 1.0,
-               min_pixels: int = 256) -> OverlapMatch:
-    """Offset of swing ``j`` relative to swing ``i`` over their overlap ``win``."""
+               block: int = 128, max_blocks: int = 16, min_texture: float = 1.0,
+               min_pixels: int = 256, coarse: int = 3) -> OverlapMatch:
+    """Offset of swing ``j`` relative to swing ``i`` over their overlap ``win``, coarse to
+    fine (swathflow.coarse: the integer offset on a ``coarse``-times decimated overview,
+    then at most ``max_blocks`` well-textured blocks refined in a small window)."""
+    from .coarse import match_overlap
     own = handles is None
     handles = handles or _Handles()
     a, b = layout.swings[i], layout.swings[j]
     S = int(max_shift)
-    blocks = []
+    M = S + int(coarse) // 2 + 2
+    r0, c0, r1, c1 = win
     try:
-        for br0, bc0, br1, bc1 in _blocks_for(handles, a, b, win, block, max_blocks):
-            ref, rok = read_window(handles, a, br0, bc0, br1, bc1)
-            mov, mok = read_window(handles, b, br0 - S, bc0 - S, br1 + S, bc1 + S)
-            if rok.sum() < min_pixels:
-                continue
-            m = match_block(ref, rok, mov, mok, S, min_texture=min_texture,
-                            min_pixels=min(min_pixels, (br1 - br0) * (bc1 - bc0) // 4))
-            m.centre = ((br0 + br1) / 2.0, (bc0 + bc1) / 2.0)
-            blocks.append(m)
+        ref, rok = read_window(handles, a, r0, c0, r1, c1)
+        mov, mok = read_window(handles, b, r0 - M, c0 - M, r1 + M, c1 + M)
     finally:
         if own:
             handles.close()
+    blocks, _ = match_overlap(ref, rok, mov, mok, M, S, block, max_blocks, min_texture,
+                              min_pixels, factor=max(int(coarse), 1))
+    for m in blocks:
+        m.centre = (m.centre[0] + r0, m.centre[1] + c0)
     return combine_blocks(blocks)
 
 
@@ -611,7 +582,7 @@ def plan(layout: Layout, per_image: bool = False, anchors=(), max_shift: int = 1
             # worker processes (the matching is mostly small numpy steps that hold the GIL:
             # threads do not add up); each task opens its own files
             lay = client.scatter(layout, broadcast=True)
-            futures = [client.submit(match_pair, lay, i, j, win, None, max_shift, block, 48,
+            futures = [client.submit(match_pair, lay, i, j, win, None, max_shift, block, 16,
                                      min_texture, pure=False) for i, j, win, _ in pairs]
             matches = client.gather(futures)
         else:

@@ -150,6 +150,14 @@ PRESETS: dict[str, dict] = {
                  focal_length=0.015, swing_max=20.0, agl=500.0, speed=45.0, gsd=0.5,
                  dem_cell=5.0, terrain_relief=40.0, terrain_wavelength=1200.0,
                  gcp_control=6, gcp_check=2),
+    # papers.md section 3's survey (You & Li): 24 strips of ~6 km, 650 m above ground,
+    # 30 deg field of view (+-15 deg swing), 2 m pixels (2 m / 650 m IFOV), ~20 % side
+    # overlap (348 m swath), ~40 km2; 10 swings of 320 elements per strip
+    "survey": dict(preset="survey", n_strips=24, swings_per_strip=10, n_elements=320,
+                   focal_length=0.004875, swing_max=15.0, agl=650.0, speed=55.0, gsd=2.0,
+                   side_overlap=0.2, strip_gap=20.0, pos_rate=50.0, dem_cell=10.0,
+                   terrain_relief=30.0, terrain_wavelength=2500.0, supersample=2,
+                   ortho_supersample=1, gcp_control=3, gcp_check=1, block_lines=512),
 }
 
 
