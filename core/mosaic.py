@@ -433,99 +433,37 @@ def solve_network(nodes: list, obs: list, anchors=(), reject: float = 4.0,
 
 
 # --- blending -------------------------------------------------------------------------------------
-def _fill_nearest(val, ok):
-    if ok.all() or not ok.any():
-        return val
-    idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
-    return val[tuple(idx)]
+def swing_cache(layout: Layout, offsets, radiometric, feather: int = 64, handles=None,
+                max_bytes: int = 512 * 2 ** 20):
+    """A :class:`swathflow.blend.SwingCache` of the swings corrected by ``offsets`` and
+    ``radiometric`` (per swing), read through ``handles``."""
+    from .blend import SwingCache, corrected_swing
+    handles = handles or _Handles()
+    offsets = np.asarray(offsets, float)
+    radiometric = np.asarray(radiometric, float)
+
+    def make(k):
+        sw = layout.swings[k]
+        val, ok = read_window(handles, sw, sw.row, sw.col, sw.row + sw.height,
+                              sw.col + sw.width)
+        return corrected_swing(val, ok, sw.row, sw.col, offsets[k], radiometric[k], feather)
+    return SwingCache(make, max_bytes)
 
 
-def _corrected(handles, sw: Swing, t, r0, c0, r1, c1):
-    """Swing ``sw`` corrected by offset ``t`` on grid window ``[r0,r1) x [c0,c1)``:
-    ``out[x] = image[x + t]`` (cubic spline), and its valid mask (every pixel the
-    interpolation leans on was valid)."""
-    a = np.floor(t).astype(int)
-    f = np.asarray(t, float) - a
-    if f[0] < 1e-6 and f[1] < 1e-6:
-        return read_window(handles, sw, r0 + a[0], c0 + a[1], r1 + a[0], c1 + a[1])
-    p = 3
-    val, ok = read_window(handles, sw, r0 + a[0] - p, c0 + a[1] - p, r1 + a[0] + p,
-                          c1 + a[1] + p)
-    h, w = r1 - r0, c1 - c0
-    if not ok.any():
-        return val[p:p + h, p:p + w], ok[p:p + h, p:p + w]
-    val = _fill_nearest(val, ok)
-    sv = ndimage.shift(val, -f, order=3, mode="nearest")
-    # out[i] reads val[i + p + f]: valid where the pixels on both sides were valid
-    m = ok[p:p + h + 1, p:p + w + 1]
-    if f[0] >= 1e-6:
-        m = m[:-1] & m[1:]
-    else:
-        m = m[:-1]
-    if f[1] >= 1e-6:
-        m = m[:, :-1] & m[:, 1:]
-    else:
-        m = m[:, :-1]
-    return sv[p:p + h, p:p + w], m
-
-
-def render_tile(layout: Layout, r0, c0, r1, c1, offsets, radiometric, handles,
-                feather: int = 64, mode: str = "feather", sel=None):
-    """Blend grid window ``[r0,r1) x [c0,c1)``. ``offsets`` (n_swings, 2) and
-    ``radiometric`` (n_swings,) per swing. ``mode``: ``"feather"`` (distance-weighted),
-    ``"cut"`` (each pixel from the swing deepest inside its footprint: hard seams) or
-    ``"first"`` (first valid swing wins, like rasterio.merge). Returns (values, valid).
-
-    A swing's weight is its distance to the nearest pixel outside its own (corrected)
-    footprint, capped at ``feather``; it is computed on the tile grown by ``feather + 2``
-    pixels, which is exact for a capped distance, so tiles join without seams.
-    """
-    h, w = r1 - r0, c1 - c0
-    E = int(feather) + 2
-    acc = np.zeros((h, w))
-    wsum = np.zeros((h, w))
-    best = np.full((h, w), -1.0)
+def render_tile(layout: Layout, r0, c0, r1, c1, offsets, cache, mode: str = "feather",
+                sel=None):
+    """Blend grid window ``[r0,r1) x [c0,c1)`` from the corrected swings in ``cache``
+    (:func:`swing_cache`; ``offsets`` (n_swings, 2) are the ones it was made with).
+    ``mode``: see :func:`swathflow.blend.blend_tile`. Returns (values, valid)."""
+    from .blend import blend_tile
     offsets = np.asarray(offsets, float)
     ext = np.array([s.extent for s in layout.swings], float)
-    lo = np.floor(ext[:, :2] - offsets).astype(int) - 1      # corrected footprint bounds
-    hi = np.ceil(ext[:, 2:] - offsets).astype(int) + 1
-    hit = ((lo[:, 0] < r1 + E) & (hi[:, 0] > r0 - E) & (lo[:, 1] < c1 + E) & (hi[:, 1] > c0 - E))
+    lo = ext[:, :2] - np.floor(offsets)                  # corrected swing bounds
+    hi = ext[:, 2:] - np.floor(offsets)
+    hit = (lo[:, 0] < r1) & (hi[:, 0] > r0) & (lo[:, 1] < c1) & (hi[:, 1] > c0)
     if sel is not None:
         hit &= sel
-    for k in np.nonzero(hit)[0]:
-        sw = layout.swings[k]
-        # the part of the grown tile this swing can reach
-        a0, b0 = max(r0 - E, lo[k, 0]), max(c0 - E, lo[k, 1])
-        a1, b1 = min(r1 + E, hi[k, 0]), min(c1 + E, hi[k, 1])
-        # the tile pixels inside it
-        i0, j0 = max(a0, r0), max(b0, c0)
-        i1, j1 = min(a1, r1), min(b1, c1)
-        if i1 <= i0 or j1 <= j0:
-            continue
-        val, ok = _corrected(handles, sw, offsets[k], a0, b0, a1, b1)
-        core = ok[i0 - a0:i1 - a0, j0 - b0:j1 - b0]
-        if not core.any():
-            continue
-        v = val[i0 - a0:i1 - a0, j0 - b0:j1 - b0] - radiometric[k]
-        ta, tb = slice(i0 - r0, i1 - r0), slice(j0 - c0, j1 - c0)
-        if mode == "first":
-            take = core & (wsum[ta, tb] == 0)
-            acc[ta, tb][take] = v[take]
-            wsum[ta, tb][take] = 1.0
-            continue
-        dist = ndimage.distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1]
-        wt = np.minimum(dist[i0 - a0:i1 - a0, j0 - b0:j1 - b0], float(feather)) * core
-        if mode == "cut":
-            take = core & (wt > best[ta, tb])
-            acc[ta, tb][take] = v[take]
-            best[ta, tb][take] = wt[take]
-            wsum[ta, tb][take] = 1.0
-        else:
-            acc[ta, tb] += wt * v
-            wsum[ta, tb] += wt
-    valid = wsum > 0
-    out = np.where(valid, acc / np.where(valid, wsum, 1.0), np.nan)
-    return out, valid
+    return blend_tile([cache.get(int(k)) for k in np.nonzero(hit)[0]], r0, c0, r1, c1, mode)
 
 
 # --- the whole job ----------------------------------------------------------------------------
@@ -590,7 +528,10 @@ def plan(layout: Layout, per_image: bool = False, anchors=(), max_shift: int = 1
             lay = dask.delayed(layout, traverse=False)
             tasks = [dask.delayed(match_pair)(lay, i, j, win, handles, max_shift, block,
                                               48, min_texture) for i, j, win, _ in pairs]
-            matches = list(dask.compute(*tasks, scheduler="threads", num_workers=workers))
+            from threadpoolctl import threadpool_limits
+            with threadpool_limits(1):      # BLAS threads on top of dask's: 5x slower
+                matches = list(dask.compute(*tasks, scheduler="threads",
+                                            num_workers=workers))
     finally:
         handles.close()
     obs = [(nodes.index(keys[i]), nodes.index(keys[j]), m)
@@ -644,10 +585,11 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     offsets = np.asarray(offsets, float)
     radiometric = np.asarray(radiometric, float)
     handles = _Handles()
+    cache = swing_cache(layout, offsets, radiometric, feather, handles)
 
     def block(x, block_info=None):
         (a, b), (c, d) = block_info[None]["array-location"]
-        v, _ = render_tile(layout, a, c, b, d, offsets, radiometric, handles, feather, mode)
+        v, _ = render_tile(layout, a, c, b, d, offsets, cache, mode)
         return v.astype(np.float32)
 
     arr = da.zeros((H, W), chunks=(tile, tile), dtype=np.float32).map_blocks(

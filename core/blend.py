@@ -1,0 +1,174 @@
+"""Feathered blending, one swing at a time: every swing is shifted by its offset and given
+its feather weight once (whole-swing arrays: the cubic shift and the distance transform
+are compiled scipy.ndimage passes), kept in a small memory-bounded cache, and a tile is
+the weighted sum of the cached swings that reach it (vectorised numpy).
+
+Weight of a swing: its distance to the nearest pixel outside its own corrected footprint,
+capped at ``feather`` pixels, which is the paper's ``G = (Rl*Gr + Rr*Gl)/(Rl + Rr)`` for a
+straight overlap and works for any overlap shape. Because a swing's shifted values and
+weights do not depend on the tile, the mosaic is the same pixel for pixel however it is
+cut into tiles (or into separate runs over parts of the area).
+"""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["Corrected", "corrected_swing", "shift_cubic", "SwingCache", "blend_tile"]
+
+
+@dataclass
+class Corrected:
+    """A swing moved by its offset: values (radiometric offset removed) and feather
+    weights (0 outside its valid footprint) on grid rows ``row..``, cols ``col..``."""
+    row: int
+    col: int
+    values: np.ndarray      # float32
+    weight: np.ndarray      # float32, 0 where invalid
+
+    @property
+    def nbytes(self) -> int:
+        return self.values.nbytes + self.weight.nbytes
+
+
+def _fill_rows(val, ok):
+    """Invalid pixels take the nearest valid value along their row (the previous one, else
+    the next); rows with no valid pixel take the nearest filled row. Only the spline
+    prefilter sees these values: it needs no jump at the footprint's edges."""
+    if ok.all() or not ok.any():
+        return val
+    h, w = ok.shape
+    j = np.arange(w)
+    prev = np.maximum.accumulate(np.where(ok, j, -1), axis=1)
+    nxt = np.minimum.accumulate(np.where(ok, j, w)[:, ::-1], axis=1)[:, ::-1]
+    use = np.where(prev >= 0, prev, nxt)
+    rows = ok.any(axis=1)
+    use[~rows] = 0
+    out = np.take_along_axis(val, np.clip(use, 0, w - 1), axis=1)
+    if not rows.all():
+        i = np.arange(h)
+        pr = np.maximum.accumulate(np.where(rows, i, -1))
+        nx = np.minimum.accumulate(np.where(rows, i, h)[::-1])[::-1]
+        src = np.where(pr >= 0, pr, nx)
+        out = out[src]
+    return out
+
+
+def _b3(x):
+    x = np.abs(x)
+    return np.where(x < 1, 2 / 3 - x ** 2 + x ** 3 / 2, np.where(x < 2, (2 - x) ** 3 / 6, 0.0))
+
+
+def shift_cubic(img, f, pad: int = 12):
+    """``out[x] = img(x + f)`` by cubic B-spline for one fractional shift ``f`` of the
+    whole image: the prefilter, then one 4-tap correlation per axis (the same weights at
+    every pixel). Equals ``ndimage.shift(img, -f, order=3, mode="nearest")`` (which pads
+    by 12 edge pixels the same way) at 4x less cost."""
+    c = ndimage.spline_filter(np.pad(img, pad, mode="edge"), order=3, mode="mirror")
+    for axis in (0, 1):
+        w = _b3(float(f[axis]) - (np.arange(4) - 1))
+        c = ndimage.correlate1d(c, w, axis=axis, mode="mirror", origin=-1)
+    return c[pad:-pad, pad:-pad]
+
+
+def corrected_swing(val, ok, row: int, col: int, offset, radiometric: float,
+                    feather: float) -> Corrected:
+    """``val``/``ok``: the whole swing (grid origin ``row, col``). Returns it corrected by
+    ``offset`` ``t``: ``out[x] = image[x + t] - radiometric`` (cubic spline), valid where
+    every pixel the interpolation leans on was valid, weighted by the capped distance to
+    the nearest invalid pixel."""
+    t = np.asarray(offset, float)
+    a = np.floor(t).astype(int)
+    f = t - a
+    if f[0] < 1e-6 and f[1] < 1e-6:
+        out, m = val, ok
+    else:
+        filled = _fill_rows(val, ok)
+        out = shift_cubic(filled, f)
+        # out[i] reads val[i + f]: valid where the pixels on both sides were valid
+        m = np.pad(ok, ((0, 1), (0, 1)))
+        m = m[:-1] & m[1:] if f[0] >= 1e-6 else m[:-1]
+        m = m[:, :-1] & m[:, 1:] if f[1] >= 1e-6 else m[:, :-1]
+    dist = ndimage.distance_transform_edt(np.pad(m, 1))[1:-1, 1:-1]
+    wt = np.minimum(dist, float(feather)).astype(np.float32) if feather > 0 else \
+        m.astype(np.float32)
+    vals = (out - radiometric).astype(np.float32)
+    vals[~m] = 0.0
+    return Corrected(int(row - a[0]), int(col - a[1]), vals, wt)
+
+
+class SwingCache:
+    """Thread-safe LRU of corrected swings, bounded by ``max_bytes``; ``make(k)`` builds
+    swing ``k`` (each swing is built once at a time: other threads wait for it)."""
+
+    def __init__(self, make, max_bytes: int = 512 * 2 ** 20):
+        self.make = make
+        self.max_bytes = int(max_bytes)
+        self._data: OrderedDict = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self._building: dict = {}
+
+    def get(self, k) -> Corrected:
+        while True:
+            with self._lock:
+                if k in self._data:
+                    self._data.move_to_end(k)
+                    return self._data[k]
+                ev = self._building.get(k)
+                if ev is None:
+                    ev = self._building[k] = threading.Event()
+                    break
+            ev.wait()
+        try:
+            c = self.make(k)
+            with self._lock:
+                self._data[k] = c
+                self._bytes += c.nbytes
+                while self._bytes > self.max_bytes and len(self._data) > 1:
+                    _, old = self._data.popitem(last=False)
+                    self._bytes -= old.nbytes
+            return c
+        finally:
+            with self._lock:
+                self._building.pop(k, None)
+            ev.set()
+
+
+def blend_tile(swings, r0: int, c0: int, r1: int, c1: int, mode: str = "feather"):
+    """Blend corrected swings (:class:`Corrected`, in input order) on grid window
+    ``[r0, r1) x [c0, c1)``. ``mode``: ``"feather"`` (weighted mean), ``"cut"`` (each pixel
+    from the swing with the largest weight: hard seams) or ``"first"`` (first valid swing
+    wins, like rasterio.merge). Returns ``(values float64 with NaN, valid)``."""
+    h, w = r1 - r0, c1 - c0
+    acc = np.zeros((h, w))
+    wsum = np.zeros((h, w))
+    best = np.zeros((h, w), np.float32)
+    for s in swings:
+        hh, ww = s.values.shape
+        i0, j0 = max(r0, s.row), max(c0, s.col)
+        i1, j1 = min(r1, s.row + hh), min(c1, s.col + ww)
+        if i1 <= i0 or j1 <= j0:
+            continue
+        v = s.values[i0 - s.row:i1 - s.row, j0 - s.col:j1 - s.col]
+        wt = s.weight[i0 - s.row:i1 - s.row, j0 - s.col:j1 - s.col]
+        ta, tb = slice(i0 - r0, i1 - r0), slice(j0 - c0, j1 - c0)
+        if mode == "feather":
+            acc[ta, tb] += wt * v
+            wsum[ta, tb] += wt
+            continue
+        if mode == "first":
+            take = (wt > 0) & (wsum[ta, tb] == 0)
+        else:
+            take = wt > best[ta, tb]
+            best[ta, tb][take] = wt[take]
+        acc[ta, tb][take] = v[take]
+        wsum[ta, tb][take] = 1.0
+    valid = wsum > 0
+    out = np.full((h, w), np.nan)
+    np.divide(acc, wsum, out=out, where=valid)
+    return out, valid
