@@ -2,7 +2,7 @@
 
 :func:`calibrate` estimates a sensor plugin's calibration parameters from image
 observations of ground control points by weighted least squares
-(:mod:`swathflow.adjustment.adjust`) on back-projection residuals in image space, with a
+(:mod:`swathflow.adjustment`) on back-projection residuals in image space, with a
 pseudo-observation (prior) for every parameter, variance component estimation, robust
 blunder handling and optional time-linear drift of chosen parameter blocks.
 
@@ -25,7 +25,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from swathflow.adjustment.adjust import Problem, RankDeficiencyError, Solution, solve
+from swathflow.adjustment import Problem, RankDeficiencyError, Solution, solve
 from swathflow.errors import FormatError, SwathflowError
 
 DIRECTION_SUFFIXES = ("_L", "_R")
