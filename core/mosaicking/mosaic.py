@@ -25,627 +25,26 @@ Radiometric offset ``b``: ``image = truth + b``; the mosaic subtracts ``b``.
 from __future__ import annotations
 
 import json
-import math
 import os
-import threading
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 
-from swathflow.errors import FormatError, SwathflowError
-from swathflow.io import atomic_path, write_text
-from swathflow.mosaicking.matching import OverlapMatch, combine_blocks, match_block
+from swathflow.io import write_text
+from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, Layout, Swing,
+                                         find_inputs, mission_strips, read_window,
+                                         scan_inputs)
+from swathflow.mosaicking.network import Network, solve_network
+from swathflow.mosaicking.output import quicklook, render_tile, swing_cache, write_mosaic
+from swathflow.mosaicking.overlaps import (_active_client, find_overlaps,
+                                           match_all, match_pair, plan)
+from swathflow.mosaicking.seams import seam_lines, seam_visibility
 
 __all__ = ["Swing", "Layout", "scan_inputs", "find_overlaps", "match_pair", "solve_network",
            "render_tile", "write_mosaic", "mosaic", "mission_strips", "find_inputs",
-           "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP"]
-
-# plain tag names: GDAL splits "a:b=c" metadata at the colon, so no namespaced keys
-TAG_IMAGE = "image_id"
-TAG_STRIP = "strip"
-TAG_DIRECTION = "direction"
-
-
-# --- inputs -----------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Swing:
-    """One rectified swing: its file and its place on the common grid (pixel offsets)."""
-    path: str
-    image_id: str
-    strip: int
-    row: int          # grid row of the file's first row
-    col: int
-    height: int
-    width: int
-    nodata: float | None
-    dtype: str
-    direction: str = ""
-
-    @property
-    def extent(self):
-        return self.row, self.col, self.row + self.height, self.col + self.width
-
-
-@dataclass
-class Layout:
-    """The common grid and the swings on it."""
-    crs: object                 # rasterio CRS
-    transform: object           # affine.Affine of the grid's top-left corner
-    shape: tuple[int, int]
-    swings: list[Swing] = field(default_factory=list)
-
-    @property
-    def res(self) -> float:
-        return abs(self.transform.a)
-
-
-def _tag(tags: dict, *names, default=None):
-    for n in names:
-        if n in tags and str(tags[n]).strip() != "":
-            return tags[n]
-    return default
-
-
-def scan_inputs(paths, strips: dict | None = None) -> Layout:
-    """Read the headers of rectified swings and place them on their common grid.
-
-    All inputs must share the CRS and pixel size and be aligned to whole pixels; the grid is
-    the union of their extents. Image ids come from the tag ``image_id`` (else the file
-    name), strips from ``strips`` (image id -> strip, e.g. from mission.toml), else the tag
-    ``strip``, else the file order (every file its own strip).
-    """
-    import rasterio
-    from affine import Affine
-    paths = [os.fspath(p) for p in paths]
-    if not paths:
-        raise FormatError("no rectified swings given (expected single-band GeoTIFFs)")
-    heads = []
-    for k, p in enumerate(paths):
-        try:
-            with rasterio.open(p) as ds:
-                t = ds.transform
-                if t.b != 0 or t.d != 0:
-                    raise FormatError(f"{p}: rotated transforms are not supported; rectify "
-                                      f"to a north-up grid")
-                tags = ds.tags()
-                nod = ds.nodata
-                heads.append((p, ds.crs, t, ds.height, ds.width, nod, ds.dtypes[0], tags,
-                              ds.count))
-        except rasterio.errors.RasterioIOError as exc:
-            raise FormatError(f"{p}: cannot read raster: {exc}") from None
-    p0, crs0, t0 = heads[0][0], heads[0][1], heads[0][2]
-    for p, crs, t, *_ in heads[1:]:
-        if crs != crs0:
-            raise FormatError(f"{p}: CRS differs from {p0}; rectify every swing to one grid")
-        if not (math.isclose(t.a, t0.a, rel_tol=1e-9) and math.isclose(t.e, t0.e, rel_tol=1e-9)):
-            raise FormatError(f"{p}: pixel size ({t.a}, {t.e}) differs from {p0} "
-                              f"({t0.a}, {t0.e}); rectify every swing to one grid")
-    xs = np.array([h[2].c for h in heads])
-    ys = np.array([h[2].f for h in heads])
-    x0, y0 = xs.min(), ys.max()
-    cols = (xs - x0) / t0.a
-    rows = (ys - y0) / t0.e
-    for (p, *_), r, c in zip(heads, rows, cols):
-        if abs(r - round(r)) > 1e-3 or abs(c - round(c)) > 1e-3:
-            raise FormatError(f"{p}: not aligned with {p0} (offset of {r:.3f}, {c:.3f} "
-                              f"pixels); rectify every swing to one aligned grid")
-    swings = []
-    for k, ((p, _, _, h, w, nod, dt, tags, count), r, c) in enumerate(zip(heads, rows, cols)):
-        if count != 1:
-            raise FormatError(f"{p}: has {count} bands; rectified swings are single-band")
-        iid = str(_tag(tags, TAG_IMAGE, "IMAGE_ID", default=os.path.splitext(os.path.basename(p))[0]))
-        strip = strips.get(iid) if strips else None
-        if strip is None:
-            strip = _tag(tags, TAG_STRIP, "STRIP", default=None)
-        try:
-            strip = int(float(strip)) if strip is not None else k
-        except ValueError:
-            raise FormatError(f"{p}: tag {TAG_STRIP}={strip!r} is not a strip number") from None
-        direction = str(_tag(tags, TAG_DIRECTION, "DIRECTION", default=""))
-        swings.append(Swing(p, iid, strip, int(round(r)), int(round(c)), h, w, nod, dt,
-                            direction))
-    ids = [s.image_id for s in swings]
-    dup = {i for i in ids if ids.count(i) > 1}
-    if dup:
-        raise FormatError(f"image ids used by more than one file: {sorted(dup)}; give every "
-                          f"swing a unique {TAG_IMAGE} tag")
-    height = max(s.row + s.height for s in swings)
-    width = max(s.col + s.width for s in swings)
-    transform = Affine(t0.a, 0.0, float(x0), 0.0, t0.e, float(y0))
-    return Layout(crs0, transform, (height, width), swings)
-
-
-# --- windowed reading ---------------------------------------------------------------------------
-class _Handles:
-    """Open datasets, one small LRU set per thread (GDAL handles must not be shared across
-    threads; an open dataset costs memory, so at most ``per_thread`` stay open)."""
-
-    def __init__(self, per_thread: int = 16):
-        self._local = threading.local()
-        self._all = set()
-        self._lock = threading.Lock()
-        self.per_thread = per_thread
-
-    def get(self, path):
-        import rasterio
-        from collections import OrderedDict
-        cache = getattr(self._local, "cache", None)
-        if cache is None:
-            cache = self._local.cache = OrderedDict()
-        ds = cache.get(path)
-        if ds is not None:
-            cache.move_to_end(path)
-            return ds
-        ds = cache[path] = rasterio.open(path)
-        with self._lock:
-            self._all.add(ds)
-        while len(cache) > self.per_thread:
-            _, old = cache.popitem(last=False)
-            with self._lock:
-                self._all.discard(old)
-            old.close()
-        return ds
-
-    def close(self):
-        with self._lock:
-            for ds in self._all:
-                ds.close()
-            self._all.clear()
-
-
-def _valid(a, nodata):
-    ok = np.isfinite(a) if a.dtype.kind == "f" else np.ones(a.shape, bool)
-    if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
-        ok &= a != nodata
-    return ok
-
-
-def read_window(handles: _Handles, sw: Swing, r0: int, c0: int, r1: int, c1: int,
-                step: int = 1):
-    """Values (float64) and valid mask of grid window ``[r0, r1) x [c0, c1)`` of one swing
-    (outside the file: invalid). ``step > 1`` reads a decimated window (nearest)."""
-    h, w = (r1 - r0 + step - 1) // step, (c1 - c0 + step - 1) // step
-    val = np.zeros((h, w))
-    ok = np.zeros((h, w), bool)
-    # the part of the window inside the file, aligned to the decimation lattice
-    a0 = max(r0, sw.row)
-    b0 = max(c0, sw.col)
-    a0 = r0 + -(-(a0 - r0) // step) * step
-    b0 = c0 + -(-(b0 - c0) // step) * step
-    a1, b1 = min(r1, sw.row + sw.height), min(c1, sw.col + sw.width)
-    if a1 <= a0 or b1 <= b0:
-        return val, ok
-    from rasterio.windows import Window
-    ds = handles.get(sw.path)
-    win = Window(b0 - sw.col, a0 - sw.row, b1 - b0, a1 - a0)
-    i0, j0 = (a0 - r0) // step, (b0 - c0) // step
-    if step == 1:
-        data = ds.read(1, window=win)
-    else:
-        shape = ((a1 - a0 + step - 1) // step, (b1 - b0 + step - 1) // step)
-        data = ds.read(1, window=win, out_shape=shape)
-    hh, ww = data.shape
-    val[i0:i0 + hh, j0:j0 + ww] = data
-    ok[i0:i0 + hh, j0:j0 + ww] = _valid(data, sw.nodata)
-    val[~ok] = 0.0
-    return val, ok
-
-
-# --- overlaps ---------------------------------------------------------------------------------
-def find_overlaps(layout: Layout, groups=None, min_pixels: int = 256, handles=None,
-                  max_side: int = 512):
-    """Pairs ``(i, j, window, n_common)`` of swings whose valid footprints overlap by at least
-    ``min_pixels`` pixels (counted on a decimated read of at most ``max_side`` pixels a side).
-    ``groups``: optional node key per swing; pairs within one group are left out."""
-    sw = layout.swings
-    ext = np.array([s.extent for s in sw])
-    r0 = np.maximum(ext[:, None, 0], ext[None, :, 0])
-    c0 = np.maximum(ext[:, None, 1], ext[None, :, 1])
-    r1 = np.minimum(ext[:, None, 2], ext[None, :, 2])
-    c1 = np.minimum(ext[:, None, 3], ext[None, :, 3])
-    cand = (r1 > r0) & (c1 > c0)
-    cand &= np.triu(np.ones(cand.shape, bool), 1)
-    if groups is not None:
-        g = np.asarray(groups, dtype=object)
-        cand &= g[:, None] != g[None, :]
-    own = handles is None
-    handles = handles or _Handles()
-    pairs = []
-    try:
-        for i, j in zip(*np.nonzero(cand)):
-            win = (int(r0[i, j]), int(c0[i, j]), int(r1[i, j]), int(c1[i, j]))
-            step = max(1, int(math.ceil(max(win[2] - win[0], win[3] - win[1]) / max_side)))
-            _, oki = read_window(handles, sw[i], *win, step=step)
-            _, okj = read_window(handles, sw[j], *win, step=step)
-            n = int((oki & okj).sum()) * step * step
-            if n >= min_pixels:
-                pairs.append((int(i), int(j), win, n))
-    finally:
-        if own:
-            handles.close()
-    return pairs
-
-
-def match_pair(layout: Layout, i: int, j: int, win, handles=None, max_shift: int = 12,
-               block: int = 128, max_blocks: int = 16, min_texture: float = 1.0,
-               min_pixels: int = 256, coarse: int = 3) -> OverlapMatch:
-    """Offset of swing ``j`` relative to swing ``i`` over their overlap ``win``, coarse to
-    fine (swathflow.coarse: the integer offset on a ``coarse``-times decimated overview,
-    then at most ``max_blocks`` well-textured blocks refined in a small window)."""
-    from .coarse import match_overlap
-    own = handles is None
-    handles = handles or _Handles()
-    a, b = layout.swings[i], layout.swings[j]
-    S = int(max_shift)
-    M = S + int(coarse) // 2 + 2
-    r0, c0, r1, c1 = win
-    try:
-        ref, rok = read_window(handles, a, r0, c0, r1, c1)
-        mov, mok = read_window(handles, b, r0 - M, c0 - M, r1 + M, c1 + M)
-    finally:
-        if own:
-            handles.close()
-    blocks, _ = match_overlap(ref, rok, mov, mok, M, S, block, max_blocks, min_texture,
-                              min_pixels, factor=max(int(coarse), 1))
-    for m in blocks:
-        m.centre = (m.centre[0] + r0, m.centre[1] + c0)
-    return combine_blocks(blocks)
-
-
-# --- the network -----------------------------------------------------------------------------
-@dataclass
-class Network:
-    nodes: list                          # node keys
-    offsets: np.ndarray                  # (n, 2) px
-    sigmas: np.ndarray                   # (n, 2) px (NaN when not computed)
-    radiometric: np.ndarray              # (n,)
-    residuals: np.ndarray                # (m, 2) per observation (NaN if rejected)
-    used: np.ndarray                     # (m,) bool
-    sigma0: float
-    anchored: list
-    free_groups: list                    # components without an anchor (mean fixed to 0)
-
-
-def _components(n, edges):
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    if not edges:
-        return n, np.arange(n)
-    e = np.array(edges)
-    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    return connected_components(g, directed=False)
-
-
-def _solve_lsq(n, obs_ij, values, weights, anchored, labels, max_dense: int = 1500):
-    """Weighted LSQ of ``x_j - x_i = value`` with anchored nodes fixed at 0 and the mean
-    of every anchor-free component fixed at 0 (sparse normal equations). Returns
-    ``(x, sigma_x)``; ``sigma_x`` is NaN above ``max_dense`` nodes."""
-    from scipy import sparse
-    from scipy.sparse.linalg import spsolve
-    rows, cols, vals, rhs, w = [], [], [], [], []
-    r = 0
-    for k, (i, j) in enumerate(obs_ij):
-        rows += [r, r]
-        cols += [j, i]
-        vals += [1.0, -1.0]
-        rhs.append(values[k])
-        w.append(weights[k])
-        r += 1
-    anchored = set(anchored)
-    wmed = float(np.median(weights)) if len(weights) else 1.0
-    for comp in np.unique(labels):
-        members = np.nonzero(labels == comp)[0]
-        if not anchored.intersection(members.tolist()):
-            rows += [r] * len(members)
-            cols += members.tolist()
-            vals += [1.0 / len(members)] * len(members)
-            rhs.append(0.0)
-            w.append(wmed)
-            r += 1
-    for k in sorted(anchored):
-        rows.append(r)
-        cols.append(k)
-        vals.append(1.0)
-        rhs.append(0.0)
-        w.append(1e12)
-        r += 1
-    a = sparse.csr_matrix((vals, (rows, cols)), shape=(r, n))
-    wd = sparse.diags(np.asarray(w, float))
-    nmat = (a.T @ wd @ a).tocsc()
-    b = a.T @ (np.asarray(w, float) * np.asarray(rhs, float))
-    if n <= max_dense:
-        cov = np.linalg.inv(nmat.toarray())
-        return cov @ b, np.sqrt(np.maximum(np.diag(cov), 0.0))
-    return spsolve(nmat, b), np.full(n, np.nan)
-
-
-def solve_network(nodes: list, obs: list, anchors=(), reject: float = 4.0,
-                  min_reject: float = 0.3, max_rounds: int = 20) -> Network:
-    """Least-squares offsets per node from pairwise observations.
-
-    ``obs``: ``(i, j, OverlapMatch)`` with node indices ``i, j`` (ref, mov): each accepted
-    match says ``t_j - t_i = offset`` and ``b_j - b_i = radiometric``. ``anchors``: node
-    indices held at zero offset (calibrated images); components of the overlap graph with no
-    anchor get their mean fixed at zero instead. An observation whose normalised residual
-    exceeds ``reject`` (and ``min_reject`` px) is dropped and the network solved again, as
-    long as dropping it does not split the graph.
-    """
-    n = len(nodes)
-    m = len(obs)
-    used = np.array([o[2].ok for o in obs], bool)
-    anchors = sorted(set(int(a) for a in anchors))
-    while True:
-        idx = np.nonzero(used)[0]
-        edges = [(obs[k][0], obs[k][1]) for k in idx]
-        ncomp, labels = _components(n, edges)
-        if len(idx) == 0:
-            x = np.zeros((n, 2))
-            sx = np.full((n, 2), np.nan)
-            rad = np.zeros(n)
-            break
-        d = np.array([obs[k][2].offset for k in idx])
-        s = np.array([obs[k][2].sigma for k in idx])
-        xs, sxs = [], []
-        for c in range(2):
-            xc, sc = _solve_lsq(n, edges, d[:, c], 1.0 / s[:, c] ** 2, anchors, labels)
-            xs.append(xc)
-            sxs.append(sc)
-        x = np.column_stack(xs)
-        pred = np.array([x[j] - x[i] for i, j in edges])
-        v = d - pred
-        norm = np.abs(v) / s
-        n_free = ncomp - len({labels[a] for a in anchors})
-        dof = max(2 * (len(idx) - (n - len(anchors) - n_free)), 0)
-        s0 = float(np.sqrt((norm ** 2).sum() / dof)) if dof > 0 else float("nan")
-        sx = np.column_stack(sxs) * (max(s0, 1.0) if np.isfinite(s0) else 1.0)
-        worst = int(np.argmax(norm.max(axis=1)))
-        if (max_rounds > 0 and norm[worst].max() > reject and np.abs(v[worst]).max() > min_reject):
-            k = idx[worst]
-            used[k] = False
-            n2, _ = _components(n, [(obs[q][0], obs[q][1]) for q in np.nonzero(used)[0]])
-            if n2 > ncomp:
-                used[k] = True          # the only link: keep it (cannot be checked)
-            else:
-                max_rounds -= 1
-                continue
-        rv = np.array([obs[k][2].radiometric for k in idx])
-        rs = np.array([obs[k][2].radiometric_sigma for k in idx])
-        rs = np.where(np.isfinite(rs) & (rs > 0), rs, np.nanmedian(np.where(rs > 0, rs, np.nan))
-                      if np.any(rs > 0) else 1.0)
-        rs = np.where(np.isfinite(rs), rs, 1.0)
-        rad, _ = _solve_lsq(n, edges, rv, 1.0 / np.maximum(rs, 1e-3) ** 2, anchors, labels)
-        break
-    residuals = np.full((m, 2), np.nan)
-    for k in np.nonzero(used)[0]:
-        i, j = obs[k][0], obs[k][1]
-        residuals[k] = np.array(obs[k][2].offset) - (x[j] - x[i])
-    if not used.any():
-        s0 = float("nan")
-        ncomp, labels = n, np.arange(n)
-    free = [[nodes[q] for q in np.nonzero(labels == c)[0]] for c in np.unique(labels)
-            if not set(anchors).intersection(np.nonzero(labels == c)[0].tolist())]
-    return Network(list(nodes), x, sx, np.asarray(rad, float), residuals, used, s0,
-                   [nodes[a] for a in anchors], free)
-
-
-# --- blending -------------------------------------------------------------------------------------
-def swing_cache(layout: Layout, offsets, radiometric, feather: int = 64, handles=None,
-                max_bytes: int = 512 * 2 ** 20):
-    """A :class:`swathflow.blend.SwingCache` of the swings corrected by ``offsets`` and
-    ``radiometric`` (per swing), read through ``handles``."""
-    from .blend import SwingCache, corrected_swing
-    handles = handles or _Handles()
-    offsets = np.asarray(offsets, float)
-    radiometric = np.asarray(radiometric, float)
-
-    def make(k):
-        sw = layout.swings[k]
-        val, ok = read_window(handles, sw, sw.row, sw.col, sw.row + sw.height,
-                              sw.col + sw.width)
-        return corrected_swing(val, ok, sw.row, sw.col, offsets[k], radiometric[k], feather)
-    return SwingCache(make, max_bytes)
-
-
-def render_tile(layout: Layout, r0, c0, r1, c1, offsets, cache, mode: str = "feather",
-                sel=None):
-    """Blend grid window ``[r0,r1) x [c0,c1)`` from the corrected swings in ``cache``
-    (:func:`swing_cache`; ``offsets`` (n_swings, 2) are the ones it was made with).
-    ``mode``: see :func:`swathflow.blend.blend_tile`. Returns (values, valid)."""
-    from .blend import blend_tile
-    offsets = np.asarray(offsets, float)
-    ext = np.array([s.extent for s in layout.swings], float)
-    lo = ext[:, :2] - np.floor(offsets)                  # corrected swing bounds
-    hi = ext[:, 2:] - np.floor(offsets)
-    hit = (lo[:, 0] < r1) & (hi[:, 0] > r0) & (lo[:, 1] < c1) & (hi[:, 1] > c0)
-    if sel is not None:
-        hit &= sel
-    return blend_tile([cache.get(int(k)) for k in np.nonzero(hit)[0]], r0, c0, r1, c1, mode)
-
-
-# --- the whole job ----------------------------------------------------------------------------
-def _node_keys(layout: Layout, per_image: bool):
-    if per_image:
-        return [s.image_id for s in layout.swings]
-    return [s.strip for s in layout.swings]
-
-
-def _resolve_anchors(layout, keys, nodes, anchors):
-    out = set()
-    by_id = {s.image_id: k for k, s in enumerate(layout.swings)}
-    strips = {str(s.strip) for s in layout.swings}
-    for a in anchors or ():
-        a = str(a)
-        if a in by_id:
-            out.add(nodes.index(keys[by_id[a]]))
-        elif a.removeprefix("strip:") in strips:
-            sn = int(a.removeprefix("strip:"))
-            for k, s in enumerate(layout.swings):
-                if s.strip == sn:
-                    out.add(nodes.index(keys[k]))
-        else:
-            raise SwathflowError(f"anchor {a!r} is neither an image id nor a strip number of "
-                                 f"the inputs (image ids: {sorted(by_id)[:5]}...)")
-    return sorted(out)
-
-
-def _active_client():
-    """The Dask distributed client of this context (the mission flow's cluster), if any."""
-    try:
-        from distributed import get_client
-        return get_client()
-    except (ImportError, ValueError):
-        return None
-
-
-def plan(layout: Layout, per_image: bool = False, anchors=(), max_shift: int = 12,
-         block: int = 128, min_texture: float = 1.0, workers: int | None = None,
-         log=None):
-    """Match every overlap and solve the network. Returns (network, pairs, matches, keys).
-    The overlaps are matched on the active Dask distributed client's workers when there is
-    one (the mission flow's cluster), else on ``workers`` local threads."""
-    import dask
-    keys = _node_keys(layout, per_image)
-    nodes = list(dict.fromkeys(keys))
-    handles = _Handles()
-    try:
-        pairs = find_overlaps(layout, groups=keys, handles=handles)
-        if log:
-            log(f"{len(layout.swings)} swings, {len(nodes)} nodes, {len(pairs)} overlaps")
-        client = _active_client()
-        if client is not None:
-            # worker processes (the matching is mostly small numpy steps that hold the GIL:
-            # threads do not add up); each task opens its own files
-            lay = client.scatter(layout, broadcast=True)
-            futures = [client.submit(match_pair, lay, i, j, win, None, max_shift, block, 16,
-                                     min_texture, pure=False) for i, j, win, _ in pairs]
-            matches = client.gather(futures)
-        else:
-            # the layout as one graph key: dask would otherwise walk its swings per task
-            lay = dask.delayed(layout, traverse=False)
-            tasks = [dask.delayed(match_pair)(lay, i, j, win, handles, max_shift, block,
-                                              48, min_texture) for i, j, win, _ in pairs]
-            from threadpoolctl import threadpool_limits
-            with threadpool_limits(1):      # BLAS threads on top of dask's: 5x slower
-                matches = list(dask.compute(*tasks, scheduler="threads",
-                                            num_workers=workers))
-    finally:
-        handles.close()
-    obs = [(nodes.index(keys[i]), nodes.index(keys[j]), m)
-           for (i, j, _, _), m in zip(pairs, matches)]
-    net = solve_network(nodes, obs, _resolve_anchors(layout, keys, nodes, anchors))
-    return net, pairs, matches, keys
-
-
-class _Writer:
-    """A dask ``store`` target writing windows into an open rasterio dataset."""
-
-    def __init__(self, ds, nodata, dtype):
-        self.ds, self.nodata, self.dtype = ds, nodata, np.dtype(dtype)
-
-    def __setitem__(self, key, block):
-        from rasterio.windows import Window
-        rs, cs = key
-        out = block
-        if self.dtype.kind in "ui":
-            info = np.iinfo(self.dtype)
-            bad = ~np.isfinite(out)
-            out = np.clip(np.round(np.where(bad, 0, out)), info.min, info.max)
-            out = out.astype(self.dtype)
-            out[bad] = self.nodata
-        else:
-            out = out.astype(self.dtype)
-            if self.nodata is not None and not np.isnan(self.nodata):
-                out[~np.isfinite(out)] = self.nodata
-        self.ds.write(out, 1, window=Window(cs.start, rs.start, cs.stop - cs.start,
-                                            rs.stop - rs.start))
-
-
-def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
-                 mode: str = "feather", tile: int = 1024, workers: int | None = None,
-                 dtype=None, nodata=None, cog: bool = True, blocksize: int = 512) -> dict:
-    """Render the mosaic tile by tile over dask (threads) into ``out`` (a COG with
-    overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles."""
-    import dask.array as da
-    import rasterio
-    from rasterio.shutil import copy as rio_copy
-    dtypes = {s.dtype for s in layout.swings}
-    if dtype is None:
-        dtype = "float32" if len(dtypes) != 1 or next(iter(dtypes)).startswith("float") \
-            else next(iter(dtypes))
-    dtype = np.dtype(dtype)
-    if nodata is None:
-        nds = {s.nodata for s in layout.swings}
-        nd = nds.pop() if len(nds) == 1 else None
-        nodata = nd if nd is not None else (float("nan") if dtype.kind == "f" else 0)
-    H, W = layout.shape
-    offsets = np.asarray(offsets, float)
-    radiometric = np.asarray(radiometric, float)
-    handles = _Handles()
-    cache = swing_cache(layout, offsets, radiometric, feather, handles)
-
-    def block(x, block_info=None):
-        (a, b), (c, d) = block_info[None]["array-location"]
-        v, _ = render_tile(layout, a, c, b, d, offsets, cache, mode)
-        return v.astype(np.float32)
-
-    arr = da.zeros((H, W), chunks=(tile, tile), dtype=np.float32).map_blocks(
-        block, dtype=np.float32)
-    profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=dtype.name,
-                   crs=layout.crs, transform=layout.transform, nodata=nodata, tiled=True,
-                   blockxsize=blocksize, blockysize=blocksize, compress="deflate",
-                   BIGTIFF="IF_SAFER")
-    t0 = time.perf_counter()
-    out = os.fspath(out)
-    try:
-        with atomic_path(out, suffix=".tif") as final:
-            tmp = final + ".stage.tif" if cog else final
-            try:
-                with rasterio.open(tmp, "w", **profile) as ds:
-                    da.store(arr, _Writer(ds, nodata, dtype), lock=threading.Lock(),
-                             scheduler="threads", num_workers=workers)
-                    ds.update_tags(product="mosaic", blend=mode, software="swathflow")
-                t_render = time.perf_counter() - t0
-                if cog:
-                    with rasterio.Env(GDAL_NUM_THREADS=str(workers or os.cpu_count() or 1)):
-                        rio_copy(tmp, final, driver="COG", COMPRESS="DEFLATE",
-                                 BLOCKSIZE=blocksize, OVERVIEW_RESAMPLING="AVERAGE",
-                                 PREDICTOR="YES", BIGTIFF="IF_SAFER")
-            finally:
-                if cog and os.path.exists(tmp):
-                    os.remove(tmp)
-    finally:
-        handles.close()
-    return {"seconds_render": t_render, "seconds_total": time.perf_counter() - t0,
-            "shape": [H, W], "dtype": dtype.name}
-
-
-def quicklook(src_path, png_path, max_side: int = 1024) -> None:
-    """An 8-bit PNG preview (2-98 % stretch) read from the COG's overviews."""
-    import rasterio
-    with rasterio.open(src_path) as ds:
-        f = max(1.0, max(ds.width, ds.height) / max_side)
-        shape = (max(1, int(ds.height / f)), max(1, int(ds.width / f)))
-        a = ds.read(1, out_shape=shape, masked=True).astype(float)
-    data = a.filled(np.nan)
-    ok = np.isfinite(data)
-    img = np.zeros(shape, np.uint8)
-    alpha = np.where(ok, 255, 0).astype(np.uint8)
-    if ok.any():
-        lo, hi = np.percentile(data[ok], [2, 98])
-        img = np.clip((np.nan_to_num(data) - lo) / max(hi - lo, 1e-12) * 254 + 1, 1, 255)
-        img = np.where(ok, img, 0).astype(np.uint8)
-    import warnings
-    with atomic_path(png_path, suffix=".png") as tmp, warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(tmp, "w", driver="PNG", width=shape[1], height=shape[0], count=2,
-                           dtype="uint8") as dst:
-            dst.write(img, 1)
-            dst.write(alpha, 2)
-    aux = png_path + ".aux.xml"
-    if os.path.exists(aux):
-        os.remove(aux)
+           "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP",
+           "TAG_DIRECTION", "Network", "read_window", "swing_cache", "plan", "_active_client",
+           "network_report", "match_all"]
 
 
 def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
@@ -653,75 +52,37 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
            max_shift: int = 12, block: int = 128, min_texture: float = 1.0, tile: int = 1024,
            workers: int | None = None, png: bool = True, report: bool = True,
            cog: bool = True, strips: dict | None = None, log=None,
-           cache_mb: int = 64) -> dict:
+           cache_mb: int = 64, control: dict | None = None) -> dict:
     """Match, adjust and blend rectified swings ``paths`` into the mosaic ``out``.
 
+    ``control``: image id -> ``(offset (drow, dcol), sigma (row, col))`` in grid pixels,
+    each image's absolute offset measured on its control points; the network is then tied
+    to the ground (absolute offsets with their sigmas) instead of to ``anchors`` alone.
     GDAL's block cache is capped at ``cache_mb`` so memory stays bounded (GDAL's default is
-    5 % of RAM). Returns the report (also written to ``<out>.json`` when ``report``): per-node offsets
-    and radiometric offsets with their sigmas, every overlap with its measurement, status and
-    residual, and the timing.
+    5 % of RAM). Returns the report (also written to ``<out>.json`` when ``report``, with
+    the seams/residuals picture ``<out>.report.png``): per-node offsets and radiometric
+    offsets with their sigmas, every overlap with its measurement, status and residual,
+    and the timing. ``log``: an optional progress callback taking one line of text.
     """
     import rasterio
-    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        return _mosaic(paths, out, per_image, anchors, feather, mode, balance, match,
-                       max_shift, block, min_texture, tile, workers, png, report, cog, strips,
-                       log)
-
-
-def _mosaic(paths, out, per_image, anchors, feather, mode, balance, match, max_shift, block,
-            min_texture, tile, workers, png, report, cog, strips, log) -> dict:
     t0 = time.perf_counter()
-    layout = scan_inputs(paths, strips)
-    keys = _node_keys(layout, per_image)
-    n_sw = len(layout.swings)
-    rep: dict = {"format": "swathflow-mosaic/1", "inputs": n_sw, "grid": {
-        "shape": list(layout.shape), "res": layout.res, "crs": layout.crs.to_string()
-        if layout.crs else None, "transform": list(layout.transform)[:6]},
-        "per_image": per_image, "blend": mode, "feather_px": feather}
-    if match:
-        net, pairs, matches, keys = plan(layout, per_image, anchors, max_shift, block,
-                                         min_texture, workers, log)
-        t_match = time.perf_counter() - t0
-        node_of = {k: q for q, k in enumerate(net.nodes)}
-        off = np.array([net.offsets[node_of[k]] for k in keys])
-        rad = np.array([net.radiometric[node_of[k]] for k in keys]) if balance else np.zeros(n_sw)
-        overlaps = []
-        for q, ((i, j, win, n), m) in enumerate(zip(pairs, matches)):
-            d = m.to_dict()
-            d.update(ref=layout.swings[i].image_id, mov=layout.swings[j].image_id,
-                     window=list(win), pixels=n, used=bool(net.used[q]),
-                     residual=[None if not np.isfinite(v) else round(float(v), 4)
-                               for v in net.residuals[q]])
-            overlaps.append(d)
-        skipped = [o for o in overlaps if not o["ok"]]
-        rep.update({
-            "nodes": [{"node": str(k), "offset": [round(float(v), 4) for v in net.offsets[q]],
-                       "sigma": [None if not np.isfinite(v) else round(float(v), 4)
-                                 for v in net.sigmas[q]],
-                       "radiometric": round(float(net.radiometric[q]), 4)}
-                      for q, k in enumerate(net.nodes)],
-            "anchors": [str(a) for a in net.anchored],
-            "free_groups": [[str(v) for v in g] for g in net.free_groups],
-            "sigma0": None if not np.isfinite(net.sigma0) else round(net.sigma0, 4),
-            "overlaps": overlaps,
-            "skipped": [{"ref": o["ref"], "mov": o["mov"], "status": o["status"]}
-                        for o in skipped],
-            "rejected": [{"ref": o["ref"], "mov": o["mov"], "residual": o["offset"]}
-                         for o in overlaps if o["ok"] and not o["used"]],
-            "seconds_match": round(t_match, 3)})
-        if log:
-            log(f"matched {len(pairs)} overlaps ({len(skipped)} skipped) in {t_match:.1f} s")
-            for s in skipped:
-                log(f"  skipped {s['ref']} / {s['mov']}: {s['status']}")
-    else:
-        off = np.zeros((n_sw, 2))
-        rad = np.zeros(n_sw)
-    timing = write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog)
-    rep.update(timing)
-    if png:
-        t1 = time.perf_counter()
-        quicklook(out, os.path.splitext(os.fspath(out))[0] + ".png")
-        rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)
+    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+        layout = scan_inputs(paths, strips)
+        n_sw = len(layout.swings)
+        rep = _header(layout, per_image, mode, feather)
+        off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
+        if match:
+            net, pairs, matches, keys = plan(layout, per_image, anchors, max_shift, block,
+                                             min_texture, workers, log, control)
+            rep.update(network_report(layout, net, pairs, matches, control))
+            rep["seconds_match"] = round(time.perf_counter() - t0, 3)
+            node_of = {k: q for q, k in enumerate(net.nodes)}
+            off = np.array([net.offsets[node_of[k]] for k in keys])
+            if balance:
+                rad = np.array([net.radiometric[node_of[k]] for k in keys])
+            _log_matching(log, rep)
+        rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog))
+    _products(out, rep, png, report, layout)
     rep["seconds"] = round(time.perf_counter() - t0, 3)
     rep["mpx_per_s"] = round(layout.shape[0] * layout.shape[1] / 1e6 / rep["seconds"], 3)
     if report:
@@ -729,97 +90,60 @@ def _mosaic(paths, out, per_image, anchors, feather, mode, balance, match, max_s
     return rep
 
 
-# --- seam metric --------------------------------------------------------------------------
-def seam_lines(footprints, band: int = 1):
-    """Every line where a mosaic of ``footprints`` (boolean masks on one grid) may show a
-    seam: the edge of a footprint lying inside another one (where "first valid wins" and
-    feathering change source) and the boundary of the nearest-centre partition (where a
-    hard cut changes source). In-memory: for tests and benchmarks."""
-    fps = [np.asarray(f, bool) for f in footprints]
-    cover = np.sum(fps, axis=0)
-    seam = np.zeros(cover.shape, bool)
-    best = np.full(cover.shape, -1.0)
-    label = np.full(cover.shape, -1)
-    for k, fp in enumerate(fps):
-        edge = fp & ~ndimage.binary_erosion(fp, iterations=band, border_value=0)
-        seam |= edge & (cover >= 2)
-        d = ndimage.distance_transform_edt(np.pad(fp, 1))[1:-1, 1:-1]
-        take = d > best
-        best[take] = d[take]
-        label[take] = k
-    cut = np.zeros(cover.shape, bool)
-    cut[:-1] |= (label[:-1] != label[1:]) & (cover[:-1] >= 2) & (cover[1:] >= 2)
-    cut[:, :-1] |= (label[:, :-1] != label[:, 1:]) & (cover[:, :-1] >= 2) & (cover[:, 1:] >= 2)
-    return seam | cut, cover
+def _header(layout: Layout, per_image, mode, feather) -> dict:
+    return {"format": "swathflow-mosaic/1", "inputs": len(layout.swings), "grid": {
+        "shape": list(layout.shape), "res": layout.res, "crs": layout.crs.to_string()
+        if layout.crs else None, "transform": list(layout.transform)[:6]},
+        "per_image": per_image, "blend": mode, "feather_px": feather}
 
 
-def seam_visibility(image, footprints, valid=None, band: int = 1):
-    """Mean absolute gradient of ``image`` on the seam lines (:func:`seam_lines`) and inside
-    the strips (single coverage, more than ``band + 3`` px from any seam or outer edge).
-
-    The gradient of a pixel is the larger absolute forward difference along rows or columns,
-    so a step across a seam in any direction counts. Returns ``(seam, inner)``.
-    """
-    img = np.asarray(image, float)
-    if valid is None:
-        valid = np.isfinite(img)
-    seam, cover = seam_lines(footprints, band)
-    gr = np.zeros(img.shape)
-    gc = np.zeros(img.shape)
-    with np.errstate(invalid="ignore"):
-        gr[:-1] = np.abs(np.diff(img, axis=0))
-        gc[:, :-1] = np.abs(np.diff(img, axis=1))
-    g = np.maximum(gr, gc)
-    ok = valid.copy()
-    ok[:-1] &= valid[1:]
-    ok[:, :-1] &= valid[:, 1:]
-    ok[-1] = False
-    ok[:, -1] = False
-    near = ndimage.binary_dilation(seam, iterations=1)
-    interior = ndimage.binary_erosion(cover >= 1, iterations=band + 3, border_value=0)
-    inner = ok & interior & (cover == 1) & ~ndimage.binary_dilation(seam, iterations=band + 3)
-    s = ok & near
-    return (float(g[s].mean()) if s.any() else float("nan"),
-            float(g[inner].mean()) if inner.any() else float("nan"))
+def _r4(v):
+    return None if v is None or not np.isfinite(v) else round(float(v), 4)
 
 
-# --- CLI ----------------------------------------------------------------------------------------
-def find_inputs(source):
-    """Rectified swings under ``source``: a folder of GeoTIFFs, or a mission/run folder
-    with a ``rectified/`` subfolder."""
-    source = os.fspath(source)
-    if os.path.isfile(source):
-        return [source]
-    if not os.path.isdir(source):
-        raise SwathflowError(f"{source}: no such folder; give a folder of rectified swings "
-                             f"(GeoTIFF) or a mission folder with a rectified/ subfolder")
-    for sub in ("rectified", os.path.join("out", "rectified"), ""):
-        d = os.path.join(source, sub)
-        if os.path.isdir(d):
-            tifs = sorted(os.path.join(d, f) for f in os.listdir(d)
-                          if f.lower().endswith((".tif", ".tiff")) and not f.startswith("."))
-            if tifs:
-                return tifs
-    raise SwathflowError(f"{source}: no rectified swings found (looked for *.tif in "
-                         f"{source}/rectified and {source}); run 'swathflow rectify' first")
+def network_report(layout: Layout, net: Network, pairs, matches, control=None) -> dict:
+    """The matching and network part of mosaic.json."""
+    overlaps = []
+    for q, ((i, j, win, n), m) in enumerate(zip(pairs, matches)):
+        d = m.to_dict()
+        d.update(ref=layout.swings[i].image_id, mov=layout.swings[j].image_id,
+                 window=list(win), pixels=n, used=bool(net.used[q]),
+                 residual=[_r4(v) for v in net.residuals[q]])
+        overlaps.append(d)
+    return {
+        "anchor": "gcp" if control else ("images" if net.anchored else "mean"),
+        "nodes": [{"node": str(k), "offset": [round(float(v), 4) for v in net.offsets[q]],
+                   "sigma": [_r4(v) for v in net.sigmas[q]],
+                   "radiometric": round(float(net.radiometric[q]), 4)}
+                  for q, k in enumerate(net.nodes)],
+        "control": [{"image": iid, "offset": [_r4(v) for v in o], "sigma": [_r4(v) for v in s]}
+                    for iid, (o, s) in sorted((control or {}).items())],
+        "anchors": [str(a) for a in net.anchored],
+        "free_groups": [[str(v) for v in g] for g in net.free_groups],
+        "sigma0": _r4(net.sigma0),
+        "overlaps": overlaps,
+        "skipped": [{"ref": o["ref"], "mov": o["mov"], "status": o["status"]}
+                    for o in overlaps if not o["ok"]],
+        "rejected": [{"ref": o["ref"], "mov": o["mov"], "residual": o["offset"]}
+                     for o in overlaps if o["ok"] and not o["used"]]}
 
 
-def mission_strips(path) -> dict:
-    """Image id -> strip number from a mission folder's ``mission.toml`` ([[images]])."""
-    import tomllib
-    path = os.fspath(path)
-    toml = os.path.join(path, "mission.toml") if os.path.isdir(path) else path
-    try:
-        with open(toml, "rb") as f:
-            cfg = tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise FormatError(f"{toml}: cannot read mission file: {exc}") from None
-    out = {}
-    for k, e in enumerate(cfg.get("images", [])):
-        if "id" in e and "strip" in e:
-            try:
-                out[str(e["id"])] = int(e["strip"])
-            except (TypeError, ValueError):
-                raise FormatError(f"{toml}: images[{k}].strip must be an integer, got "
-                                  f"{e['strip']!r}") from None
-    return out
+def _log_matching(log, rep) -> None:
+    if not log:
+        return
+    log(f"matched {len(rep['overlaps'])} overlaps ({len(rep['skipped'])} skipped) in "
+        f"{rep['seconds_match']:.1f} s")
+    for s in rep["skipped"]:
+        log(f"  skipped {s['ref']} / {s['mov']}: {s['status']}")
+
+
+def _products(out, rep, png, report, layout) -> None:
+    """The quicklook PNG and the seams/residuals picture."""
+    stem = os.path.splitext(os.fspath(out))[0]
+    t1 = time.perf_counter()
+    if png:
+        quicklook(out, stem + ".png")
+    if report and "overlaps" in rep:
+        from swathflow.mosaicking.report import seams_picture
+        seams_picture(out, rep, layout, stem + ".report.png")
+    rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from .matching import mmgd_search
+from swathflow.mosaicking.matching import mmgd_search
 
 __all__ = ["decimate", "coarse_shift", "block_texture", "pick_blocks", "match_overlap"]
 
@@ -140,7 +140,7 @@ def match_overlap(ref, ref_ok, mov, mov_ok, margin: int, max_shift: int = 12,
     the :class:`~swathflow.matching.BlockMatch` list (offsets and centres relative to
     ``ref``'s first pixel) and the coarse integer shift (None when the overview could not
     give one; every block was then searched over the full radius)."""
-    from .matching import match_block
+    from swathflow.mosaicking.matching import match_block
     S, M = int(max_shift), int(margin)
     h, w = ref.shape
     c, _ = coarse_shift(ref, ref_ok, mov[M - S:M + S + h, M - S:M + S + w],
@@ -161,7 +161,7 @@ def _match_blocks(ref, ref_ok, mov, mov_ok, M, c, radius, block, max_blocks, min
                   min_pixels, min_fraction, match=None, rank=True):
     """Match the blocks of the overlap with the search centred on shift ``c`` and a search
     radius of ``radius`` pixels."""
-    from .matching import match_block
+    from swathflow.mosaicking.matching import match_block
     match = match or match_block
     h, w = ref.shape
     wins, scores = [], []

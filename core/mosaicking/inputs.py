@@ -1,0 +1,265 @@
+"""Mosaic inputs: the rectified swings' headers placed on one common grid, windowed
+reading with per-thread dataset handles, and finding the inputs of a run.
+
+Image ids come from the tag ``image_id`` (else the file name), strips from mission.toml,
+else the tag ``strip``, else the file order.
+"""
+from __future__ import annotations
+
+import math
+import os
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from swathflow.errors import FormatError, SwathflowError
+
+__all__ = ["Swing", "Layout", "scan_inputs", "read_window", "find_inputs", "mission_strips",
+           "TAG_IMAGE", "TAG_STRIP", "TAG_DIRECTION"]
+
+# plain tag names: GDAL splits "a:b=c" metadata at the colon, so no namespaced keys
+TAG_IMAGE = "image_id"
+TAG_STRIP = "strip"
+TAG_DIRECTION = "direction"
+
+
+@dataclass(frozen=True)
+class Swing:
+    """One rectified swing: its file and its place on the common grid (pixel offsets)."""
+    path: str
+    image_id: str
+    strip: int
+    row: int          # grid row of the file's first row
+    col: int
+    height: int
+    width: int
+    nodata: float | None
+    dtype: str
+    direction: str = ""
+
+    @property
+    def extent(self):
+        return self.row, self.col, self.row + self.height, self.col + self.width
+
+
+@dataclass
+class Layout:
+    """The common grid and the swings on it."""
+    crs: object                 # rasterio CRS
+    transform: object           # affine.Affine of the grid's top-left corner
+    shape: tuple[int, int]
+    swings: list[Swing] = field(default_factory=list)
+
+    @property
+    def res(self) -> float:
+        return abs(self.transform.a)
+
+
+def _tag(tags: dict, *names, default=None):
+    for n in names:
+        if n in tags and str(tags[n]).strip() != "":
+            return tags[n]
+    return default
+
+
+def _read_heads(paths):
+    """(path, crs, transform, height, width, nodata, dtype, tags, count) per input."""
+    import rasterio
+    heads = []
+    for p in paths:
+        try:
+            with rasterio.open(p) as ds:
+                t = ds.transform
+                if t.b != 0 or t.d != 0:
+                    raise FormatError(f"{p}: rotated transforms are not supported; rectify "
+                                      f"to a north-up grid")
+                heads.append((p, ds.crs, t, ds.height, ds.width, ds.nodata, ds.dtypes[0],
+                              ds.tags(), ds.count))
+        except rasterio.errors.RasterioIOError as exc:
+            raise FormatError(f"{p}: cannot read raster: {exc}") from None
+    return heads
+
+
+def _grid_places(heads):
+    """Rows and columns of every input's first pixel on the common grid (checked: one
+    CRS, one pixel size, aligned to whole pixels) and the grid's origin (x0, y0)."""
+    p0, crs0, t0 = heads[0][0], heads[0][1], heads[0][2]
+    for p, crs, t, *_ in heads[1:]:
+        if crs != crs0:
+            raise FormatError(f"{p}: CRS differs from {p0}; rectify every swing to one grid")
+        if not (math.isclose(t.a, t0.a, rel_tol=1e-9) and math.isclose(t.e, t0.e, rel_tol=1e-9)):
+            raise FormatError(f"{p}: pixel size ({t.a}, {t.e}) differs from {p0} "
+                              f"({t0.a}, {t0.e}); rectify every swing to one grid")
+    xs = np.array([h[2].c for h in heads])
+    ys = np.array([h[2].f for h in heads])
+    x0, y0 = xs.min(), ys.max()
+    cols = (xs - x0) / t0.a
+    rows = (ys - y0) / t0.e
+    for (p, *_), r, c in zip(heads, rows, cols):
+        if abs(r - round(r)) > 1e-3 or abs(c - round(c)) > 1e-3:
+            raise FormatError(f"{p}: not aligned with {p0} (offset of {r:.3f}, {c:.3f} "
+                              f"pixels); rectify every swing to one aligned grid")
+    return rows, cols, float(x0), float(y0)
+
+
+def _swing(k, head, r, c, strips) -> Swing:
+    p, _, _, h, w, nod, dt, tags, count = head
+    if count != 1:
+        raise FormatError(f"{p}: has {count} bands; rectified swings are single-band")
+    iid = str(_tag(tags, TAG_IMAGE, "IMAGE_ID",
+                   default=os.path.splitext(os.path.basename(p))[0]))
+    strip = strips.get(iid) if strips else None
+    if strip is None:
+        strip = _tag(tags, TAG_STRIP, "STRIP", default=None)
+    try:
+        strip = int(float(strip)) if strip is not None else k
+    except ValueError:
+        raise FormatError(f"{p}: tag {TAG_STRIP}={strip!r} is not a strip number") from None
+    direction = str(_tag(tags, TAG_DIRECTION, "DIRECTION", default=""))
+    return Swing(p, iid, strip, int(round(r)), int(round(c)), h, w, nod, dt, direction)
+
+
+def scan_inputs(paths, strips: dict | None = None) -> Layout:
+    """Read the headers of rectified swings and place them on their common grid.
+
+    All inputs must share the CRS and pixel size and be aligned to whole pixels; the grid is
+    the union of their extents. Image ids come from the tag ``image_id`` (else the file
+    name), strips from ``strips`` (image id -> strip, e.g. from mission.toml), else the tag
+    ``strip``, else the file order (every file its own strip).
+    """
+    from affine import Affine
+    paths = [os.fspath(p) for p in paths]
+    if not paths:
+        raise FormatError("no rectified swings given (expected single-band GeoTIFFs)")
+    heads = _read_heads(paths)
+    rows, cols, x0, y0 = _grid_places(heads)
+    swings = [_swing(k, hd, r, c, strips) for k, (hd, r, c) in enumerate(zip(heads, rows, cols))]
+    seen: dict = {}
+    for s in swings:
+        seen[s.image_id] = seen.get(s.image_id, 0) + 1
+    dup = sorted(i for i, n in seen.items() if n > 1)
+    if dup:
+        raise FormatError(f"image ids used by more than one file: {dup}; give every "
+                          f"swing a unique {TAG_IMAGE} tag")
+    height = max(s.row + s.height for s in swings)
+    width = max(s.col + s.width for s in swings)
+    t0 = heads[0][2]
+    transform = Affine(t0.a, 0.0, x0, 0.0, t0.e, y0)
+    return Layout(heads[0][1], transform, (height, width), swings)
+
+
+class _Handles:
+    """Open datasets, one small LRU set per thread (GDAL handles must not be shared across
+    threads; an open dataset costs memory, so at most ``per_thread`` stay open)."""
+
+    def __init__(self, per_thread: int = 16):
+        self._local = threading.local()
+        self._all = set()
+        self._lock = threading.Lock()
+        self.per_thread = per_thread
+
+    def get(self, path):
+        import rasterio
+        from collections import OrderedDict
+        cache = getattr(self._local, "cache", None)
+        if cache is None:
+            cache = self._local.cache = OrderedDict()
+        ds = cache.get(path)
+        if ds is not None:
+            cache.move_to_end(path)
+            return ds
+        ds = cache[path] = rasterio.open(path)
+        with self._lock:
+            self._all.add(ds)
+        while len(cache) > self.per_thread:
+            _, old = cache.popitem(last=False)
+            with self._lock:
+                self._all.discard(old)
+            old.close()
+        return ds
+
+    def close(self):
+        with self._lock:
+            for ds in self._all:
+                ds.close()
+            self._all.clear()
+
+
+def _valid(a, nodata):
+    ok = np.isfinite(a) if a.dtype.kind == "f" else np.ones(a.shape, bool)
+    if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
+        ok &= a != nodata
+    return ok
+
+
+def read_window(handles: _Handles, sw: Swing, r0: int, c0: int, r1: int, c1: int,
+                step: int = 1):
+    """Values (float64) and valid mask of grid window ``[r0, r1) x [c0, c1)`` of one swing
+    (outside the file: invalid). ``step > 1`` reads a decimated window (nearest)."""
+    h, w = (r1 - r0 + step - 1) // step, (c1 - c0 + step - 1) // step
+    val = np.zeros((h, w))
+    ok = np.zeros((h, w), bool)
+    # the part of the window inside the file, aligned to the decimation lattice
+    a0 = max(r0, sw.row)
+    b0 = max(c0, sw.col)
+    a0 = r0 + -(-(a0 - r0) // step) * step
+    b0 = c0 + -(-(b0 - c0) // step) * step
+    a1, b1 = min(r1, sw.row + sw.height), min(c1, sw.col + sw.width)
+    if a1 <= a0 or b1 <= b0:
+        return val, ok
+    from rasterio.windows import Window
+    ds = handles.get(sw.path)
+    win = Window(b0 - sw.col, a0 - sw.row, b1 - b0, a1 - a0)
+    i0, j0 = (a0 - r0) // step, (b0 - c0) // step
+    if step == 1:
+        data = ds.read(1, window=win)
+    else:
+        shape = ((a1 - a0 + step - 1) // step, (b1 - b0 + step - 1) // step)
+        data = ds.read(1, window=win, out_shape=shape)
+    hh, ww = data.shape
+    val[i0:i0 + hh, j0:j0 + ww] = data
+    ok[i0:i0 + hh, j0:j0 + ww] = _valid(data, sw.nodata)
+    val[~ok] = 0.0
+    return val, ok
+
+
+def find_inputs(source):
+    """Rectified swings under ``source``: a folder of GeoTIFFs, or a mission/run folder
+    with a ``rectified/`` subfolder."""
+    source = os.fspath(source)
+    if os.path.isfile(source):
+        return [source]
+    if not os.path.isdir(source):
+        raise SwathflowError(f"{source}: no such folder; give a folder of rectified swings "
+                             f"(GeoTIFF) or a mission folder with a rectified/ subfolder")
+    for sub in ("rectified", os.path.join("out", "rectified"), ""):
+        d = os.path.join(source, sub)
+        if os.path.isdir(d):
+            tifs = sorted(os.path.join(d, f) for f in os.listdir(d)
+                          if f.lower().endswith((".tif", ".tiff")) and not f.startswith("."))
+            if tifs:
+                return tifs
+    raise SwathflowError(f"{source}: no rectified swings found (looked for *.tif in "
+                         f"{source}/rectified and {source}); run 'swathflow rectify' first")
+
+
+def mission_strips(path) -> dict:
+    """Image id -> strip number from a mission folder's ``mission.toml`` ([[images]])."""
+    import tomllib
+    path = os.fspath(path)
+    toml = os.path.join(path, "mission.toml") if os.path.isdir(path) else path
+    try:
+        with open(toml, "rb") as f:
+            cfg = tomllib.load(f)
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise FormatError(f"{toml}: cannot read mission file: {exc}") from None
+    out = {}
+    for k, e in enumerate(cfg.get("images", [])):
+        if "id" in e and "strip" in e:
+            try:
+                out[str(e["id"])] = int(e["strip"])
+            except (TypeError, ValueError):
+                raise FormatError(f"{toml}: images[{k}].strip must be an integer, got "
+                                  f"{e['strip']!r}") from None
+    return out

@@ -1,0 +1,182 @@
+"""Overlaps between swings and their matching (coarse to fine, on the active Dask cluster's
+workers when there is one), then the network solution: :func:`plan`."""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from swathflow.errors import SwathflowError
+from swathflow.mosaicking.inputs import Layout, _Handles, read_window
+from swathflow.mosaicking.matching import OverlapMatch, combine_blocks
+from swathflow.mosaicking.network import solve_network
+
+__all__ = ["find_overlaps", "match_pair", "plan"]
+
+
+def _bbox_pairs(ext):
+    """Pairs ``i < j`` of boxes ``(r0, c0, r1, c1)`` that intersect, by a sweep over the
+    rows (cost grows with the number of boxes times the boxes met per row band, not with
+    the number of boxes squared)."""
+    order = np.argsort(ext[:, 0], kind="stable")
+    r0s = ext[order, 0]
+    out = []
+    for a, i in enumerate(order):
+        js = order[a + 1:np.searchsorted(r0s, ext[i, 2], side="left")]
+        js = js[(ext[js, 1] < ext[i, 3]) & (ext[js, 3] > ext[i, 1]) & (ext[js, 2] > ext[i, 0])]
+        out += [(int(min(i, j)), int(max(i, j))) for j in js]
+    return sorted(out)
+
+
+def find_overlaps(layout: Layout, groups=None, min_pixels: int = 256, handles=None,
+                  max_side: int = 512):
+    """Pairs ``(i, j, window, n_common)`` of swings whose valid footprints overlap by at least
+    ``min_pixels`` pixels (counted on a decimated read of at most ``max_side`` pixels a side).
+    ``groups``: optional node key per swing; pairs within one group are left out."""
+    sw = layout.swings
+    ext = np.array([s.extent for s in sw]).reshape(-1, 4)
+    g = None if groups is None else list(groups)
+    own = handles is None
+    handles = handles or _Handles()
+    pairs = []
+    try:
+        for i, j in _bbox_pairs(ext):
+            if g is not None and g[i] == g[j]:
+                continue
+            win = (int(max(ext[i, 0], ext[j, 0])), int(max(ext[i, 1], ext[j, 1])),
+                   int(min(ext[i, 2], ext[j, 2])), int(min(ext[i, 3], ext[j, 3])))
+            step = max(1, int(math.ceil(max(win[2] - win[0], win[3] - win[1]) / max_side)))
+            _, oki = read_window(handles, sw[i], *win, step=step)
+            _, okj = read_window(handles, sw[j], *win, step=step)
+            n = int((oki & okj).sum()) * step * step
+            if n >= min_pixels:
+                pairs.append((int(i), int(j), win, n))
+    finally:
+        if own:
+            handles.close()
+    return pairs
+
+
+def match_pair(layout: Layout, i: int, j: int, win, handles=None, max_shift: int = 12,
+               block: int = 128, max_blocks: int = 16, min_texture: float = 1.0,
+               min_pixels: int = 256, coarse: int = 3) -> OverlapMatch:
+    """Offset of swing ``j`` relative to swing ``i`` over their overlap ``win``, coarse to
+    fine (swathflow.coarse: the integer offset on a ``coarse``-times decimated overview,
+    then at most ``max_blocks`` well-textured blocks refined in a small window)."""
+    from swathflow.mosaicking.coarse import match_overlap
+    own = handles is None
+    handles = handles or _Handles()
+    a, b = layout.swings[i], layout.swings[j]
+    S = int(max_shift)
+    M = S + int(coarse) // 2 + 2
+    r0, c0, r1, c1 = win
+    try:
+        ref, rok = read_window(handles, a, r0, c0, r1, c1)
+        mov, mok = read_window(handles, b, r0 - M, c0 - M, r1 + M, c1 + M)
+    finally:
+        if own:
+            handles.close()
+    blocks, _ = match_overlap(ref, rok, mov, mok, M, S, block, max_blocks, min_texture,
+                              min_pixels, factor=max(int(coarse), 1))
+    for m in blocks:
+        m.centre = (m.centre[0] + r0, m.centre[1] + c0)
+    return combine_blocks(blocks)
+
+
+def _node_keys(layout: Layout, per_image: bool):
+    if per_image:
+        return [s.image_id for s in layout.swings]
+    return [s.strip for s in layout.swings]
+
+
+def _resolve_anchors(layout, keys, nodes, anchors):
+    out = set()
+    by_id = {s.image_id: k for k, s in enumerate(layout.swings)}
+    strips = {str(s.strip) for s in layout.swings}
+    for a in anchors or ():
+        a = str(a)
+        if a in by_id:
+            out.add(nodes.index(keys[by_id[a]]))
+        elif a.removeprefix("strip:") in strips:
+            sn = int(a.removeprefix("strip:"))
+            for k, s in enumerate(layout.swings):
+                if s.strip == sn:
+                    out.add(nodes.index(keys[k]))
+        else:
+            raise SwathflowError(f"anchor {a!r} is neither an image id nor a strip number of "
+                                 f"the inputs (image ids: {sorted(by_id)[:5]}...)")
+    return sorted(out)
+
+
+def _active_client():
+    """The Dask distributed client of this context (the mission flow's cluster), if any."""
+    try:
+        from distributed import get_client
+        return get_client()
+    except (ImportError, ValueError):
+        return None
+
+
+def _match_batch(layout: Layout, batch, max_shift, block, min_texture):
+    """Match a list of overlaps ``(i, j, win)`` with one set of open files and one BLAS
+    thread (BLAS threads on top of the matching's own parallelism cost 5x on 2 cores)."""
+    from threadpoolctl import threadpool_limits
+    handles = _Handles()
+    try:
+        with threadpool_limits(1):
+            return [match_pair(layout, i, j, win, handles, max_shift, block, 16, min_texture)
+                    for i, j, win in batch]
+    finally:
+        handles.close()
+
+
+def match_all(layout: Layout, pairs, max_shift: int = 12, block: int = 128,
+              min_texture: float = 1.0, workers: int | None = None) -> list:
+    """:func:`match_pair` for every overlap, in batches: on the active Dask distributed
+    client's worker processes when there is one (the matching holds the GIL), else on
+    ``workers`` local threads."""
+    from concurrent.futures import ThreadPoolExecutor
+    jobs = [(i, j, win) for i, j, win, *_ in pairs]
+    client = _active_client()
+    n = max(1, sum(client.nthreads().values())) if client is not None else \
+        max(1, workers or os.cpu_count() or 1)
+    size = max(1, math.ceil(len(jobs) / (4 * n)))
+    batches = [jobs[k:k + size] for k in range(0, len(jobs), size)]
+    if client is not None:
+        lay = client.scatter(layout, broadcast=True)
+        futures = [client.submit(_match_batch, lay, b, max_shift, block, min_texture,
+                                 pure=False) for b in batches]
+        done = client.gather(futures)
+    else:
+        with ThreadPoolExecutor(n) as ex:
+            done = list(ex.map(lambda b: _match_batch(layout, b, max_shift, block,
+                                                      min_texture), batches))
+    return [m for part in done for m in part]
+
+
+def plan(layout: Layout, per_image: bool = False, anchors=(), max_shift: int = 12,
+         block: int = 128, min_texture: float = 1.0, workers: int | None = None,
+         log=None, control: dict | None = None):
+    """Match every overlap (:func:`match_all`) and solve the network. ``control``: image id
+    -> ``(offset (drow, dcol), sigma (row, col))``, the image's absolute offset from its
+    control points, which ties the network to the ground. Returns (network, pairs,
+    matches, keys)."""
+    keys = _node_keys(layout, per_image)
+    nodes = list(dict.fromkeys(keys))
+    node_of = {k: q for q, k in enumerate(nodes)}
+    handles = _Handles()
+    try:
+        pairs = find_overlaps(layout, groups=keys, handles=handles)
+    finally:
+        handles.close()
+    if log:
+        log(f"{len(layout.swings)} swings, {len(nodes)} nodes, {len(pairs)} overlaps")
+    matches = match_all(layout, pairs, max_shift, block, min_texture, workers)
+    obs = [(node_of[keys[i]], node_of[keys[j]], m) for (i, j, _, _), m in zip(pairs, matches)]
+    by_id = {s.image_id: k for k, s in enumerate(layout.swings)}
+    absolute = [(node_of[keys[by_id[iid]]], off, sig) for iid, (off, sig) in
+                sorted((control or {}).items()) if iid in by_id]
+    net = solve_network(nodes, obs, _resolve_anchors(layout, keys, nodes, anchors),
+                        absolute=absolute)
+    return net, pairs, matches, keys
