@@ -94,7 +94,7 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             prog.update("rectify", i + 1, len(ids))
         prog.finish("rectify", len(ids))
         prog.start("mosaic")
-        mos = stages.mosaic(rectified, out)
+        mos = stages.mosaic(rectified, out, mission, cal)
         prog.finish("mosaic")
     report = str(Path(cal).parent / "report.html")
     return {"mission": info["name"], "eo": eo, "calibration": cal,

@@ -141,14 +141,40 @@ def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) ->
     return str(out)
 
 
+def mosaic_control(mission_path: str, calibration: str) -> dict:
+    """Image id -> (absolute offset, sigma) in grid pixels from the mission's control
+    points with ``calibration`` (see :mod:`swathflow.tasks.control`)."""
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
+    from swathflow.tasks.control import control_offsets
+    m = _load(mission_path)
+    params = m.priors.updated(calibration_priors(read_calibration(calibration)))
+    return {k: (o, s) for k, (o, s, _) in control_offsets(m, params).items()}
+
+
 @task(name="mosaic", cache_policy=NO_CACHE)
-def mosaic(rectified: list[str], out_dir: str) -> str:
-    """Strip matching and feathered mosaic of the rectified swings: ``OUT/mosaic.tif``."""
+def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
+           calibration: str | None = None, anchor: str = "auto") -> str:
+    """Strip matching and feathered mosaic of the rectified swings: ``OUT/mosaic.tif``.
+    ``anchor``: ``"gcp"`` ties the network to the mission's control points, ``"mean"``
+    holds the mean offset at zero; ``"auto"``: gcp when the mission has control points."""
     from swathflow.mosaicking.mosaic import mosaic as run
     out = Path(out_dir) / "mosaic.tif"
-    key = stage_key("mosaic", rectified)
+    m = _load(mission_path) if mission_path else None
+    has_control = m is not None and m.gcps is not None and \
+        bool((m.gcps["role"] == "control").any())
+    if anchor == "gcp" and not has_control:
+        raise SwathflowError(f"{mission_path}: --anchor gcp needs control points (role "
+                             f"control in the GCP file); the mission has none")
+    use_gcp = anchor == "gcp" or (anchor == "auto" and has_control and calibration)
+    deps = list(rectified)
+    if use_gcp:
+        gcp_file = m.config.get("gcp", {}).get("file", "gcp.csv")
+        deps += [str(m.path / gcp_file), calibration]
+    key = stage_key("mosaic" + ("-gcp" if use_gcp else ""), deps)
     if is_fresh(out, key):
         return str(out)
-    run(list(rectified), out)
+    control = mosaic_control(mission_path, calibration) if use_gcp else None
+    strips = {iid: e.strip for iid, e in m.images.items()} if m is not None else None
+    run(list(rectified), out, control=control, strips=strips)
     mark_done(out, key)
     return str(out)

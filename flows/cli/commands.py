@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from swathflow.errors import SwathflowError
+
 
 def _say(args):
     """The progress callback of a command: a line on stdout unless ``--quiet``."""
@@ -109,13 +111,14 @@ def mosaic(args) -> int:
     if mission is None and os.path.isfile(os.path.join(os.fspath(args.source), "mission.toml")):
         mission = args.source
     strips = mission_strips(mission) if mission else None
+    anchors, control = _mosaic_anchor(args.anchor, mission, args.calibration)
     log = _say(args)
     workers = args.workers
     # the overlap matching holds the GIL: worker processes, as in the mission flow
     cluster = not args.no_match and (args.dask_address or (workers or os.cpu_count() or 1) > 1)
     with (dask_client(args.dask_address, n_workers=workers) if cluster
           else contextlib.nullcontext()):
-        rep = run(paths, out, per_image=args.per_image, anchors=args.anchor or (),
+        rep = run(paths, out, per_image=args.per_image, anchors=anchors, control=control,
                   feather=args.feather, mode="cut" if args.no_feather else "feather",
                   balance=not args.no_balance, match=not args.no_match,
                   max_shift=args.max_shift, tile=args.tile, workers=workers, strips=strips,
@@ -128,6 +131,24 @@ def mosaic(args) -> int:
             f"{rep['mpx_per_s']} Mpx/s), {os.path.splitext(out)[0]}.png and "
             f"{os.path.splitext(out)[0]}.json")
     return 0
+
+
+def _mosaic_anchor(anchor, mission, calibration):
+    """(anchors, control) of ``swathflow mosaic``: ``--anchor gcp`` reads the mission's
+    control points and measures each image's absolute offset with the calibration."""
+    anchor = list(anchor or ())
+    if "gcp" not in anchor:
+        return anchor, None
+    if not mission or not calibration:
+        raise SwathflowError("--anchor gcp needs the mission (--mission, or a mission folder "
+                             "as SOURCE) and the calibration the swings were rectified with "
+                             "(--calibration)")
+    from swathflow.tasks.stages import mosaic_control
+    control = mosaic_control(os.fspath(mission), os.fspath(calibration))
+    if not control:
+        raise SwathflowError(f"{mission}: --anchor gcp needs control points (role control "
+                             f"in the GCP file); the mission has none")
+    return [a for a in anchor if a != "gcp"], control
 
 
 def _print_summary(result: dict) -> None:

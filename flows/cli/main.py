@@ -126,8 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output mosaic GeoTIFF")
     s.add_argument("--mission", help="mission folder or mission.toml giving each image's strip")
     s.add_argument("--anchor", action="append", metavar="ID",
-                   help="image id or strip number held fixed (repeatable; default: the mean "
-                        "offset of each connected group is zero)")
+                   help="image id or strip number held fixed (repeatable), or 'gcp': tie the "
+                        "network to the mission's control points (needs --mission and "
+                        "--calibration; absolute offsets with sigmas in the JSON report). "
+                        "Default: the mean offset of each connected group is zero")
+    s.add_argument("--calibration", help="calibration.json the swings were rectified with "
+                                         "(for --anchor gcp)")
     s.add_argument("--per-image", action="store_true",
                    help="one offset per image instead of one per strip")
     s.add_argument("--feather", type=int, default=64,

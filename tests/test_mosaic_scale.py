@@ -1,0 +1,202 @@
+"""Coarse-to-fine matching, per-swing blending, the overlap sweep and control-point
+anchoring, each against a known truth (exactly shifted procedural texture, scipy's own
+definitions, brute force, simulated offsets)."""
+import json
+import os
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from mosaic_synth import make_swings, random_shifts, texture
+from swathflow.mosaicking import mosaic as M
+from swathflow.mosaicking.blend import blend_tile, corrected_swing, shift_cubic
+from swathflow.mosaicking.coarse import coarse_shift, match_overlap
+from swathflow.mosaicking.matching import OverlapMatch, combine_blocks
+from swathflow.mosaicking.network import solve_network
+from swathflow.mosaicking.overlaps import _bbox_pairs
+
+SHIFTS = [(0.3, -2.7), (1.45, 3.2), (-4.1, 0.6), (2.5, 2.5), (-0.8, -4.9), (7.6, -9.3),
+          (-11.2, 10.4)]
+
+
+def _overlap(d, shape=(480, 40), margin=0, wavy=True, noise=0.5, seed=0, tex=texture):
+    """A narrow overlap strip (as between two flight strips) of a known texture; ``mov``
+    is the truth displaced by ``d`` and read with ``margin``; wavy valid edges."""
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    ref = tex(rr, cc) + rng.normal(0, noise, shape)
+    r2, c2 = np.mgrid[-margin:shape[0] + margin, -margin:shape[1] + margin].astype(float)
+    mov = tex(r2 - d[0], c2 - d[1]) + 9.0 + rng.normal(0, noise, r2.shape)
+    rok = np.ones(shape, bool)
+    mok = np.ones(r2.shape, bool)
+    if wavy:
+        rok &= cc < shape[1] - 3 + 2 * np.sin(rr / 23.0)
+        mok &= c2 > 2 + 2 * np.sin(r2 / 17.0)
+    return ref, rok, mov, mok
+
+
+@pytest.mark.parametrize("d", SHIFTS)
+def test_coarse_shift_lands_near_the_truth(d):
+    S = 12
+    ref, rok, mov, mok = _overlap(d, margin=S)
+    c, contrast = coarse_shift(ref, rok, mov, mok, S, factor=3)
+    assert c is not None and contrast > 0.15
+    assert max(abs(c[0] - d[0]), abs(c[1] - d[1])) <= 2.0, (c, d)
+
+
+@pytest.mark.parametrize("d", SHIFTS)
+def test_coarse_to_fine_offsets_within_0_05_px(d):
+    S = 12
+    M_ = S + 3 // 2 + 2
+    ref, rok, mov, mok = _overlap(d, margin=M_, seed=3)
+    blocks, c = match_overlap(ref, rok, mov, mok, M_, S, block=128, max_blocks=16)
+    assert c is not None                      # the overview path was taken
+    res = combine_blocks(blocks)
+    assert res.ok, res.status
+    assert np.allclose(res.offset, d, atol=0.05), (res.offset, d)
+    assert abs(res.radiometric - 9.0) < 0.5
+
+
+def test_coarse_to_fine_refuses_a_flat_overlap():
+    flat = lambda r, c: 100.0 + 0 * np.asarray(r, float) * np.asarray(c, float)  # noqa: E731
+    ref, rok, mov, mok = _overlap((1.5, 2.0), margin=17, tex=flat, noise=1.0)
+    blocks, c = match_overlap(ref, rok, mov, mok, 17, 12)
+    assert c is None                          # no overview answer: the full search ran
+    res = combine_blocks(blocks)
+    assert not res.ok and res.status == "low_texture"
+
+
+@pytest.mark.parametrize("f", [(0.3, 0.7), (0.0, 0.45), (0.6, 0.0), (0.999, 0.001)])
+def test_shift_cubic_is_scipys_spline_shift(f):
+    a = np.random.default_rng(1).normal(size=(70, 45))
+    want = ndimage.shift(a, -np.asarray(f), order=3, mode="nearest")
+    assert np.abs(shift_cubic(a, np.asarray(f)) - want).max() < 1e-9
+
+
+def test_corrected_swing_weights_are_the_capped_distance():
+    rng = np.random.default_rng(2)
+    val = rng.normal(size=(60, 50))
+    ok = np.zeros((60, 50), bool)
+    ok[5:55, 8:40] = True
+    ok[20:30, 8:12] = False
+    c = corrected_swing(val, ok, 100, 200, (2.0, -3.0), 4.0, feather=6)
+    assert (c.row, c.col) == (98, 203)        # out[x] = image[x + t]: integer part
+    want = np.minimum(ndimage.distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1], 6)
+    assert np.allclose(c.weight, want)
+    assert np.allclose(c.values[ok], val[ok] - 4.0, atol=1e-5)
+    # a fractional shift: valid only where both neighbours along each shifted axis were
+    c = corrected_swing(val, ok, 0, 0, (0.5, 0.0), 0.0, feather=6)
+    m = ok.copy()
+    m[:-1] &= ok[1:]
+    m[-1] = False
+    assert np.array_equal(c.weight > 0, m)
+
+
+def test_blend_tile_is_the_weighted_mean():
+    from swathflow.mosaicking.blend import Corrected
+    a = Corrected(0, 0, np.full((10, 10), 10.0, np.float32), np.full((10, 10), 1.0, np.float32))
+    b = Corrected(5, 5, np.full((10, 10), 20.0, np.float32), np.full((10, 10), 3.0, np.float32))
+    v, ok = blend_tile([a, b], 0, 0, 15, 15)
+    assert v[0, 0] == 10.0 and v[14, 14] == 20.0 and v[7, 7] == pytest.approx(17.5)
+    assert not ok[0, 14] and np.isnan(v[0, 14])
+    v, _ = blend_tile([a, b], 0, 0, 15, 15, mode="first")
+    assert v[7, 7] == 10.0
+    v, _ = blend_tile([a, b], 0, 0, 15, 15, mode="cut")
+    assert v[7, 7] == 20.0
+
+
+def test_bbox_sweep_finds_every_intersecting_pair():
+    rng = np.random.default_rng(4)
+    r0 = rng.integers(0, 500, 300)
+    c0 = rng.integers(0, 500, 300)
+    ext = np.c_[r0, c0, r0 + rng.integers(1, 60, 300), c0 + rng.integers(1, 60, 300)]
+    brute = [(i, j) for i in range(300) for j in range(i + 1, 300)
+             if max(ext[i, 0], ext[j, 0]) < min(ext[i, 2], ext[j, 2])
+             and max(ext[i, 1], ext[j, 1]) < min(ext[i, 3], ext[j, 3])]
+    assert _bbox_pairs(ext) == brute and len(brute) > 50
+
+
+def _obs(i, j, d, s=0.02):
+    return (i, j, OverlapMatch(True, "ok", offset=tuple(d), sigma=(s, s), radiometric=0.0,
+                               radiometric_sigma=0.1))
+
+
+def test_network_tied_to_control_points():
+    """Absolute offsets (control points, sigma 0.3 px per node) plus precise relative ones:
+    every node lands within 3 sigma of its true absolute offset, and the reported sigmas
+    are those of the least-squares solution (about 0.3 / sqrt(n) for the common shift)."""
+    rng = np.random.default_rng(5)
+    n = 8
+    t = rng.uniform(-4, 4, (n, 2))
+    obs = [_obs(i, i + 1, t[i + 1] - t[i] + rng.normal(0, 0.02, 2)) for i in range(n - 1)]
+    sig = 0.3
+    absolute = [(k, tuple(t[k] + rng.normal(0, sig, 2)), (sig, sig)) for k in range(n)]
+    net = solve_network(list(range(n)), obs, absolute=absolute)
+    assert not net.free_groups and not net.anchored
+    err = np.abs(net.offsets - t)
+    assert (err < 3 * net.sigmas).all(), (err, net.sigmas)
+    assert np.allclose(net.sigmas, sig / np.sqrt(n), rtol=0.5)
+    # without the control the network can only hold the mean: off by the mean offset
+    free = solve_network(list(range(n)), obs)
+    assert np.abs(free.offsets - t).max() > 0.5
+
+
+@pytest.fixture(scope="module")
+def shifted_scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("gcpswings")
+    shifts, rads = random_shifts(4, seed=11)
+    shifts[0] = (1.2, -0.7)                   # no strip sits at the truth
+    paths, _, shape = make_swings(d, n_strips=4, length=420, shifts=shifts, rads=rads,
+                                  footprints=False)
+    return dict(paths=paths, shifts=shifts, shape=shape, dir=d)
+
+
+def test_mosaic_anchored_on_control_points(shifted_scene, tmp_path):
+    """Control offsets (truth + 0.3 px noise, 2 images per strip) tie the mosaic to the
+    ground: every strip's absolute offset within 3 sigma of the truth; mosaic.json holds
+    them with their sigmas; the report picture is written."""
+    sc = shifted_scene
+    rng = np.random.default_rng(8)
+    control = {}
+    for k in range(4):
+        for s in (0, 2):
+            control[f"S{k}_{s}"] = (tuple(sc["shifts"][k] + rng.normal(0, 0.3, 2)), (0.3, 0.3))
+    out = tmp_path / "g.tif"
+    rep = M.mosaic(sc["paths"], out, control=control, png=False)
+    doc = json.load(open(tmp_path / "g.json"))
+    assert doc["anchor"] == "gcp" and len(doc["control"]) == 8 and not doc["free_groups"]
+    for nd in doc["nodes"]:
+        k = int(nd["node"])
+        err = np.abs(np.array(nd["offset"]) - sc["shifts"][k])
+        assert (err < 3 * np.array(nd["sigma"])).all() and err.max() < 0.45, (k, err, nd)
+    assert os.path.getsize(tmp_path / "g.report.png") > 10_000
+    assert rep["sigma0"] is not None
+
+
+def test_parts_of_an_area_give_the_same_pixels(shifted_scene, tmp_path):
+    """The area cut into four runs (each with the swings that reach its quarter) gives,
+    inside each quarter, exactly the pixels of the whole run (same offsets)."""
+    import rasterio
+    from rasterio.windows import from_bounds
+    sc = shifted_scene
+    lay = M.scan_inputs(sc["paths"])
+    off = np.repeat(sc["shifts"], 3, axis=0)
+    rad = np.zeros(len(lay.swings))
+    M.write_mosaic(lay, tmp_path / "all.tif", off, rad, tile=128, cog=False)
+    H, W = lay.shape
+    with rasterio.open(tmp_path / "all.tif") as ds:
+        whole = ds.read(1)
+        tr = ds.transform
+    for q, (r0, c0) in enumerate([(0, 0), (0, W // 2), (H // 2, 0), (H // 2, W // 2)]):
+        r1, c1 = (r0 + H // 2, c0 + W // 2)
+        sel = [k for k, s in enumerate(lay.swings)
+               if s.row - 12 < r1 and s.row + s.height + 12 > r0 and s.col - 12 < c1
+               and s.col + s.width + 12 > c0]
+        part = M.scan_inputs([lay.swings[k].path for k in sel])
+        M.write_mosaic(part, tmp_path / f"q{q}.tif", off[sel], rad[sel], tile=256, cog=False)
+        x0, y0 = tr.c + c0 * tr.a, tr.f + r0 * tr.e
+        x1, y1 = tr.c + c1 * tr.a, tr.f + r1 * tr.e
+        with rasterio.open(tmp_path / f"q{q}.tif") as ds:
+            got = ds.read(1, window=from_bounds(x0, y1, x1, y0, ds.transform))
+        assert np.array_equal(got, whole[r0:r1, c0:c1]), q
