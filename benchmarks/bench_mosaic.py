@@ -1,6 +1,6 @@
 """Mosaic benchmark: memory versus area, peers side by side, and the paper's job.
 
-    /tmp/venv/bin/python benchmarks/bench_mosaic.py --memory --peers --paper
+    python benchmarks/bench_mosaic.py --memory --peers --paper [--peers16] [--regional 1.0]
 
 --memory  mosaics synthetic areas of 1x, 4x and 16x the base area in fresh subprocesses
           and prints each one's peak RSS (the mosaic is streamed tile by tile, so the peak
@@ -70,7 +70,8 @@ print(json.dumps({k: rep[k] for k in ("seconds", "mpx_per_s", "shape")} |
 def mosaic_subprocess(paths, out, **opts):
     """swathflow mosaic in a fresh interpreter, measuring its own peak RSS."""
     code = ("import os, resource, runpy, sys\n" + _CHILD +
-            "\nprint('RSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
+            "\nprint('RSS', [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM')]"
+            "[0].split()[1])\n")
     arg = json.dumps(dict(paths=paths, out=out, **opts))
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", code, arg], capture_output=True, text=True)
@@ -106,9 +107,9 @@ def bench_memory(work, base_strips=6, base_rows=1024):
     return rows
 
 
-def bench_peers(work, n_strips=12, length=2048):
-    print("\n== side by side, same inputs (4x area), one run each ==")
-    d = os.path.join(work, "peers")
+def bench_peers(work, n_strips=12, length=2048, label="48 swings"):
+    print(f"\n== side by side, same inputs ({label}), one run each ==")
+    d = os.path.join(work, f"peers{n_strips}")
     g = generate(d, n_strips, length)
     H, W = g["shape"]
     mpx = H * W / 1e6
@@ -150,7 +151,7 @@ def bench_peers(work, n_strips=12, length=2048):
         "prof.update(height=arr.shape[1], width=arr.shape[2], transform=tr, tiled=True, "
         "blockxsize=512, blockysize=512, compress='deflate')\n"
         "with rasterio.open(p['out'], 'w', **prof) as d: d.write(arr)\n"
-        "import resource; print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
+        "print([ln for ln in open('/proc/self/status') if ln.startswith('VmHWM')][0].split()[1])\n")
     t0 = time.perf_counter()
     pr = subprocess.run([sys.executable, "-c", code,
                          json.dumps(dict(paths=paths, out=os.path.join(work, "merge.tif")))],
@@ -192,16 +193,23 @@ def main(argv=None):
     ap.add_argument("--memory", action="store_true")
     ap.add_argument("--peers", action="store_true")
     ap.add_argument("--paper", action="store_true")
+    ap.add_argument("--peers16", action="store_true",
+                    help="the side by side run on 16x the area of --peers (768 swings)")
+    ap.add_argument("--regional", type=float, metavar="GPX", default=0.0,
+                    help="the regional case: a mosaic of GPX gigapixels (cheap texture), "
+                         "wall time and peak RSS, and four quarter runs compared pixel "
+                         "for pixel with the whole")
     ap.add_argument("--work", help="work folder (default: a temp folder)")
     ap.add_argument("--keep", action="store_true", help="keep the work folder")
     a = ap.parse_args(argv)
-    if not (a.memory or a.peers or a.paper):
+    if not (a.memory or a.peers or a.paper or a.peers16 or a.regional):
         a.memory = a.peers = a.paper = True
     work = a.work or tempfile.mkdtemp(prefix="swathflow-bench-mosaic-")
     os.makedirs(work, exist_ok=True)
     print(f"swathflow mosaic benchmark, {os.cpu_count()} cores, work folder {work}")
-    print("reproduce: /tmp/venv/bin/python benchmarks/bench_mosaic.py "
-          + " ".join(f"--{k}" for k in ("memory", "peers", "paper") if getattr(a, k)))
+    print("reproduce: python benchmarks/bench_mosaic.py "
+          + " ".join(f"--{k}" for k in ("memory", "peers", "paper", "peers16") if getattr(a, k))
+          + (f" --regional {a.regional}" if a.regional else ""))
     try:
         if a.memory:
             bench_memory(work)
@@ -209,6 +217,11 @@ def main(argv=None):
             bench_peers(work)
         if a.paper:
             bench_paper(work)
+        if a.peers16:
+            bench_peers(work, n_strips=48, length=8192, label="16x area, 768 swings")
+        if a.regional:
+            from bench_regional import bench_regional
+            bench_regional(work, a.regional)
     finally:
         if not a.keep and not a.work:
             shutil.rmtree(work, ignore_errors=True)

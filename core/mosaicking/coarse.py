@@ -40,7 +40,7 @@ def coarse_shift(ref, ref_ok, mov, mov_ok, max_shift: int, factor: int = 3,
     overviews. ``ref`` (h, w) and ``mov`` (h + 2S, w + 2S) read with a margin of
     ``S = max_shift`` as for :func:`swathflow.matching.mmgd_search`. Returns
     ``(shift, contrast)``; ``shift`` is None when the overview leaves too few common cells
-    or the cost surface is too flat to trust (``contrast < min_contrast``)."""
+    (contrast NaN) or the cost surface is too flat to trust (``contrast < min_contrast``)."""
     f = int(factor)
     S = int(max_shift)
     Sc = int(math.ceil(S / f))
@@ -50,7 +50,7 @@ def coarse_shift(ref, ref_ok, mov, mov_ok, max_shift: int, factor: int = 3,
     mv, mk = decimate(mov[m0:, m0:], mov_ok[m0:, m0:], f)
     h, w = rv.shape
     if h < 2 or w < 2:
-        return None, 0.0
+        return None, float("nan")
     need = (h + 2 * Sc, w + 2 * Sc)
     if mv.shape[0] < need[0] or mv.shape[1] < need[1]:
         pad = ((0, max(0, need[0] - mv.shape[0])), (0, max(0, need[1] - mv.shape[1])))
@@ -58,7 +58,7 @@ def coarse_shift(ref, ref_ok, mov, mov_ok, max_shift: int, factor: int = 3,
     mv, mk = mv[:need[0], :need[1]], mk[:need[0], :need[1]]
     s, cost = mmgd_search(rv, rk, mv, mk, Sc, min_pixels=min_cells)
     if s is None:
-        return None, 0.0
+        return None, float("nan")
     finite = cost[np.isfinite(cost)]
     contrast = float((np.median(finite) - finite.min()) / max(np.median(finite), 1e-12))
     if contrast < min_contrast:
@@ -133,25 +133,36 @@ def _grid_blocks(h, w, block):
 
 def match_overlap(ref, ref_ok, mov, mov_ok, margin: int, max_shift: int = 12,
                   block: int = 128, max_blocks: int = 16, min_texture: float = 1.0,
-                  min_pixels: int = 256, factor: int = 3, min_fraction: float = 0.3):
+                  min_pixels: int = 256, factor: int = 3, min_fraction: float = 0.3,
+                  coarse_side: int = 768, full_min: int = 2048):
     """Block matches of one overlap, coarse to fine. ``ref`` (h, w) is the overlap of the
     reference swing, ``mov`` (h + 2M, w + 2M) the moving swing's read with a margin of
     ``M = margin >= max_shift + factor // 2 + 2`` pixels. Returns ``(blocks, coarse)``:
     the :class:`~swathflow.matching.BlockMatch` list (offsets and centres relative to
-    ``ref``'s first pixel) and the coarse integer shift (None when the overview could not
-    give one; every block was then searched over the full radius)."""
-    from swathflow.mosaicking.matching import match_block
+    ``ref``'s first pixel) and the coarse integer shift. When the overview gives no answer
+    the overlap is refused at once if it is flat (``low_texture``) or a sliver of fewer
+    than ``full_min`` valid pixels (``too_small``, e.g. the corner of two swings); a larger
+    narrow overlap, or one where no block confirmed the overview's answer, gets the full
+    search over the whole radius (coarse None)."""
+    from swathflow.mosaicking.matching import BlockMatch, match_block
     S, M = int(max_shift), int(margin)
     h, w = ref.shape
-    c, _ = coarse_shift(ref, ref_ok, mov[M - S:M + S + h, M - S:M + S + w],
-                        mov_ok[M - S:M + S + h, M - S:M + S + w], S, factor)
+    # the overview search on at most coarse_side x coarse_side pixels around the centre
+    a0, b0 = max(0, (h - coarse_side) // 2), max(0, (w - coarse_side) // 2)
+    a1, b1 = min(h, a0 + coarse_side), min(w, b0 + coarse_side)
+    c, contrast = coarse_shift(ref[a0:a1, b0:b1], ref_ok[a0:a1, b0:b1],
+                        mov[M - S + a0:M + S + a1, M - S + b0:M + S + b1],
+                        mov_ok[M - S + a0:M + S + a1, M - S + b0:M + S + b1], S, factor)
     if c is not None:
         fine = factor // 2 + 2
         blocks = _match_blocks(ref, ref_ok, mov, mov_ok, M, c, fine, block, max_blocks,
                                min_texture, min_pixels, min_fraction)
         if any(b.ok for b in blocks):
             return blocks, c
-    # no overview answer (flat, small) or no block confirmed it: the full search
+    if c is None and not (np.isnan(contrast) and (ref_ok.sum() >= full_min)):
+        # flat, or a sliver too small to match (a corner of two swings): no full search
+        return [BlockMatch(False, "too_small" if np.isnan(contrast) else "low_texture")], None
+    # no block confirmed the overview's answer, or a narrow overlap: the full search
     blocks = _match_blocks(ref, ref_ok, mov, mov_ok, M, (0, 0), S, block, 48,
                            min_texture, min_pixels, min_fraction, match_block, rank=False)
     return blocks, None

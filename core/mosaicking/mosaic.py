@@ -76,10 +76,13 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
                                              min_texture, workers, log, control)
             rep.update(network_report(layout, net, pairs, matches, control))
             rep["seconds_match"] = round(time.perf_counter() - t0, 3)
+            # the offsets as mosaic.json gives them (4 decimals) are the ones applied, so a
+            # run over part of the area with the report's offsets gives the same pixels
             node_of = {k: q for q, k in enumerate(net.nodes)}
-            off = np.array([net.offsets[node_of[k]] for k in keys])
+            off = np.array([[round(float(v), 4) for v in net.offsets[node_of[k]]]
+                            for k in keys]).reshape(-1, 2)
             if balance:
-                rad = np.array([net.radiometric[node_of[k]] for k in keys])
+                rad = np.array([round(float(net.radiometric[node_of[k]]), 4) for k in keys])
             _log_matching(log, rep)
         rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog))
     _products(out, rep, png, report, layout)

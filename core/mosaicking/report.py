@@ -35,6 +35,7 @@ def _residual(o):
 
 def _overlaps_panel(ax, rep, img, f):
     from matplotlib import cm, colors, patches
+    from matplotlib.collections import PatchCollection
     ok = np.isfinite(img)
     if ok.any():
         lo, hi = np.percentile(img[ok], [2, 98])
@@ -43,17 +44,22 @@ def _overlaps_panel(ax, rep, img, f):
     top = max(0.1, float(np.nanmax(res)) if np.isfinite(res).any() else 0.1)
     norm = colors.Normalize(0.0, top)
     cmap = cm.get_cmap("plasma") if hasattr(cm, "get_cmap") else cm.plasma
+    used, skipped, rejected, colours = [], [], [], []
     for o, r in zip(rep["overlaps"], res):
         r0, c0, r1, c1 = (v / f for v in o["window"])
-        xy, w, h = (c0, r0), max(c1 - c0, 1.0), max(r1 - r0, 1.0)
+        rect = patches.Rectangle((c0, r0), max(c1 - c0, 1.0), max(r1 - r0, 1.0))
         if not o["ok"]:
-            ax.add_patch(patches.Rectangle(xy, w, h, fill=False, hatch="////",
-                                           edgecolor="0.6", lw=0.6))
+            skipped.append(rect)
         elif not o["used"]:
-            ax.add_patch(patches.Rectangle(xy, w, h, fill=False, edgecolor="red", lw=1.2))
+            rejected.append(rect)
         else:
-            ax.add_patch(patches.Rectangle(xy, w, h, facecolor=cmap(norm(r)), alpha=0.75,
-                                           edgecolor="none"))
+            used.append(rect)
+            colours.append(cmap(norm(r)))
+    ax.add_collection(PatchCollection(used, facecolors=colours, edgecolors="none",
+                                      alpha=0.75))
+    ax.add_collection(PatchCollection(skipped, facecolors="none", edgecolors="0.6",
+                                      hatch="////", lw=0.6))
+    ax.add_collection(PatchCollection(rejected, facecolors="none", edgecolors="red", lw=1.2))
     sm = cm.ScalarMappable(norm=norm, cmap=cmap)
     ax.figure.colorbar(sm, ax=ax, fraction=0.04, pad=0.02,
                        label="overlap residual after adjustment (px)")

@@ -1,0 +1,127 @@
+"""The regional case: a simulated mosaic of about ``gpx`` gigapixels mosaicked end to end
+(match + network + feather + COG) in one fresh process (its wall time and peak RSS), then
+the same area cut into four quarter runs (each with the swings that reach its quarter, the
+whole run's offsets) compared with the whole, pixel for pixel, tile by tile.
+
+    python benchmarks/bench_mosaic.py --regional 1.0
+
+Swings: 2000 px wide strips (20 % side overlap) cut into 2048-row swings, uint16, a cheap
+two-octave procedural texture (tests/mosaic_synth.value_noise), strips displaced by 1-5 px.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from mosaic_synth import make_swings, random_shifts, value_noise
+
+SWATH = 2000
+ROWS = 2048
+
+
+def cheap_texture(r, c, seed: int = 0):
+    return 400.0 + 300.0 * value_noise(r, c, 11, seed) + 150.0 * value_noise(r, c, 4, seed + 1)
+
+
+_RUN = r"""
+import json, sys, time
+import numpy as np
+from swathflow.mosaicking import mosaic as M
+a = json.loads(sys.argv[1])
+t0 = time.perf_counter()
+if a["mode"] == "whole":
+    rep = M.mosaic(a["paths"], a["out"], anchors=["0"], workers=a["workers"], png=False)
+    lay = M.scan_inputs(a["paths"])
+    node = {n["node"]: n for n in rep["nodes"]}
+    off = [node[str(s.strip)]["offset"] for s in lay.swings]
+    rad = [node[str(s.strip)]["radiometric"] for s in lay.swings]
+    extra = {"offsets": off, "rad": rad, "nodes": rep["nodes"],
+             "seconds_match": rep["seconds_match"], "seconds_render": rep["seconds_render"]}
+else:
+    lay = M.scan_inputs(a["paths"])
+    M.write_mosaic(lay, a["out"], np.array(a["offsets"]), np.array(a["rad"]),
+                   workers=a["workers"], cog=False)
+    extra = {}
+# VmHWM: this process's own peak (ru_maxrss would keep the parent's across exec)
+hwm = [ln for ln in open("/proc/self/status") if ln.startswith("VmHWM")][0].split()[1]
+print(json.dumps({"seconds": time.perf_counter() - t0, "rss_mb": int(hwm) / 1024} | extra))
+"""
+
+
+def _run(args: dict) -> dict:
+    p = subprocess.run([sys.executable, "-c", _RUN, json.dumps(args)], capture_output=True,
+                       text=True)
+    if p.returncode != 0:
+        raise RuntimeError(p.stderr[-3000:])
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def _same_pixels(whole, part, r0, c0, r1, c1, tile: int = 4096) -> bool:
+    import rasterio
+    from rasterio.windows import Window
+    with rasterio.open(whole) as a, rasterio.open(part) as b:
+        ta, tb = a.transform, b.transform
+        dr = int(round((ta.f - tb.f) / tb.e))
+        dc = int(round((ta.c - tb.c) / tb.a))
+        for r in range(r0, r1, tile):
+            for c in range(c0, c1, tile):
+                h, w = min(tile, r1 - r), min(tile, c1 - c)
+                x = a.read(1, window=Window(c, r, w, h))
+                y = b.read(1, window=Window(c + dc, r + dr, w, h))
+                if not np.array_equal(x, y):
+                    return False
+    return True
+
+
+def bench_regional(work, gpx: float = 1.0, workers: int = 2):
+    side = math.sqrt(gpx * 1e9)
+    n_strips = max(2, int(round(side / (SWATH * 0.8))))
+    length = int(round(side / ROWS)) * ROWS
+    print(f"\n== regional case: about {gpx:g} Gpx ({n_strips} strips of {SWATH} px x "
+          f"{length} rows) ==")
+    d = os.path.join(work, "regional")
+    shifts, rads = random_shifts(n_strips, seed=3)
+    t0 = time.perf_counter()
+    paths, _, (H, W) = make_swings(d, n_strips=n_strips, swath=SWATH, length=length,
+                                   overlap=0.2, n_swings=length // ROWS, swing_overlap=32,
+                                   shifts=shifts, rads=rads, truth=cheap_texture, noise=2.0,
+                                   dtype="uint16", footprints=False)
+    print(f"simulated {len(paths)} swings, grid {H} x {W} = {H * W / 1e9:.3f} Gpx in "
+          f"{time.perf_counter() - t0:.0f} s", flush=True)
+    whole = os.path.join(work, "regional.tif")
+    r = _run({"mode": "whole", "paths": paths, "out": whole, "workers": workers})
+    off = np.array(r["offsets"])
+    err = np.array([np.hypot(*(np.array(n["offset"]) - shifts[int(n["node"])]))
+                    for n in r["nodes"]])
+    print(f"whole run (match + network + feather + COG, {workers} threads): "
+          f"{r['seconds']:.0f} s (match {r['seconds_match']:.0f} s, render "
+          f"{r['seconds_render']:.0f} s), {H * W / 1e6 / r['seconds']:.1f} Mpx/s, peak RSS "
+          f"{r['rss_mb']:.0f} MB; strip offsets to {err.max():.3f} px (max)", flush=True)
+    from swathflow.mosaicking.inputs import scan_inputs
+    lay = scan_inputs(paths)
+    same, worst_rss = True, 0.0
+    for q, (r0, c0) in enumerate([(0, 0), (0, W // 2), (H // 2, 0), (H // 2, W // 2)]):
+        r1, c1 = min(H, r0 + H // 2 + H % 2), min(W, c0 + W // 2 + W % 2)
+        sel = [k for k, s in enumerate(lay.swings) if s.row - 16 < r1 and s.row + s.height
+               + 16 > r0 and s.col - 16 < c1 and s.col + s.width + 16 > c0]
+        part = os.path.join(work, f"regional-q{q}.tif")
+        rq = _run({"mode": "part", "paths": [paths[k] for k in sel], "out": part,
+                   "workers": workers, "offsets": off[sel].tolist(),
+                   "rad": np.array(r["rad"])[sel].tolist()})
+        worst_rss = max(worst_rss, rq["rss_mb"])
+        ok = _same_pixels(whole, part, r0, c0, r1, c1)
+        same &= ok
+        print(f"  quarter {q}: {len(sel)} swings, {rq['seconds']:.0f} s, peak RSS "
+              f"{rq['rss_mb']:.0f} MB, same pixels as the whole: {ok}", flush=True)
+        os.remove(part)
+    print(f"four quarter runs give the same pixels as the whole: {same}; peak RSS per "
+          f"process {max(worst_rss, r['rss_mb']):.0f} MB")
+    shutil.rmtree(d, ignore_errors=True)
+    return r, same
