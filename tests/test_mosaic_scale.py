@@ -67,7 +67,8 @@ def test_coarse_to_fine_refuses_a_flat_overlap():
     assert not res.ok and res.status == "low_texture"
 
 
-@pytest.mark.parametrize("f", [(0.3, 0.7), (0.0, 0.45), (0.6, 0.0), (0.999, 0.001)])
+@pytest.mark.parametrize("f", [(0.3, 0.7), (0.0, 0.45), (0.6, 0.0), (0.999, 0.001),
+                               (-1.37, 2.2), (3.5, -4.05), (-0.2, -0.9), (15.3, 0.5)])
 def test_shift_cubic_is_scipys_spline_shift(f):
     a = np.random.default_rng(1).normal(size=(70, 45))
     want = ndimage.shift(a, -np.asarray(f), order=3, mode="nearest")

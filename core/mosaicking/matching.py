@@ -205,9 +205,11 @@ def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 1
 
 
 # --- least-squares polish ----------------------------------------------------------------
-def _shift(img, d, order=3):
-    """``out[x] = img[x - d]`` (cubic spline, edges extended)."""
-    return ndimage.shift(img, d, order=order, mode="nearest", prefilter=True)
+def _shift(img, d):
+    """``out[x] = img[x - d]`` (cubic spline, edges extended: ``ndimage.shift(img, d,
+    order=3, mode="nearest")``, computed as one 4-tap correlation per axis)."""
+    from swathflow.mosaicking.blend import shift_cubic
+    return shift_cubic(img, -np.asarray(d, float))
 
 
 def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-4,

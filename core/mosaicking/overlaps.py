@@ -29,16 +29,53 @@ def _bbox_pairs(ext):
     return sorted(out)
 
 
+class _Footprints:
+    """Valid masks of the swings decimated by ``step`` on the grid lattice (one read per
+    swing, at most ``keep`` kept)."""
+
+    def __init__(self, layout: Layout, handles, step: int, keep: int = 256):
+        from collections import OrderedDict
+        self.layout, self.handles, self.step, self.keep = layout, handles, step, keep
+        self._m: OrderedDict = OrderedDict()
+
+    def __call__(self, k):
+        if k in self._m:
+            self._m.move_to_end(k)
+            return self._m[k]
+        s, st = self.layout.swings[k], self.step
+        r0, c0 = (s.row // st) * st, (s.col // st) * st
+        r1, c1 = -(-(s.row + s.height) // st) * st, -(-(s.col + s.width) // st) * st
+        _, ok = read_window(self.handles, s, r0, c0, r1, c1, step=st)
+        self._m[k] = (r0, c0, ok)
+        while len(self._m) > self.keep:
+            self._m.popitem(last=False)
+        return self._m[k]
+
+    def common(self, i, j, win) -> int:
+        """Pixels valid in both swings inside grid window ``win`` (decimated count)."""
+        st = self.step
+        (ri, ci, oi), (rj, cj, oj) = self(i), self(j)
+        r0, c0 = (win[0] // st) * st, (win[1] // st) * st
+        r1, c1 = -(-win[2] // st) * st, -(-win[3] // st) * st
+        a = oi[(r0 - ri) // st:(r1 - ri) // st, (c0 - ci) // st:(c1 - ci) // st]
+        b = oj[(r0 - rj) // st:(r1 - rj) // st, (c0 - cj) // st:(c1 - cj) // st]
+        return int((a & b).sum()) * st * st
+
+
 def find_overlaps(layout: Layout, groups=None, min_pixels: int = 256, handles=None,
-                  max_side: int = 512):
+                  max_cells: int = 256):
     """Pairs ``(i, j, window, n_common)`` of swings whose valid footprints overlap by at least
-    ``min_pixels`` pixels (counted on a decimated read of at most ``max_side`` pixels a side).
-    ``groups``: optional node key per swing; pairs within one group are left out."""
+    ``min_pixels`` pixels (counted on each swing's valid mask decimated to about
+    ``max_cells`` cells a side, read once per swing). ``groups``: optional node key per
+    swing; pairs within one group are left out."""
     sw = layout.swings
     ext = np.array([s.extent for s in sw]).reshape(-1, 4)
     g = None if groups is None else list(groups)
+    side = float(np.median(np.maximum(ext[:, 2] - ext[:, 0], ext[:, 3] - ext[:, 1])))
+    step = max(1, min(int(math.ceil(side / max_cells)), int(math.sqrt(min_pixels)) // 2))
     own = handles is None
     handles = handles or _Handles()
+    fp = _Footprints(layout, handles, step)
     pairs = []
     try:
         for i, j in _bbox_pairs(ext):
@@ -46,10 +83,7 @@ def find_overlaps(layout: Layout, groups=None, min_pixels: int = 256, handles=No
                 continue
             win = (int(max(ext[i, 0], ext[j, 0])), int(max(ext[i, 1], ext[j, 1])),
                    int(min(ext[i, 2], ext[j, 2])), int(min(ext[i, 3], ext[j, 3])))
-            step = max(1, int(math.ceil(max(win[2] - win[0], win[3] - win[1]) / max_side)))
-            _, oki = read_window(handles, sw[i], *win, step=step)
-            _, okj = read_window(handles, sw[j], *win, step=step)
-            n = int((oki & okj).sum()) * step * step
+            n = fp.common(i, j, win)
             if n >= min_pixels:
                 pairs.append((int(i), int(j), win, n))
     finally:
