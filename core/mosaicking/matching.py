@@ -329,6 +329,29 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
                       sigma=sig, radiometric=rad, gain=g, **common)
 
 
+def _failed_status(blocks) -> str:
+    reasons = [b.reason for b in blocks]
+    if "low_texture" in reasons:
+        return "low_texture"
+    if not reasons or all(r == "too_small" for r in reasons):
+        return "too_small"
+    return "no_match"
+
+
+def _inlier_stats(good, inl, floor_sigma):
+    """Weighted mean of the inlier offsets, its sigma (the larger of the formal and the
+    scatter-based one, never below ``floor_sigma``) and the scatter (std per axis)."""
+    di = np.array([b.offset for b in good])[inl]
+    sig = np.array([b.sigma for b in good])[inl]
+    w = 1.0 / np.maximum(sig, 1e-3) ** 2
+    mean = (w * di).sum(axis=0) / w.sum(axis=0)
+    formal = 1.0 / np.sqrt(w.sum(axis=0))
+    n = len(di)
+    spread = np.sqrt(((di - mean) ** 2).sum(axis=0) / max(n - 1, 1)) if n > 1 else np.zeros(2)
+    sigma = np.maximum.reduce([formal, spread / np.sqrt(n), np.full(2, floor_sigma)])
+    return mean, sigma, spread
+
+
 def combine_blocks(blocks: list[BlockMatch], min_blocks: int = 1, min_inlier_fraction=0.5,
                    tolerance: float = 0.25, floor_sigma: float = 0.02,
                    max_spread: float = 1.0) -> OverlapMatch:
@@ -340,10 +363,7 @@ def combine_blocks(blocks: list[BlockMatch], min_blocks: int = 1, min_inlier_fra
     n_tex = sum(1 for b in blocks if b.ok or b.reason not in ("low_texture", "too_small"))
     res = OverlapMatch(False, "", n_blocks=len(blocks), n_textured=n_tex, blocks=blocks)
     if not good:
-        reasons = [b.reason for b in blocks]
-        res.status = ("low_texture" if "low_texture" in reasons else
-                      "too_small" if not reasons or all(r == "too_small" for r in reasons)
-                      else "no_match")
+        res.status = _failed_status(blocks)
         return res
     d = np.array([b.offset for b in good])
     med = np.median(d, axis=0)
@@ -355,28 +375,19 @@ def combine_blocks(blocks: list[BlockMatch], min_blocks: int = 1, min_inlier_fra
         res.status = "inconsistent"
         res.offset = tuple(float(v) for v in med)
         return res
-    di = d[inl]
-    sig = np.array([b.sigma for b in good])[inl]
-    w = 1.0 / np.maximum(sig, 1e-3) ** 2
-    mean = (w * di).sum(axis=0) / w.sum(axis=0)
-    formal = 1.0 / np.sqrt(w.sum(axis=0))
-    n = len(di)
-    spread = np.sqrt(((di - mean) ** 2).sum(axis=0) / max(n - 1, 1)) if n > 1 else np.zeros(2)
-    sigma = np.maximum.reduce([formal, spread / np.sqrt(n), np.full(2, floor_sigma)])
-    rad = np.array([b.radiometric for b in good])[inl]
+    mean, sigma, spread = _inlier_stats(good, inl, floor_sigma)
     res.spread = float(np.hypot(*spread))
+    res.offset = (float(mean[0]), float(mean[1]))
     if res.spread > max_spread:
         res.status = "inconsistent"
-        res.offset = (float(mean[0]), float(mean[1]))
         return res
+    n = res.n_inliers
+    rad = np.array([b.radiometric for b in good])[inl]
     res.ok = True
     res.status = "ok"
-    res.offset = (float(mean[0]), float(mean[1]))
     res.sigma = (float(sigma[0]), float(sigma[1]))
     res.radiometric = float(np.median(rad))
     res.radiometric_sigma = float(1.2533 * rad.std() / np.sqrt(n)) if n > 1 else np.nan
-    res.spread = float(np.hypot(*spread))
-    frac = n / len(good)
-    res.quality = float(frac * np.exp(-np.hypot(*sigma) / 0.1) *
+    res.quality = float(n / len(good) * np.exp(-np.hypot(*sigma) / 0.1) *
                         min(1.0, np.mean([b.peak for b in np.array(good)[inl]]) * 5))
     return res
