@@ -201,3 +201,11 @@ def test_parts_of_an_area_give_the_same_pixels(shifted_scene, tmp_path):
         with rasterio.open(tmp_path / f"q{q}.tif") as ds:
             got = ds.read(1, window=from_bounds(x0, y1, x1, y0, ds.transform))
         assert np.array_equal(got, whole[r0:r1, c0:c1]), q
+
+
+def test_cli_anchor_gcp_needs_the_mission_and_calibration(shifted_scene, tmp_path, capsys):
+    from swathflow.flows.cli import main
+    code = main(["mosaic", str(shifted_scene["dir"]), "--out", str(tmp_path / "x.tif"),
+                 "--anchor", "gcp"])
+    assert code == 2 and "--anchor gcp needs the mission" in capsys.readouterr().err
+    assert not (tmp_path / "x.tif").exists()
