@@ -55,6 +55,9 @@ class MatchSettings:
     accuracy_m: float | None = None  # the reference's absolute accuracy (default 0.25 px)
 
 
+DEFAULT_SETTINGS = MatchSettings()
+
+
 @dataclass(frozen=True, eq=False)
 class Reference:
     """A north-up grey reference orthophoto in memory, and the heights for its points."""
@@ -185,7 +188,7 @@ def coarse_shift(rect: np.ndarray, ref: np.ndarray, margin: int, factor: int):
 
 # --- one swing ---------------------------------------------------------------------------
 def match_swing(image_id: str, model, source, terrain, ref: Reference,
-                settings: MatchSettings = MatchSettings(),
+                settings: MatchSettings = DEFAULT_SETTINGS,
                 raw_gsd: float | None = None) -> tuple[pd.DataFrame, dict]:
     """Automatic control points of one swing (table with :data:`POINT_COLUMNS`) and
     statistics of the matching (blocks tried, matched, reasons, coarse shift)."""

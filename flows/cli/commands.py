@@ -76,12 +76,13 @@ def calibrate(args) -> int:
         fixed=tuple(args.fix or ()), images=_ids(args.images), robust=not args.no_robust,
         vce=not args.no_vce, vce_priors=args.vce_priors, sigma_px=args.sigma_px,
         shared_boresight=(args.model == "12"), drift=args.drift,
+        reference=args.reference, reference_dem=args.reference_dem, max_rounds=args.rounds,
         extra={"method": args.method, "max_rounds": args.max_rounds})
-    result = calibrate_mission(mission, options)
+    result = calibrate_mission(mission, options, progress=lambda line: print(line, flush=True))
     paths = result.write(args.out)
     for line in result.summary_lines():
         print(line)
-    print(f"wrote {paths['calibration']} and {paths['report']}")
+    print(f"wrote {', '.join(paths[k] for k in paths if k != 'report')} and {paths['report']}")
     return 0
 
 

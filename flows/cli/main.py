@@ -95,7 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--pos-format", choices=("sbet", "csv"), help="POS file format")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:simulate"))
 
-    s = sub.add_parser("calibrate", help="estimate calibration parameters from control points")
+    s = sub.add_parser("calibrate", help="estimate calibration parameters from control points "
+                                         "or a reference orthophoto")
     s.add_argument("mission")
     s.add_argument("--out", required=True, help="output folder (calibration.json, report.html)")
     s.add_argument("--model", choices=["15", "12"], default="15",
@@ -123,6 +124,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-rounds", type=int, default=50,
                    help="two-step scheme: stop after this many rounds even when it is not "
                         "yet within 0.1 sigma of the joint optimum (default 50)")
+    s.add_argument("--reference", metavar="ORTHO",
+                   help="reference orthophoto (north-up raster with a CRS): automatic control "
+                        "points matched against it replace gcp.csv (default: the mission's "
+                        "[reference] when it has no gcp.csv)")
+    s.add_argument("--reference-dem", metavar="DEM",
+                   help="heights of the reference's points (default: the mission's terrain)")
+    s.add_argument("--rounds", type=int, default=4,
+                   help="with a reference: at most this many match / adjust rounds (default 4)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:calibrate"))
 
     s = sub.add_parser("rectify", help="orthorectify every swing to a COG")
