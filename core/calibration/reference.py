@@ -120,7 +120,7 @@ def _footprint_window(model, terrain, ref: Reference, margin_px: int):
 def _read_window(ref: Reference, rows, cols) -> tuple[Grid, np.ndarray]:
     """The reference over rows/cols ``(start, stop)`` (may pass its edges: NaN there)."""
     (r0, r1), (c0, c1) = rows, cols
-    grid = Grid(ref.grid.crs, ref.grid.transform * Affine.translation(c0, r0),
+    grid = Grid(ref.grid.crs, ref.grid.transform @ Affine.translation(c0, r0),
                 (r1 - r0, c1 - c0))
     out = np.full(grid.shape, np.nan)
     H, W = ref.image.shape
@@ -141,7 +141,7 @@ def rectify_on(model, source, terrain, grid: Grid, supersample: int) -> np.ndarr
     area-averaged (NaN where the footprint does not cover the whole pixel)."""
     from swathflow.rectification.rectify import rectify_tile
     f = max(int(supersample), 1)
-    fine = Grid(grid.crs, grid.transform * Affine.scale(1.0 / f),
+    fine = Grid(grid.crs, grid.transform @ Affine.scale(1.0 / f),
                 (grid.height * f, grid.width * f))
     v = rectify_tile(model, source, fine, terrain, kernel="bilinear").astype(float)
     return _average(v, f)

@@ -27,7 +27,7 @@ def degrade_reference(truth_ortho, out_path, factor: int = 2, blur: float = 0.7,
     lo, hi = np.nanpercentile(a, [0.5, 99.5])
     a = np.clip((a - lo) / max(hi - lo, 1e-9), 0, 1) ** gamma
     rng = np.random.default_rng(seed)
-    tr = r.transform * Affine.scale(f)
+    tr = r.transform @ Affine.scale(f)
     boxes = []
     for _ in range(int(changed)):
         ph = max(int(changed_size * a.shape[0]), 4)
@@ -39,8 +39,8 @@ def degrade_reference(truth_ortho, out_path, factor: int = 2, blur: float = 0.7,
         else:
             a[r0:r0 + ph, c0:c0 + pw] = np.clip(ndimage.gaussian_filter(
                 rng.random((ph, pw)), 1.5) * 3 - 1, 0, 1)                     # new texture
-        x0, y0 = tr * (c0, r0)
-        x1, y1 = tr * (c0 + pw, r0 + ph)
+        x0, y0 = tr @ (c0, r0)
+        x1, y1 = tr @ (c0 + pw, r0 + ph)
         boxes.append([float(x0), float(y1), float(x1), float(y0)])
     a = a * 230 + 12 + rng.normal(0, noise, a.shape)
     write_geotiff(os.fspath(out_path), np.clip(np.round(a), 0, 255).astype(np.uint8),
