@@ -47,13 +47,15 @@ def points_map(reference, points: pd.DataFrame, magnify: float = 20.0) -> str:
     thumb = sub[::step, ::step]
     h, w = thumb.shape
     img = base64.b64encode(png_grey(thumb)).decode()
-    x = (c - c0) / step
-    y = (r - r0) / step
+    zoom = max(1.0, MAP_PX / max(h, w))            # small maps are drawn larger
+    x = (c - c0) / step * zoom
+    y = (r - r0) / step * zoom
+    h, w = int(round(h * zoom)), int(round(w * zoom))
     res = np.hypot(points["x"].to_numpy(float), points["y"].to_numpy(float))
     rej = points["rejected"].to_numpy(bool)
     out = [f"<svg xmlns='http://www.w3.org/2000/svg' width='{w}' height='{h}' "
            f"viewBox='0 0 {w} {h}'><image href='data:image/png;base64,{img}' width='{w}' "
-           f"height='{h}'/>"]
+           f"height='{h}' preserveAspectRatio='none'/>"]
     for xi, yi, ri, rj, dx, dy, name in zip(x, y, res, rej, points["x"], points["y"],
                                             points["gcp_id"]):
         if rj:
@@ -86,7 +88,16 @@ def reference_section(rc) -> str:
            "crosses: rejected (false matches: changed areas, repetitive texture, water)."
            "</p>", points_map(ref, p)]
     out.append("<h3>Rounds</h3>")
-    out.append(_table(pd.DataFrame(rc.rounds), 3))
+    rounds = pd.DataFrame(rc.rounds)
+    if "design_warning" in rounds:
+        rounds["design_warning"] = rounds["design_warning"].map(
+            lambda t: "points on one side of the track" if t else "")
+    out.append(_table(rounds, 3))
+    out.append("<p class='note'>max_change_sigma: the largest change of a parameter since "
+               "the previous round, in its sigmas. design_warning: the surveyed-point design "
+               "check (points on both sides of the track per direction) failed; the priors "
+               "kept the adjustment determined, and the sigmas show what the points fixed."
+               "</p>")
     m = pd.DataFrame([{"image": s["image_id"], "status": s.get("status"),
                        "blocks": s["blocks"], "matched": s["matched"],
                        "dropped": ", ".join(f"{k} {v}" for k, v in s["reasons"].items()),
