@@ -44,11 +44,12 @@ POINT_COLUMNS = ("gcp_id", "image_id", "line", "element", "X", "Y", "Z", "role",
 class MatchSettings:
     """How swings are matched against the reference (sizes in reference pixels)."""
 
-    block: int = 24                 # block side
+    block: int = 16                 # block side
     search: int = 4                 # block search radius around the coarse shift
     margin_m: float = 40.0          # the reference window extends the footprint by this
     coarse: int = 4                 # averaging factor of the coarse global search
-    step: float = 0.5               # block spacing as a fraction of the block side
+    step: float = 1.0               # block spacing as a fraction of the block side (blocks
+    #                                 that overlap give correlated errors: sigmas too small)
     min_texture: float = 1.0        # match_block's texture threshold
     min_valid: float = 0.6          # fraction of the block's search window the swing covers
     sigma_floor: float = 0.05       # reference px, added in quadrature to the formal sigma
