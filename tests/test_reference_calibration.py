@@ -214,38 +214,3 @@ def test_reference_calibration_sigmas_are_honest(tmp_path):
     lo, hi = stats.chi2.ppf([0.001, 0.999], dof)
     assert lo < nees < hi, (nees, dof, lo, hi)
 
-
-@pytest.fixture(scope="module")
-def overlap_mission(tmp_path_factory):
-    """tiny with consecutive swings overlapping by half (tie points between L1 and R1) and a
-    reference 3x coarser than the truth ortho (about 3.2x the raw nadir pixel)."""
-    if not AUTZEN.exists():
-        pytest.skip("real Autzen ortho not available")
-    mission, info = _mission(tmp_path_factory.mktemp("ov"), seed=5, factor=3,
-                             along_overlap=0.5)
-    return mission, info
-
-
-@needs_autzen
-def test_tie_points_agree_with_truth_geometry(overlap_mission):
-    """Each tie point seen in L1 and R1: the ground under its L1 observation (true model,
-    true terrain) projected into R1 by the true model falls on its R1 observation."""
-    from swathflow.calibration.reference import DEFAULT_SETTINGS, open_reference
-    from swathflow.calibration.ties import match_ties
-    from swathflow.ingest.mission import load_mission
-    from swathflow.rectification.rectify import RawSource
-    mission, _ = overlap_mission
-    m = load_mission(mission)
-    tp = m.priors.updated({k: {"value": list(v)} for k, v in _truth(mission).items()})
-    models = {i: m.model(i, tp) for i in m.image_ids}
-    srcs = {i: RawSource(m.image(i).load()) for i in m.image_ids}
-    ref = open_reference(mission / "ref.tif")
-    ties = match_ties(models, srcs, m.terrain, ref, DEFAULT_SETTINGS, m.gsd)
-    assert ties["tie_id"].nunique() >= 10
-    a = ties[ties["image_id"] == "L1"].set_index("tie_id")
-    b = ties[ties["image_id"] == "R1"].set_index("tie_id").loc[a.index]
-    g = models["L1"].image_to_ground(a[["line", "element"]].to_numpy(), m.terrain)
-    ij = models["R1"].ground_to_image(g, clip=False)
-    d = np.hypot(b["line"].to_numpy() - ij[:, 0], b["element"].to_numpy() - ij[:, 1])
-    print(np.round(np.sort(d), 2))
-    assert np.median(d) < 0.5

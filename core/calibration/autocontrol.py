@@ -23,7 +23,6 @@ from swathflow.calibration.control import calibrate
 from swathflow.calibration.reference import (DEFAULT_SETTINGS, MatchSettings, Reference,
                                              match_swing, open_reference)
 from swathflow.calibration.result import CalibrationResult
-from swathflow.calibration.ties import match_ties
 from swathflow.calibration.unknowns import CalibrationError
 
 
@@ -126,7 +125,7 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
                              terrain, reference: Reference, priors=None, *,
                              settings: MatchSettings = DEFAULT_SETTINGS,
                              raw_gsd: float | None = None, max_rounds: int = 4,
-                             tol_sigma: float = 0.25, ties: bool = False,
+                             tol_sigma: float = 0.25,
                              progress: Callable[[str], None] | None = None,
                              **calibrate_options) -> ReferenceCalibrationResult:
     """Calibrate ``models`` (image id -> SensorModel, at their prior parameters) from
@@ -137,9 +136,6 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
         reference has no DEM). raw_gsd: the raw pixel's ground size (sets the rendering's
         supersampling). calibrate_options: passed to
         :func:`~swathflow.calibration.control.calibrate` (shared_boresight, fixed, robust...).
-    ties: also match overlapping left and right swings with each other
-        (:mod:`swathflow.calibration.ties`): tie points with unknown ground in the same
-        adjustment.
     """
     from swathflow.rectification.rectify import RawSource
     say = progress or (lambda _line: None)
@@ -159,9 +155,6 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
             tables.append(pts)
             stats.append(st)
         obs = pd.concat([t for t in tables if len(t)] or tables, ignore_index=True)
-        if ties:
-            tie_obs = match_ties(current, srcs, terrain, reference, settings, raw_gsd)
-            calibrate_options = {**calibrate_options, "ties": tie_obs}
         t_match = time.perf_counter() - t0
         say(f"round {k}: {len(obs)} automatic control points "
             f"({', '.join(str(s['image_id']) + ' ' + str(s['matched']) for s in stats)}) "
@@ -175,8 +168,7 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
         change = _change_in_sigmas(prev, res)
         rounds.append({"round": k, "points": int(len(obs)), "rejected": int(len(res.rejected)),
                        "sigma0": float(res.sigma0), "max_change_sigma": change,
-                       "matching_s": round(t_match, 3), "design_warning": warning,
-                       "ties": (res.options.get("ties") or {}).get("points", 0)})
+                       "matching_s": round(t_match, 3), "design_warning": warning})
         rounds[-1]["converged"] = bool(change < tol_sigma)
         current = {iid: models[iid].with_vector(res.image_vectors[iid]) for iid in models}
         if change < tol_sigma:
@@ -209,7 +201,7 @@ def reference_paths(mission, ortho: str | None = None,
 
 def calibrate_mission_from_reference(mission, ortho: str, dem: str | None = None, *,
                                      settings: MatchSettings = DEFAULT_SETTINGS,
-                                     max_rounds: int = 4, ties: bool = False,
+                                     max_rounds: int = 4,
                                      progress: Callable[[str], None] | None = None,
                                      **calibrate_options) -> ReferenceCalibrationResult:
     """:func:`calibrate_from_reference` over a loaded mission's images."""
@@ -218,5 +210,5 @@ def calibrate_mission_from_reference(mission, ortho: str, dem: str | None = None
     sources = {iid: mission.image(iid).load() for iid in mission.image_ids}   # read once
     return calibrate_from_reference(models, sources, mission.terrain, ref, mission.priors,
                                     settings=settings, raw_gsd=float(mission.gsd),
-                                    max_rounds=max_rounds, progress=progress, ties=ties,
+                                    max_rounds=max_rounds, progress=progress,
                                     **calibrate_options)
