@@ -12,7 +12,7 @@ observed minus computed through ``ground_to_image``. The AP continuity (C0) and 
 
 The Jacobian is sparse (a tie point's rows touch its own three coordinates and the
 parameters of one image, and an image depends only on the fixes around its time), so the
-generic engine :func:`swathflow.adjustment.adjust.solve` runs on sparse normal equations (SuperLU).
+generic engine :func:`swathflow.adjustment.solve` runs on sparse normal equations (SuperLU).
 Internally every parameter is scaled by its prior sigma (AP coefficients span 12 orders of
 magnitude otherwise).
 

@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from swathflow.adjustment.adjust import Problem
-from swathflow.calibration.control import CalibrationError, build_unknowns
+from swathflow.adjustment import Problem
+from swathflow.calibration.unknowns import CalibrationError, build_unknowns
 from swathflow.errors import FormatError
 from swathflow.sensors.pushbroom.calibration.ties import intersect_rays
 from swathflow.sensors.pushbroom.viewing import continuity_matrix

@@ -1,5 +1,5 @@
 """The result of a push-broom calibration: a
-:class:`~swathflow.calibration.control.CalibrationResult` (same report and file) plus tie
+:class:`~swathflow.calibration.result.CalibrationResult` (same report and file) plus tie
 points, C0/C1 residuals, the method, the two-step rounds and the other solution; and how it
 is built from the adjustment's solution."""
 from __future__ import annotations
@@ -10,15 +10,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from swathflow.adjustment.adjust import Solution
-from swathflow.calibration.control import CalibrationResult, residual_table, summarize
+from swathflow.adjustment import Solution
+from swathflow.calibration.result import CalibrationResult, residual_table, summarize
 from swathflow.sensors.pushbroom.calibration.problem import Setup
 from swathflow.sensors.pushbroom.viewing import continuity_matrix
 
 
 @dataclass
 class PushbroomCalibrationResult(CalibrationResult):
-    """A :class:`~swathflow.calibration.control.CalibrationResult` (same report and file) plus the
+    """A :class:`~swathflow.calibration.result.CalibrationResult` (same report and file) plus the
     push-broom extras: tie points, C0/C1 residuals, the method and the other solution."""
 
     method: str = "joint"

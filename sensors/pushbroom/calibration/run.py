@@ -9,7 +9,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from swathflow.calibration.control import CalibrationError
+from swathflow.calibration.unknowns import CalibrationError
 from swathflow.sensors.pushbroom.calibration.problem import build_setup, check_gcps
 from swathflow.sensors.pushbroom.calibration.result import (PushbroomCalibrationResult,
                                                             build_result)
@@ -94,7 +94,8 @@ def calibrate_pushbroom(models: Mapping[str, object], gcps: pd.DataFrame | None,
 
 # --- the plugin's calibration strategy ---------------------------------------------------
 class PushbroomCalibration:
-    """Control points, tie points (ground unknown), orientation fixes and C0/C1 constraints;
+    """Control and tie points, orientation fixes, C0/C1 constraints (--method, --max-rounds).
+
     ``options.extra``: ``method`` (joint, two-step, both) and ``max_rounds``."""
 
     def calibrate(self, mission, options):

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from swathflow.adjustment.adjust import RankDeficiencyError, solve
-from swathflow.calibration.control import CalibrationError
+from swathflow.adjustment import RankDeficiencyError, solve
+from swathflow.calibration.unknowns import CalibrationError
 from swathflow.sensors.pushbroom.calibration.problem import Setup
 
 
