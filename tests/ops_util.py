@@ -27,10 +27,11 @@ def script(path: str, *args: str, env: dict | None = None, timeout: float = 300)
     return r.stdout
 
 
-def pids_in(folder: Path) -> dict[str, int]:
-    """Every PID file under ``folder`` and its PID."""
+def pids_in(folder: Path, *patterns: str) -> dict[str, int]:
+    """The PID files in ``folder`` (matching ``patterns``, default ``*.pid``) and their PIDs."""
+    files = {p for pat in patterns or ("*.pid",) for p in folder.glob(pat)}
     return {str(p.relative_to(folder)): int(p.read_text().split()[0])
-            for p in folder.rglob("*.pid") if p.read_text().strip()}
+            for p in sorted(files) if p.read_text().strip()}
 
 
 def alive(pid: int) -> bool:

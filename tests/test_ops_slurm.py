@@ -24,7 +24,7 @@ def slurm(tmp_path_factory):
     try:
         out = script("slurm/start.sh", str(folder), env=env, timeout=600)
         assert out.strip().endswith(f"SLURM_CONF={folder}/slurm.conf")
-        pids = pids_in(folder)
+        pids = pids_in(folder, "*.pid", "munge/*.pid")
         assert {"slurmctld.pid", "slurmd.pid", "munge/munged.pid"} <= set(pids), pids
         env["SLURM_CONF"] = str(folder / "slurm.conf")
         os.environ["SLURM_CONF"] = env["SLURM_CONF"]   # for dask-jobqueue's sbatch calls

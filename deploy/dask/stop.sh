@@ -8,17 +8,21 @@ set -uo pipefail
 DIR=$(realpath -m "${1:-/tmp/swathflow-dask-cluster}")
 WAIT=${DASK_STOP_TIMEOUT:-30}
 
+live_in_group() {  # members of process group $1 that are not zombies
+    ps -eo pgid=,stat= | awk -v g="$1" '$1 == g && $2 !~ /^Z/' | grep -q .
+}
+
 stop_group() {  # stop_group PIDFILE: TERM the group the PID leads, wait, then KILL it
     local file=$1 pid
     [ -s "$file" ] || return 0
     pid=$(cat "$file")
-    if [ "$(ps -o pgid= -p "$pid" 2>/dev/null | tr -d ' ')" = "$pid" ]; then
+    if live_in_group "$pid"; then
         kill -TERM -- "-$pid" 2>/dev/null
         for _ in $(seq $(( WAIT * 10 ))); do
-            pgrep -g "$pid" >/dev/null || break
+            live_in_group "$pid" || break
             sleep 0.1
         done
-        if pgrep -g "$pid" >/dev/null; then
+        if live_in_group "$pid"; then
             echo "deploy/dask/stop.sh: $(basename "$file" .pid) ($pid) did not stop in $WAIT s: killing it" >&2
             kill -KILL -- "-$pid" 2>/dev/null
         fi

@@ -9,17 +9,19 @@ DIR=$(realpath -m "${1:-/tmp/swathflow-slurm}")
 WAIT=${SLURM_STOP_TIMEOUT:-30}
 export SLURM_CONF="$DIR/slurm.conf"
 
+running() { local s; s=$(ps -o stat= -p "$1" 2>/dev/null) && [ "${s:0:1}" != Z ]; }  # zombies are not
+
 stop_pid() {  # stop_pid NAME PIDFILE: TERM, wait up to WAIT s, then KILL
     local name=$1 file=$2 pid
     [ -s "$file" ] || return 0
     pid=$(cat "$file")
-    if kill -0 "$pid" 2>/dev/null; then
+    if running "$pid"; then
         kill -TERM "$pid"
         for _ in $(seq $(( WAIT * 10 ))); do
-            kill -0 "$pid" 2>/dev/null || break
+            running "$pid" || break
             sleep 0.1
         done
-        if kill -0 "$pid" 2>/dev/null; then
+        if running "$pid"; then
             echo "deploy/slurm/stop.sh: $name ($pid) did not stop in $WAIT s: killing it" >&2
             kill -KILL "$pid"
         fi
