@@ -45,6 +45,18 @@ def _squeue(env) -> list[str]:
     return r.stdout.split("\n")[:-1]
 
 
+def _wait_for_workers(client, n, env, jobs_dir, timeout=240):
+    """Wait for ``n`` workers; on time-out fail with the queue, the node and the job logs."""
+    try:
+        client.wait_for_workers(n, timeout=timeout)
+    except Exception as exc:
+        def sh(*cmd):
+            return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=30).stdout
+        logs = "".join(f"--- {p.name}\n{p.read_text()[-1500:]}" for p in sorted(jobs_dir.glob("*")))
+        pytest.fail(f"{exc}\nsqueue:\n{sh('squeue', '-o', '%i %T %r')}\n"
+                    f"sinfo:\n{sh('sinfo', '-N', '-o', '%N %t %E %C %m')}\n{logs}")
+
+
 def test_cli_runs_the_mission_on_slurm_worker_jobs(slurm, tiny_mission, tmp_path):
     """`swathflow run --cluster slurm` with DASK_CONFIG=deploy/dask: the workers are SLURM
     jobs (seen in slurmctld's log), the products match the truth, the jobs end with it."""
@@ -54,7 +66,8 @@ def test_cli_runs_the_mission_on_slurm_worker_jobs(slurm, tiny_mission, tmp_path
     env = dict(slurm["env"], DASK_CONFIG=str(ROOT / "deploy" / "dask"))
     r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "run", str(tiny_mission),
                         "--out", str(out), "--calibration", cal, "--cluster", "slurm",
-                        "--jobs", "2"], env=env, capture_output=True, text=True, timeout=600)
+                        "--jobs", "2"], env=env, cwd=tmp_path, capture_output=True, text=True,
+                       timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
     _check_against_truth(tiny_mission, {"rectified": sorted(map(str, out.glob("rectified/*.tif"))),
                                         "mosaic": str(out / "mosaic.tif")})
@@ -76,14 +89,14 @@ def test_scale_from_one_to_two_jobs_and_scancel_one_mid_run(slurm, tiny_mission,
     env = slurm["env"]
     with SLURMCluster(cores=1, processes=1, memory="2GB", walltime="00:30:00",
                       worker_extra_args=["--host", "127.0.0.1"],
-                      scheduler_options={"host": "127.0.0.1", "dashboard": False},
+                      scheduler_options={"host": "127.0.0.1", "dashboard_address": "127.0.0.1:0"},
                       log_directory=str(tmp_path / "jobs")) as cluster, \
             Client(cluster) as client:
         cluster.scale(jobs=1)
-        client.wait_for_workers(1, timeout=120)
+        _wait_for_workers(client, 1, env, tmp_path / "jobs")
         assert len(_squeue(env)) == 1 and "RUNNING" in _squeue(env)[0]
         cluster.scale(jobs=2)
-        client.wait_for_workers(2, timeout=120)
+        _wait_for_workers(client, 2, env, tmp_path / "jobs")
         jobs = _squeue(env)
         assert len(jobs) == 2 and all("RUNNING" in j for j in jobs), jobs
         job_of = {name: job.job_id for name, job in cluster.workers.items()}
