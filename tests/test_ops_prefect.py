@@ -134,10 +134,12 @@ def _check_failed_run(env, run, inbox, products):
 def _check_failure_alert(env, run):
     """The failure event of the inbox run is recorded, and the automation's webhook call
     (with the run's flow and the broken mission in its text) reaches the listener."""
-    events = _api(env, "/events/filter", {"filter": {
-        "event": {"name": ["prefect.flow-run.Failed"]},
-        "any_resource": {"id": [f"prefect.flow-run.{run['id']}"]}}})["events"]
-    assert events, "no prefect.flow-run.Failed event for the inbox run"
+    query = {"filter": {"event": {"name": ["prefect.flow-run.Failed"]},
+                        "any_resource": {"id": [f"prefect.flow-run.{run['id']}"]}}}
+    deadline = time.time() + 120                # events are stored in batches, seconds later
+    while not _api(env, "/events/filter", query)["events"]:
+        assert time.time() < deadline, "no prefect.flow-run.Failed event for the inbox run"
+        time.sleep(1)
     deadline = time.time() + 120
     while not any("swathflow-inbox" in b and "flight-c" in b for b in _Hook.received):
         assert time.time() < deadline, f"no alert for the failed inbox run: {_Hook.received}"
