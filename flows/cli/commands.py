@@ -144,7 +144,8 @@ def _print_summary(result: dict) -> None:
 def run(args) -> int:
     """``swathflow run MISSION --out DIR``: the whole flow."""
     from swathflow.flows.mission import run as run_flow
-    _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address))
+    _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
+                            args.cluster, args.jobs))
     return 0
 
 

@@ -175,6 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output folder")
     s.add_argument("--calibration", help="use this calibration.json instead of calibrating")
     s.add_argument("--dask-address", help="an existing Dask scheduler (default: local cluster)")
+    s.add_argument("--cluster", choices=("local", "slurm"), default="local",
+                   help="where the Dask workers run without --dask-address: local processes "
+                        "(default) or SLURM jobs through dask-jobqueue (settings: Dask's "
+                        "jobqueue.slurm config, see deploy/dask/jobqueue.yaml)")
+    s.add_argument("--jobs", type=int, default=2,
+                   help="--cluster slurm: number of worker jobs to submit (default 2)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:run"))
 
     s = sub.add_parser("demo", help="simulate the demo mission and run the whole flow on it")
