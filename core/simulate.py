@@ -107,6 +107,9 @@ class SimConfig:
     gcp_plan: dict = field(default_factory=dict)  # image_id -> (control, check)
     gcp_other: tuple = ()           # (lo, hi): check points on images not in gcp_plan
     exclusive_gcps: bool = False    # points seen by one image only (exact counts)
+    #: > 0: the first 3 control points of a swing lie where its recorded swing angle is
+    #: above this (deg), the next 3 where it is below minus this (calibration needs both)
+    gcp_swing_side: float = 0.0
     gcp_noise: float = 1.0          # px, per axis
     gross_fraction: float = 0.0
     gross_range: tuple = (10.0, 40.0)   # px
@@ -132,7 +135,7 @@ class SimConfig:
 
 PRESETS: dict[str, dict] = {
     # seconds: 1 strip, one L and one R swing, small images, a handful of GCPs
-    "tiny": dict(preset="tiny"),
+    "tiny": dict(preset="tiny", swing_max=15.0, gcp_swing_side=6.0),
     # the README demo: 2 strips x 4 swings
     "demo": dict(preset="demo", n_strips=2, swings_per_strip=4, n_elements=192,
                  focal_length=0.03, swing_max=15.0, agl=600.0, speed=45.0, gsd=0.3,
@@ -160,7 +163,15 @@ def preset_config(name: str, **overrides) -> SimConfig:
     unknown = set(overrides) - set(SimConfig.__dataclass_fields__)
     if unknown:
         raise SwathflowError(f"unknown simulation option(s) {', '.join(sorted(unknown))}")
-    return replace(cfg, **overrides)
+    cfg = replace(cfg, **overrides)
+    if not 0.0 <= cfg.gross_fraction <= 1.0:
+        raise SwathflowError(f"--gross-errors {cfg.gross_fraction}: a fraction of the GCP "
+                             f"measurements, between 0 and 1 (e.g. 0.05)")
+    if not (math.isfinite(cfg.gcp_noise) and cfg.gcp_noise >= 0):
+        raise SwathflowError(f"--gcp-noise {cfg.gcp_noise}: a noise in pixels, 0 or more")
+    if cfg.direction_omega is not None and not math.isfinite(cfg.direction_omega):
+        raise SwathflowError("--direction-omega: give a finite angle in degrees")
+    return cfg
 
 
 # ------------------------------------------------------------------------------------------
@@ -238,7 +249,11 @@ def make_trajectory(cfg: SimConfig, plan: Plan, terrain_mean: float, rng):
         sgn = 1.0 if k % 2 == 0 else -1.0                  # alternate flight directions
         off = (k - (cfg.n_strips - 1) / 2) * plan.spacing
         tc = t_start + plan.strip_duration / 2
-        on = (t >= t_start - lead - 1e-9) & (t <= t_start + plan.strip_duration + lead + 1e-9)
+        # half a POS interval of tolerance: t comes from a rounded sample count, so the
+        # last epoch can lie a rounding error past the strip's end (it was left at the
+        # origin, lat 0, before)
+        tol = 0.5 / cfg.pos_rate
+        on = (t >= t_start - lead - tol) & (t <= t_start + plan.strip_duration + lead + tol)
         along = sgn * cfg.speed * (t[on] - tc)
         en[on] = (np.asarray(plan.centre)[None] + along[:, None] * fwd[None]
                   + (off + sway[on])[:, None] * right[None])
@@ -435,11 +450,13 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
             continue
         m = models[iid]
         got = []
+        side = _side_bands(cfg, m, nc, margin)
         for _ in range(20):
             k = 4 * need
             lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
             lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
-            li = rng.uniform(lo_l, m.n_lines - 1 - lo_l, k)
+            band = side[len(got)] if len(got) < len(side) else None
+            li = rng.uniform(*(band or (lo_l, m.n_lines - 1 - lo_l)), k)
             el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
             o, d = m.ray(np.stack([li, el], -1))
             g = intersect(o, d, terrain)
@@ -447,6 +464,9 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
             cand = np.round(np.stack([e, n], -1), 3)
             cand = cand[np.isfinite(cand).all(-1)]
             for c in cand:
+                if len(got) < len(side):   # side-banded slots: one band per draw
+                    if side[len(got)] != band:
+                        break
                 allp = np.concatenate([taken, np.array(got).reshape(-1, 2)])
                 if len(allp) and np.min(np.hypot(*(allp - c).T)) < min_sep:
                     continue
@@ -484,6 +504,22 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
     obs = pd.DataFrame(rows, columns=["gcp_id", "image_id", "line", "element", "x", "y", "z",
                                       "role", "E", "N"])
     return pts, obs
+
+
+def _side_bands(cfg, m, nc: int, margin: float) -> list:
+    """Line ranges for the first control points: 3 where the swing angle is above
+    ``cfg.gcp_swing_side``, 3 where it is below minus it (empty when not asked for)."""
+    sw = m.lines.get("swing")
+    if cfg.gcp_swing_side <= 0 or sw is None or nc < 6:
+        return []
+    idx = np.arange(sw.size)
+    ok = (idx > margin + 1) & (idx < sw.size - 2 - margin)
+    bands = []
+    for sel in (ok & (sw > cfg.gcp_swing_side), ok & (sw < -cfg.gcp_swing_side)):
+        if sel.sum() < 2:
+            return []
+        bands += [(float(idx[sel].min()), float(idx[sel].max()))] * 3
+    return bands
 
 
 def _ground_xyz(en, terrain, to_map):
@@ -799,8 +835,20 @@ def _cli_overrides(args, keys) -> dict:
     return out
 
 
+def _check_out_free(out, force: bool) -> None:
+    """Refuse to write a simulation over an existing mission or a non-empty folder."""
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise SwathflowError(f"{out}: exists and is not a folder; give a new folder name")
+    if p.is_dir() and any(p.iterdir()) and not force:
+        what = "a mission" if (p / "mission.toml").exists() else "files"
+        raise SwathflowError(f"{out}: already holds {what}; simulating into it would replace "
+                             f"its POS and images: give a new folder, or add --force")
+
+
 def cli_simulate(args) -> int:
     """``swathflow simulate OUT --preset NAME --seed N [--texture F --dem F]``."""
+    _check_out_free(args.out, getattr(args, "force", False))
     if str(args.preset).startswith("pushbroom"):      # three-line camera presets
         from .simulate_pushbroom import cli_simulate_pushbroom
         return cli_simulate_pushbroom(args)

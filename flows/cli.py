@@ -70,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of GCP measurements with a 10-40 px gross error")
     s.add_argument("--image-format", choices=("tif", "envi"), help="raw image format")
     s.add_argument("--pos-format", choices=("sbet", "csv"), help="POS file format")
+    s.add_argument("--force", action="store_true",
+                   help="write into OUT even when it already holds a mission or files")
     s.set_defaults(func=_call("swathflow.simulate:cli_simulate"))
 
     s = sub.add_parser("calibrate", help="estimate calibration parameters from control points")
