@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import warnings
 from typing import Mapping
 
@@ -814,7 +815,12 @@ def cli_rectify(args) -> int:
     from .calibfile import calibration_priors, read_calibration
     from .mission import load_mission
     mission = load_mission(args.mission)
-    params, cal_tag = mission.priors, "mission priors (mission.toml [calibration])"
+    params, cal_tag = mission.priors, "none: mission priors (mission.toml [calibration])"
+    if not getattr(args, "calibration", None):
+        print("swathflow rectify: warning: no --calibration given: rectifying with the "
+              "mission's prior parameters (uncalibrated; metres off where the priors are "
+              "wrong); run 'swathflow calibrate' and pass its calibration.json",
+              file=sys.stderr)
     if getattr(args, "calibration", None):
         doc = read_calibration(args.calibration)
         if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):

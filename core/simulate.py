@@ -464,18 +464,14 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
             cand = np.round(np.stack([e, n], -1), 3)
             cand = cand[np.isfinite(cand).all(-1)]
             for c in cand:
-                if len(got) < len(side):   # side-banded slots: one band per draw
-                    if side[len(got)] != band:
-                        break
+                if len(got) < len(side) and side[len(got)] != band:
+                    break                  # side-banded slots: one band per draw
                 allp = np.concatenate([taken, np.array(got).reshape(-1, 2)])
                 if len(allp) and np.min(np.hypot(*(allp - c).T)) < min_sep:
                     continue
-                if cfg.exclusive_gcps:
-                    xyz = _ground_xyz(c[None], terrain, to_map)
-                    seen = [o2 for o2 in ids if o2 != iid
-                            and np.isfinite(models[o2].ground_to_image(xyz)).all()]
-                    if seen:
-                        continue
+                if cfg.exclusive_gcps and _seen_elsewhere(c, iid, ids, models, terrain,
+                                                          to_map):
+                    continue
                 got.append(c)
                 if len(got) == need:
                     break
@@ -504,6 +500,11 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
     obs = pd.DataFrame(rows, columns=["gcp_id", "image_id", "line", "element", "x", "y", "z",
                                       "role", "E", "N"])
     return pts, obs
+
+
+def _seen_elsewhere(c, iid, ids, models, terrain, to_map) -> bool:
+    xyz = _ground_xyz(c[None], terrain, to_map)
+    return any(np.isfinite(models[o].ground_to_image(xyz)).all() for o in ids if o != iid)
 
 
 def _side_bands(cfg, m, nc: int, margin: float) -> list:

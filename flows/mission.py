@@ -125,6 +125,8 @@ def run(mission, out, calibration=None, dask_address=None) -> dict:
 
 
 def cli_run(args) -> int:
+    from swathflow.mission import load_mission
+    load_mission(args.mission)      # bad input reported before Prefect and Dask start
     result = run(args.mission, args.out, args.calibration, args.dask_address)
     _print_summary(result)
     return 0

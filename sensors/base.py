@@ -163,6 +163,9 @@ class SensorModel(ABC):
     kind: ClassVar[str] = ""
     #: keys a mission's ``[sensor]`` table must carry for this model
     required_keys: ClassVar[tuple[str, ...]] = ()
+    #: further keys it reads; when given, validation warns on any other key (and names
+    #: the nearest known one for a typo)
+    optional_keys: ClassVar[tuple[str, ...]] = ()
     #: finite-difference steps per parameter unit (deg, m) for the default partials
     fd_steps: ClassVar[Mapping[str, float]] = {"deg": 1e-4, "m": 1e-4, "": 1e-6}
 
@@ -197,6 +200,12 @@ class SensorModel(ABC):
     def check_config(cls, sensor: Mapping[str, Any]) -> list[str]:
         """Problems with a ``[sensor]`` table, each a sentence (empty when fine)."""
         return [f"missing key {k!r}" for k in cls.required_keys if k not in sensor]
+
+    @classmethod
+    def check_lines(cls, lines: Mapping[str, np.ndarray]) -> list:
+        """Plausibility problems of one image's per-line table (column -> values): each
+        a sentence or a (sentence, fix) pair; empty when it looks physically possible."""
+        return []
 
     @classmethod
     @abstractmethod

@@ -251,10 +251,10 @@ def test_cli_exit_codes_and_no_traceback(good, m):
     assert main(["validate", str(good)]) == 0
     _csv(m / "images" / "L1.lines.csv", lambda d: d.assign(time=d["time"] + 500.0))
     (m / "gcp.csv").write_bytes(b"\x00\xff garbage,\n\x01")
-    assert main(["validate", str(m)]) == 1
+    assert main(["validate", str(m)]) == 2     # issue 13: one rule, bad input exits 2
     r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "validate", str(m)],
                        capture_output=True, text=True)
-    assert r.returncode == 1
+    assert r.returncode == 2
     assert "Traceback" not in r.stdout + r.stderr
     assert "L1.lines.csv" in r.stdout
     r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "validate",
