@@ -76,7 +76,7 @@ def _values(df, gp, c) -> None:
     bad = ~role.isin(GCP_ROLES).to_numpy()
     if bad.any():
         c.add(gp, f"column role, file row(s) {first_rows(bad)}",
-              f"role must be control or check, found {sorted(set(df['role'][bad].astype(str)))}",
+              f"role must be control or check, found {sorted(set(map(str, df['role'][bad])))}",
               "set role to control or check")
     df["role"] = role
 
@@ -92,7 +92,7 @@ def _ids(df, gp, images, c) -> None:
     unknown = ~df["image_id"].isin(list(images)).to_numpy()
     if unknown.any():
         c.add(gp, f"column image_id, file row(s) {first_rows(unknown)}",
-              f"unknown image id(s) {sorted(set(df['image_id'][unknown]))}",
+              f"unknown image id(s) {sorted(set(map(str, df['image_id'][unknown])))}",
               f"use one of the [[images]] ids: {', '.join(images)}")
     dup = df.duplicated(["gcp_id", "image_id"]).to_numpy()
     if dup.any():

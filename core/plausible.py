@@ -118,16 +118,17 @@ def _pos_units(ds, pp, fmt, c) -> bool:
     hd = ds["heading"].values[::stride][:-1][moving]
     tr = track[moving]
     as_is = np.median(np.abs(_wrap(hd - tr)))
-    if as_is < 45.0:
-        return True
     if fmt in ("sbet", "out"):
-        return True     # angles already range-checked; a wrong heading is reported below
-    if np.median(np.abs(_wrap(np.degrees(hd) - tr))) < 45.0:
+        return True     # radians by format; degrees in an SBET fail the range checks
+    alt = np.median(np.abs(_wrap(np.degrees(hd) - tr)))
+    if alt < 20.0 and as_is > 2 * alt + 3.0:
         c.add(pp, "columns roll, pitch, heading",
               f"the angles look like radians (heading {np.min(hd):.3g}..{np.max(hd):.3g}; "
               f"in degrees it would match the flight track, now {as_is:.0f} deg off)",
               "write roll, pitch and heading in degrees (multiply by 57.2958)")
         return False
+    if as_is < 45.0:
+        return True
     c.warn(pp, "column heading", f"the heading differs from the flight track by "
            f"{as_is:.0f} deg (median)", "check that heading is the true heading in degrees")
     return True
