@@ -16,9 +16,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import rasterio
-
 from swathflow.flows.cli import main
-from swathflow.pos import read_pos, write_pos_csv
+from swathflow.pos import read_pos
 
 
 @pytest.fixture(scope="module")
@@ -219,7 +218,7 @@ def test_sigterm_exits_143_with_a_message(tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(6)
     proc.terminate()
-    out, err = proc.communicate(timeout=60)
+    _out, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
     assert "terminated" in err and "Traceback" not in err
 
@@ -343,7 +342,7 @@ def test_mosaic_shift_stays_within_the_input_range():
         mos.read_window = lambda handles, sw, r0, c0, r1, c1: (
             np.pad(step, 10, mode="edge")[r0 + 10:r1 + 10, c0 + 10:c1 + 10],
             np.pad(ok, 10, mode="edge")[r0 + 10:r1 + 10, c0 + 10:c1 + 10])
-        val, m = mos._corrected(H(), None, np.array([0.4, 0.45]), 5, 5, 35, 35)
+        val, _m = mos._corrected(H(), None, np.array([0.4, 0.45]), 5, 5, 35, 35)
     finally:
         mos.read_window = orig
     assert val.min() >= 887.0 and val.max() <= 13207.0

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
 from swathflow.errors import SwathflowError
 
 FAST = settings(max_examples=25, deadline=None,
@@ -84,6 +83,7 @@ _json = st.recursive(st.one_of(st.none(), st.booleans(), st.floats(), st.integer
                                   "parameters": _json}))
 def test_calibration_json_structures(tmp_path, doc):
     import json
+
     from swathflow.calibfile import calibration_priors, read_calibration
     p = tmp_path / "calibration.json"
     p.write_text(json.dumps(doc), encoding="utf-8")
