@@ -73,7 +73,7 @@ def check_outputs(args) -> None:
 
 def _not_an_input(args, out: str) -> None:
     """mosaic --out must not name one of the swings it reads."""
-    from swathflow.mosaic import _find_inputs
+    from swathflow.mosaicking.mosaic import find_inputs as _find_inputs
     target = os.path.realpath(out)
     try:
         inputs = _find_inputs(args.source)

@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 import rasterio
 from swathflow.flows.cli import main
-from swathflow.pos import read_pos
+from swathflow.formats.pos import read_pos
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +177,7 @@ def test_run_validates_before_starting_prefect(m, tmp_path, capsys):
 # data lost or half-written
 
 def test_mosaic_never_writes_over_an_input(tmp_path, capsys):
-    from swathflow.raster import write_geotiff
+    from swathflow.formats.raster import write_geotiff
     d = tmp_path / "r"
     a = np.arange(64, dtype=np.float32).reshape(8, 8)
     write_geotiff(d / "L1.tif", a, "EPSG:32651", (1, 0, 0, 0, -1, 8), nodata=-9999.0,
@@ -331,7 +331,7 @@ def test_broken_plugin_warns_and_is_skipped(tmp_path, monkeypatch, capsys, body)
 
 def test_mosaic_shift_stays_within_the_input_range():
     """A sub-pixel shift of a step (cubic spline) must not overshoot the inputs."""
-    from swathflow import mosaic as mos
+    from swathflow.mosaicking import mosaic as mos
     step = np.where(np.arange(40)[None] < 20, 887.0, 13207.0) * np.ones((40, 1))
     ok = np.ones_like(step, bool)
 

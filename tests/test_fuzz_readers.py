@@ -37,7 +37,7 @@ def _reads(fn, path):
 @FAST
 @given(data=st.binary(max_size=136 * 4))
 def test_sbet_reader(tmp_path, data):
-    from swathflow.pos import read_sbet
+    from swathflow.formats.pos import read_sbet
     p = tmp_path / "pos.sbet"
     p.write_bytes(data)
     _reads(read_sbet, p)
@@ -47,7 +47,7 @@ def test_sbet_reader(tmp_path, data):
 @given(rec=st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=17 * 3,
                     max_size=17 * 3))
 def test_sbet_reader_whole_records(tmp_path, rec):
-    from swathflow.pos import read_sbet
+    from swathflow.formats.pos import read_sbet
     p = tmp_path / "pos.sbet"
     np.asarray(rec, "<f8").tofile(p)
     _reads(read_sbet, p)
@@ -56,7 +56,7 @@ def test_sbet_reader_whole_records(tmp_path, rec):
 @FAST
 @given(text=csv_text)
 def test_pos_csv_reader(tmp_path, text):
-    from swathflow.pos import read_pos_csv
+    from swathflow.formats.pos import read_pos_csv
     p = tmp_path / "pos.csv"
     p.write_text("time,lat,lon,h,roll,pitch,heading\n" + text, encoding="utf-8")
     _reads(read_pos_csv, p)
@@ -65,7 +65,7 @@ def test_pos_csv_reader(tmp_path, text):
 @FAST
 @given(text=st.text(max_size=300))
 def test_calibration_json_reader(tmp_path, text):
-    from swathflow.calibfile import read_calibration
+    from swathflow.formats.calibfile import read_calibration
     p = tmp_path / "calibration.json"
     p.write_text(text, encoding="utf-8")
     _reads(read_calibration, p)
@@ -84,7 +84,7 @@ _json = st.recursive(st.one_of(st.none(), st.booleans(), st.floats(), st.integer
 def test_calibration_json_structures(tmp_path, doc):
     import json
 
-    from swathflow.calibfile import calibration_priors, read_calibration
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
     p = tmp_path / "calibration.json"
     p.write_text(json.dumps(doc), encoding="utf-8")
     try:
@@ -106,7 +106,7 @@ def mission(tmp_path_factory) -> Path:
 
 
 def _validate_with(mission: Path, rel: str, content: bytes | str):
-    from swathflow.mission import validate_mission
+    from swathflow.ingest.mission import validate_mission
     p = mission / rel
     keep = p.read_bytes()
     try:
@@ -200,6 +200,6 @@ def _dump_toml(cfg: dict) -> str:
 
 def test_fuzz_mission_unchanged_is_valid(mission):
     """The fixture itself is a valid mission (the fuzzed cases start from a good one)."""
-    from swathflow.mission import validate_mission
+    from swathflow.ingest.mission import validate_mission
     assert [p for p in validate_mission(mission) if p.level == "error"] == []
     shutil.rmtree(mission / "truth", ignore_errors=True)
