@@ -102,22 +102,75 @@ def _not_inside_inputs(args, out: str) -> None:
                              f"output folder")
 
 
-def explain_os_error(exc: BaseException) -> str | None:
-    """One line for a disk-full or permission failure (None: not such a failure)."""
+@contextlib.contextmanager
+def output_lock(args):
+    """Hold a lock on the command's output (folder, or mosaic file) for the whole run; a
+    second run on the same --out stops at once and names the process holding it. The
+    lock (flock) goes with its process, even one killed by SIGKILL."""
+    import fcntl
+    out = getattr(args, "out", None)
+    if out is None or args.command not in OUT_FOLDER + OUT_FILE:
+        yield
+        return
+    if args.command in OUT_FILE:
+        folder, name = os.path.split(os.path.abspath(out))
+        lock = os.path.join(folder, f".{name}.lock")
+    else:
+        folder = os.path.abspath(out)
+        lock = os.path.join(folder, ".swathflow.lock")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            raise SwathflowError(f"{out}: another swathflow run (process {pid}) is writing "
+                                 f"there; wait for it to finish, or give another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _chain(exc: BaseException):
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
+def _free_bytes(path) -> float:
+    import shutil
+    p = os.path.abspath(path)
+    while p and not os.path.exists(p):
+        p = os.path.dirname(p)
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return float("inf")
+
+
+def explain_os_error(exc: BaseException, out=None) -> str | None:
+    """One line for a disk-full, permission or write failure (None: not such a failure).
+    ``out``: the command's output path, whose free space tells a full disk apart."""
     try:
         from rasterio.errors import RasterioError
     except ImportError:         # pragma: no cover
-        RasterioError = ()
-    text = str(exc)
-    full = (isinstance(exc, OSError) and exc.errno == errno.ENOSPC) or (
-        "No space left on device" in text)
-    if full:
-        where = getattr(exc, "filename", None) or ""
+        RasterioError = ()  # noqa: N806
+    chain = list(_chain(exc))
+    texts = " | ".join(str(e) for e in chain)
+    full = any(isinstance(e, OSError) and e.errno == errno.ENOSPC for e in chain) or (
+        "No space left on device" in texts or "Free disk space" in texts)
+    raster_write = isinstance(exc, RasterioError) and "write" in texts.lower()
+    if full or (raster_write and out is not None and _free_bytes(out) < 2**20):
+        where = getattr(exc, "filename", None) or out or ""
         return (f"the disk is full{' writing ' + str(where) if where else ''}: free some "
                 f"space and re-run (finished outputs are kept, temporaries removed)")
     if isinstance(exc, PermissionError):
-        return f"permission denied: {exc.filename or text}: choose a path you can write to"
-    if isinstance(exc, RasterioError) and ("Permission denied" in text
-                                           or "Read-only file system" in text):
-        return f"cannot write: {text.splitlines()[0]}: choose a path you can write to"
+        return f"permission denied: {exc.filename or exc}: choose a path you can write to"
+    if raster_write:
+        return (f"cannot write a raster: {texts.splitlines()[0][:200]}: check the output "
+                f"folder (space, permissions) and re-run")
     return None

@@ -346,3 +346,44 @@ def test_mosaic_shift_stays_within_the_input_range():
     finally:
         mos.read_window = orig
     assert val.min() >= 887.0 and val.max() <= 13207.0
+
+
+# ------------------------------------------------------------------------------------------
+# resources: locks, full disks
+
+def test_second_run_on_one_out_names_the_lock_holder(base, tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import argparse, sys, time\n"
+         "from swathflow.flows.guard import output_lock\n"
+         "a = argparse.Namespace(command='rectify', out=sys.argv[1])\n"
+         "with output_lock(a):\n"
+         "    print('locked', flush=True)\n"
+         "    time.sleep(60)\n", str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        code, text = _run(capsys, "rectify", base, "--out", out)
+        assert code == 2 and f"process {holder.pid}" in text
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not list(out.glob("*.tif"))      # the refused run did no work
+
+
+def test_disk_full_is_one_clear_line(tmp_path):
+    full = tmp_path / "full"
+    full.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=300k", "tmpfs", str(full)],
+                       capture_output=True)
+    if r.returncode:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        p = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "simulate",
+                            str(full / "m"), "--preset", "tiny", "--geometry-only"],
+                           capture_output=True, text=True, timeout=120)
+    finally:
+        subprocess.run(["umount", str(full)], check=False)
+    assert p.returncode == 2, p.stderr
+    assert "disk is full" in p.stderr and "Traceback" not in p.stderr

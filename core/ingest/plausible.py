@@ -13,7 +13,8 @@ import numpy as np
 #: an aircraft: ground speeds, accelerations and angular rates it cannot exceed
 MAX_SPEED = 400.0          # m/s
 MAX_ACCEL = 40.0           # m/s^2 over >= 0.5 s
-MAX_RATE = 200.0           # deg/s (roll, pitch, heading)
+MAX_RATE = 200.0           # deg/s (roll, pitch, heading) ...
+MAX_STEP = 10.0            # ... in a step of more than this between two epochs (deg)
 EARTH_R = 6371000.0
 
 
@@ -72,7 +73,8 @@ def _pos_motion(ds, pp, c) -> bool:
     ok = True
     for k in ("roll", "pitch", "heading"):
         a = np.degrees(np.unwrap(np.radians(ds[k].values)))
-        r = np.abs(np.diff(a)) / dt
+        step = np.abs(np.diff(a))
+        r = np.where(step > MAX_STEP, step / dt, 0.0)
         if (r > MAX_RATE).any():
             i = int(np.argmax(r))
             c.add(pp, f"column {k}, epochs {i}-{i + 1} (t={t[i]:.3f} s)",

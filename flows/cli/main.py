@@ -204,12 +204,14 @@ def main(argv: list[str] | None = None) -> int:
         check_outputs,
         explain_os_error,
         on_sigterm,
+        output_lock,
     )
     _show_warnings(args.command)
     try:
         with on_sigterm():
             check_outputs(args)
-            return args.func(args)
+            with output_lock(args):
+                return args.func(args)
     except SwathflowError as exc:
         print(f"swathflow {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -222,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
               f"re-run to complete", file=sys.stderr)
         return 130
     except Exception as exc:
-        msg = explain_os_error(exc)
+        msg = explain_os_error(exc, getattr(args, "out", None))
         if msg is None:
             raise
         print(f"swathflow {args.command}: error: {msg}", file=sys.stderr)
