@@ -269,6 +269,17 @@ def test_latitude_out_of_range(m, capsys):
     assert "DEM" not in line
 
 
+def test_sbet_holding_degrees(m, capsys):
+    from swathflow.formats.pos import write_sbet
+    ds = read_pos(m / "pos.sbet")
+    deg = ds.copy()
+    for k in ("lat", "lon", "roll", "pitch", "heading"):
+        deg[k] = np.degrees(ds[k])              # the file then stores degrees
+    write_sbet(deg, m / "pos.sbet")
+    line = _bad(capsys, m, "pos.sbet", "degrees")
+    assert "DEM" not in line
+
+
 def test_dem_above_the_aircraft(m, capsys):
     p = m / "dem.tif"
     with rasterio.open(p) as src:
