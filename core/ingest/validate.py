@@ -159,7 +159,8 @@ def check_sensor(cfg: dict, toml: Path, c: Collector, parts: dict) -> None:
     sensor = cfg.get("sensor")
     cls = None
     if not isinstance(sensor, dict):
-        c.add(toml, "[sensor]", "table missing", 'add [sensor] with model = "pendulum" etc.')
+        c.add(toml, "[sensor]", "table missing",
+              "add [sensor] with model = a name that 'swathflow sensors' lists")
         sensor = {}
     else:
         name = sensor.get("model")
