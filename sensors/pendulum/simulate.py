@@ -238,6 +238,20 @@ def true_parameters(cfg: SimConfig, rng) -> dict:
 # ------------------------------------------------------------------------------------------
 # GCPs
 
+def _candidates(m, rng, k: int, band, margin: float, terrain, to_map) -> np.ndarray:
+    """``k`` random ground points (E, N) seen by model ``m`` away from its edges, on the
+    lines of ``band`` when given."""
+    lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
+    lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
+    li = rng.uniform(*(band or (lo_l, m.n_lines - 1 - lo_l)), k)
+    el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
+    o, d = m.ray(np.stack([li, el], -1))
+    g = intersect(o, d, terrain)
+    e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
+    cand = np.round(np.stack([e, n], -1), 3)
+    return cand[np.isfinite(cand).all(-1)]
+
+
 def _seen_elsewhere(c, iid, ids, models, terrain, to_map) -> bool:
     xyz = _ground_xyz(c[None], terrain, to_map)
     return any(np.isfinite(models[o].ground_to_image(xyz)).all() for o in ids if o != iid)
@@ -259,17 +273,19 @@ def _side_bands(cfg, m, nc: int, margin: float) -> list:
     return bands
 
 
+def _gcp_counts(cfg, iid: str, rng) -> tuple[int, int]:
+    """(control, check) points to place on image ``iid``."""
+    if iid in cfg.gcp_plan:
+        return tuple(cfg.gcp_plan[iid])
+    if cfg.gcp_other:
+        return (0, int(rng.integers(cfg.gcp_other[0], cfg.gcp_other[1] + 1)))
+    return (cfg.gcp_control, cfg.gcp_check)
+
+
 def choose_gcps(cfg, models, terrain, to_map, rng):
     """Ground points and their true image coordinates in every image that sees them."""
     ids = list(models)
-    plan = {}
-    for k, iid in enumerate(ids):
-        if iid in cfg.gcp_plan:
-            plan[iid] = tuple(cfg.gcp_plan[iid])
-        elif cfg.gcp_other:
-            plan[iid] = (0, int(rng.integers(cfg.gcp_other[0], cfg.gcp_other[1] + 1)))
-        else:
-            plan[iid] = (cfg.gcp_control, cfg.gcp_check)
+    plan = {iid: _gcp_counts(cfg, iid, rng) for iid in ids}
     nadir_gsd = cfg.ifov * cfg.agl
     min_sep = 6 * cfg.target_radius_px * nadir_gsd
     # a target cut by the image edge cannot be measured: keep a margin (disk + ring + noise)
@@ -285,17 +301,8 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
         got = []
         side = _side_bands(cfg, m, nc, margin)
         for _ in range(20):
-            k = 4 * need
-            lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
-            lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
             band = side[len(got)] if len(got) < len(side) else None
-            li = rng.uniform(*(band or (lo_l, m.n_lines - 1 - lo_l)), k)
-            el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
-            o, d = m.ray(np.stack([li, el], -1))
-            g = intersect(o, d, terrain)
-            e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-            cand = np.round(np.stack([e, n], -1), 3)
-            cand = cand[np.isfinite(cand).all(-1)]
+            cand = _candidates(m, rng, 4 * need, band, margin, terrain, to_map)
             for c in cand:
                 if len(got) < len(side) and side[len(got)] != band:
                     break                  # side-banded slots: one band per draw
