@@ -398,3 +398,43 @@ def test_disk_full_is_one_clear_line(tmp_path):
         subprocess.run(["umount", str(full)], check=False)
     assert p.returncode == 2, p.stderr
     assert "disk is full" in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.slow
+def test_readme_path_simulate_then_run(tmp_path):
+    """The README's own example: simulate --preset tiny, then run (calibration included)."""
+    m = tmp_path / "tiny"
+    assert main(["simulate", str(m), "--preset", "tiny"]) == 0
+    assert main(["run", str(m), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "mosaic.tif").exists()
+
+
+@pytest.mark.slow
+def test_sigterm_during_run_stops_the_prefect_server(base, tmp_path):
+    """SIGTERM while the flow runs: exit 143, and no server process of ours is left."""
+    import os
+    import signal
+    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(base),
+                             "--out", str(tmp_path / "o")], stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    children = []
+    for _ in range(60):
+        time.sleep(1)
+        children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                                  text=True).stdout.split()
+        if children:
+            break
+    assert children, "the run started no server or worker process"
+    time.sleep(3)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143 and "terminated" in err
+    time.sleep(5)
+    alive = []
+    for pid in children:
+        try:
+            os.kill(int(pid), 0)
+            alive.append(pid)
+        except ProcessLookupError:
+            pass
+    assert not alive, f"left running: {alive}"
