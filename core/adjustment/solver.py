@@ -87,7 +87,7 @@ class _Solver:
         self.iters = 0
         self.remaining = None
         self.converged = False
-        self.cur = None               # (r, J, fresh) at x
+        self.cur: tuple | None = None  # (r, J, fresh) at x
 
     # --- weights and evaluation ----------------------------------------------------------
     def obs_mask(self):
@@ -315,6 +315,7 @@ class _Solver:
     def solution(self, alpha, scale_covariance) -> Solution:
         """Final statistics, with the Jacobian at the solution."""
         P, n, m, free = self.P, self.n, self.m, self.free
+        assert self.cur is not None, "run() first"
         r, J, fresh = self.cur
         if not fresh:
             r, J = self.evaluate(self.x)

@@ -94,6 +94,11 @@ def corrected_swing(val, ok, row: int, col: int, offset, radiometric: float,
     else:
         filled = _fill_rows(val, ok)
         out = shift_cubic(filled, f)
+        # a cubic spline rings at steps (the outer edge of a swing, saturated targets): keep
+        # each pixel within the values of its 4 x 4 spline support (issue 13)
+        lo = ndimage.minimum_filter(filled, size=4, origin=-1, mode="nearest")
+        hi = ndimage.maximum_filter(filled, size=4, origin=-1, mode="nearest")
+        out = np.clip(out, lo, hi)
         # out[i] reads val[i + f]: valid where the pixels on both sides were valid
         m = np.pad(ok, ((0, 1), (0, 1)))
         m = m[:-1] & m[1:] if f[0] >= 1e-6 else m[:-1]
