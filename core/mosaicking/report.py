@@ -2,7 +2,7 @@
 
 Left: the mosaic (grey, from its overviews) with every overlap drawn as its window,
 coloured by the residual of its offset after the network adjustment (px); skipped overlaps
-(low texture, too small) hatched in grey, rejected ones outlined in red. Right: the
+(low texture, too small) dotted grey, rejected ones outlined in red. Right: the
 network's result per node: offset (row, col) with error bars, and the radiometric balance
 (offset removed per node).
 """
@@ -57,22 +57,29 @@ def _overlaps_panel(ax, rep, img, f):
             colours.append(cmap(norm(r)))
     ax.add_collection(PatchCollection(used, facecolors=colours, edgecolors="none",
                                       alpha=0.75))
-    ax.add_collection(PatchCollection(skipped, facecolors="none", edgecolors="0.6",
-                                      hatch="////", lw=0.6))
+    ax.add_collection(PatchCollection(skipped, facecolors="none", edgecolors="0.55",
+                                      lw=0.4, linestyle=":"))
     ax.add_collection(PatchCollection(rejected, facecolors="none", edgecolors="red", lw=1.2))
     sm = cm.ScalarMappable(norm=norm, cmap=cmap)
     ax.figure.colorbar(sm, ax=ax, fraction=0.04, pad=0.02,
                        label="overlap residual after adjustment (px)")
     n_used = int(np.isfinite(res).sum())
     ax.set_title(f"{n_used} overlaps used (colour: residual), "
-                 f"{len(rep['skipped'])} skipped (hatched), {len(rep['rejected'])} rejected "
+                 f"{len(rep['skipped'])} skipped (dotted), {len(rep['rejected'])} rejected "
                  f"(red); sigma0 {rep.get('sigma0')}", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
 
 
+def _node_order(name):
+    try:
+        return (0, float(name), "")
+    except ValueError:
+        return (1, 0.0, name)
+
+
 def _nodes_panel(ax_off, ax_rad, rep):
-    nodes = rep["nodes"]
+    nodes = sorted(rep["nodes"], key=lambda n: _node_order(n["node"]))
     x = np.arange(len(nodes))
     off = np.array([n["offset"] for n in nodes], float)
     sig = np.array([[np.nan if v is None else v for v in n["sigma"]] for n in nodes], float)
