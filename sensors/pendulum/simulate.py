@@ -327,10 +327,6 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     """Write a simulated mission to ``out``; returns the truth summary (truth.json)."""
     from swathflow.sensors import get_sensor
     from swathflow.formats.calibfile import write_calibration
-    from swathflow.formats.raster import write_geotiff
-    from swathflow.geometry.terrain import DEM
-    from swathflow.simulation.texture import (ImageTexture, ProceduralTerrain, ProceduralTexture,
-                                              RasterTerrain, area_average)
     say = progress or (lambda msg: None)
     clock = time.perf_counter()
     timings = {}
@@ -345,26 +341,7 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     to_map = transformer("EPSG:4978", plan.crs)
 
     # terrain -> dem.tif (the very DEM the mission uses is the truth terrain)
-    dem_tr, dem_shape = _dem_grid(plan, cfg)
-    if dem:
-        shape_src = RasterTerrain(dem, plan.centre, cell=1.0, base=cfg.terrain_base,
-                                  relief=cfg.terrain_relief)
-        rows_src, cols_src = shape_src.data.shape
-        shape_src.cell = dem_shape[0] * cfg.dem_cell / min(rows_src, cols_src)
-        hfun = shape_src
-        dem_info = {"source": str(dem), "source_range": shape_src.source_range,
-                    "vscale": shape_src.vscale, "cell_m": shape_src.cell}
-    else:
-        hfun = ProceduralTerrain(seed, cfg.terrain_base, cfg.terrain_relief,
-                                 cfg.terrain_wavelength, plan.centre)
-        dem_info = {"source": "procedural"}
-    rr, cc = np.indices(dem_shape)
-    a, _, c0, _, e, f0 = dem_tr
-    hgrid = hfun(c0 + (cc + 0.5) * a, f0 + (rr + 0.5) * e).astype(np.float32)
-    write_geotiff(out / "dem.tif", hgrid, plan.crs, dem_tr, nodata=-9999.0,
-                  tags={"vertical": "ellipsoidal", "source": dem_info["source"]})
-    terrain = DEM.open(out / "dem.tif")
-    terrain_mean = float(np.mean(hgrid))
+    terrain, terrain_mean, dem_info = _write_terrain(out, cfg, plan, seed, dem)
     timings["terrain"] = time.perf_counter() - clock
 
     # trajectory, line tables, models
@@ -384,15 +361,8 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     # GCPs and the texture (with survey targets at the GCPs)
     pts, obs = choose_gcps(cfg, models, terrain, to_map, rng)
     nadir_gsd = cfg.ifov * cfg.agl
-    if texture:
-        tex0 = ImageTexture(texture, plan.centre,
-                            rotation_deg=float(rng.uniform(0, 360)))
-        tex_info = {"source": str(texture), "pixel_size_m": tex0.pixel_size}
-    else:
-        tex0 = ProceduralTexture(seed, nadir_gsd, plan.centre)
-        tex_info = {"source": "procedural", "scale_m": nadir_gsd}
+    tex, tex_info = _texture(cfg, plan, seed, texture, rng, pts, nadir_gsd)
     radius = cfg.target_radius_px * nadir_gsd
-    tex = tex0.with_targets(pts[["E", "N"]].to_numpy(), radius)
     timings["gcps"] = time.perf_counter() - clock - sum(timings.values())
 
     # images
@@ -408,9 +378,110 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     timings["images"] = time.perf_counter() - clock - sum(timings.values())
 
     # footprint -> output grid, truth ortho
+    ortho = _write_ortho(out, cfg, plan, models, terrain, tex, to_map, say)
+    timings["ortho"] = time.perf_counter() - clock - sum(timings.values())
+
+    meas, gross = _write_gcps(out, cfg, plan, models, pts, obs, seed)
+    pos_name = _write_pos(out, cfg, truth_ds, seed)
+
+    # truth calibration and truth.json
+    write_calibration(out / "truth" / "calibration.json", "pendulum",
+                      {k: {"value": v, "sigma": [0.0] * 3, "units": pset.block(k).units}
+                       for k, v in params.items()},
+                      note=f"simulation truth: preset {cfg.preset}, seed {seed}")
+    counts = {}
+    for iid in models:
+        sel = meas[meas.image_id == iid]
+        counts[iid] = {"control": int((sel.role == "control").sum()),
+                       "check": int((sel.role == "check").sum())}
+    timings["total"] = time.perf_counter() - clock
+    truth = {
+        "format": "swathflow-simulation-truth/1",
+        "preset": cfg.preset, "seed": int(seed),
+        "config": plain(asdict(cfg)),
+        "crs": plan.crs, "gsd": cfg.gsd, "centre_en": list(plan.centre),
+        "plan": plain(asdict(plan)),
+        "strips": strips,
+        "images": [{"id": iid, "direction": d, "strip": s, "lines": models[iid].n_lines,
+                    "elements": cfg.n_elements, "t0": float(lt["time"][0]),
+                    "t1": float(lt["time"][-1])} for iid, d, s, lt in swings],
+        "images_rendered": bool(cfg.render),
+        "parameters": params,
+        "direction_effect": {"enabled": bool(cfg.direction_effect),
+                             "opk_pos_L_minus_R": list(np.round(
+                                 np.subtract(params["opk_pos_L"], params["opk_pos_R"]), 6))},
+        "noise": {"gps_m": cfg.gps_noise, "attitude_deg": cfg.att_noise,
+                  "gcp_px": cfg.gcp_noise, "gcp_ground_m": cfg.ground_noise,
+                  "read_noise_dn": cfg.read_noise, "shot_noise": cfg.shot_noise},
+        "gross_errors": gross,
+        "gcp_counts": counts,
+        "gcp_target_radius_m": radius,
+        "radiometry": {"gain": cfg.gain, "offset": cfg.offset,
+                       "dn": "offset + gain * T(E, N) averaged over the pixel, + noise"},
+        "ortho": ({"file": "truth/ortho.tif", "transform": list(ortho["transform"]),
+                   "shape": list(ortho["shape"]), "supersample": cfg.ortho_supersample}
+                  if ortho["written"] else None),
+        "footprint_bounds": ortho["bounds"],
+        "texture": tex_info, "terrain": {**dem_info, "mean_h": terrain_mean,
+                                         "dem_cell": cfg.dem_cell},
+        "nadir_gsd_m": nadir_gsd,
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+    }
+    write_text(out / "truth" / "truth.json", json.dumps(truth, indent=2) + "\n")
+    _write_toml(out, cfg, plan, cfg.gsd, pos_name, image_entries, sensor)
+    return truth
+
+
+def _write_terrain(out: Path, cfg: SimConfig, plan: Plan, seed: int, dem: str | None):
+    """``dem.tif`` from a procedural terrain or the shape of a given DEM; returns it
+    opened, its mean height and where it came from."""
+    from swathflow.formats.raster import write_geotiff
+    from swathflow.geometry.terrain import DEM
+    from swathflow.simulation.texture import ProceduralTerrain, RasterTerrain
+    dem_tr, dem_shape = _dem_grid(plan, cfg)
+    if dem:
+        shape_src = RasterTerrain(dem, plan.centre, cell=1.0, base=cfg.terrain_base,
+                                  relief=cfg.terrain_relief)
+        rows_src, cols_src = shape_src.data.shape
+        shape_src.cell = dem_shape[0] * cfg.dem_cell / min(rows_src, cols_src)
+        hfun = shape_src
+        dem_info = {"source": str(dem), "source_range": shape_src.source_range,
+                    "vscale": shape_src.vscale, "cell_m": shape_src.cell}
+    else:
+        hfun = ProceduralTerrain(seed, cfg.terrain_base, cfg.terrain_relief,
+                                 cfg.terrain_wavelength, plan.centre)
+        dem_info = {"source": "procedural"}
+    rr, cc = np.indices(dem_shape)
+    a, _, c0, _, e, f0 = dem_tr
+    hgrid = hfun(c0 + (cc + 0.5) * a, f0 + (rr + 0.5) * e).astype(np.float32)
+    write_geotiff(out / "dem.tif", hgrid, plan.crs, dem_tr, nodata=-9999.0,
+                  tags={"vertical": "ellipsoidal", "source": dem_info["source"]})
+    return DEM.open(out / "dem.tif"), float(np.mean(hgrid)), dem_info
+
+
+def _texture(cfg: SimConfig, plan: Plan, seed: int, texture: str | None, rng, pts,
+             nadir_gsd: float):
+    """The ground texture (an image or procedural) with survey targets at the GCPs."""
+    from swathflow.simulation.texture import ImageTexture, ProceduralTexture
+    if texture:
+        tex0 = ImageTexture(texture, plan.centre,
+                            rotation_deg=float(rng.uniform(0, 360)))
+        tex_info = {"source": str(texture), "pixel_size_m": tex0.pixel_size}
+    else:
+        tex0 = ProceduralTexture(seed, nadir_gsd, plan.centre)
+        tex_info = {"source": "procedural", "scale_m": nadir_gsd}
+    radius = cfg.target_radius_px * nadir_gsd
+    return tex0.with_targets(pts[["E", "N"]].to_numpy(), radius), tex_info
+
+
+def _write_ortho(out: Path, cfg: SimConfig, plan: Plan, models, terrain, tex, to_map,
+                 say) -> dict:
+    """The swings' footprint on the ``gsd`` grid and (``write_ortho``) the truth ortho."""
+    from swathflow.formats.raster import write_geotiff
+    from swathflow.ingest.mission import image_border
+    from swathflow.simulation.texture import area_average
     gsd = cfg.gsd
     border = []
-    from swathflow.ingest.mission import image_border
     for m in models.values():
         pb = image_border(m.shape, 40)
         o, dvec = m.ray(pb)
@@ -424,16 +495,19 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     ymax = math.ceil(np.nanmax(border[:, 1]) / gsd) * gsd
     ortho_tr = (gsd, 0.0, xmin, 0.0, -gsd, ymax)
     ortho_shape = (int(round((ymax - ymin) / gsd)), int(round((xmax - xmin) / gsd)))
-    ortho_written = bool(cfg.write_ortho)
-    if ortho_written:
+    if cfg.write_ortho:
         say(f"truth ortho {ortho_shape[1]} x {ortho_shape[0]} at {gsd} m")
         o = area_average(tex, ortho_tr, ortho_shape, cfg.ortho_supersample)
         write_geotiff(out / "truth" / "ortho.tif", (cfg.offset + cfg.gain * o).astype(np.float32),
                       plan.crs, ortho_tr, tags={"units": "expected DN (offset + gain * T)",
                                                 "gain": cfg.gain, "offset": cfg.offset})
-    timings["ortho"] = time.perf_counter() - clock - sum(timings.values())
+    return {"transform": ortho_tr, "shape": ortho_shape, "written": bool(cfg.write_ortho),
+            "bounds": [xmin, ymin, xmax, ymax]}
 
-    # GCP observations: noise and gross errors
+
+def _write_gcps(out: Path, cfg: SimConfig, plan: Plan, models, pts, obs, seed: int):
+    """GCP observations with noise and gross errors (``gcp.csv``) and their truth
+    (``truth/gcp.csv``); returns the measurements and the gross errors."""
     grng = np.random.default_rng([int(seed), 3])
     meas = obs.copy()
     meas["line"] = obs["line"] + grng.normal(0, cfg.gcp_noise, len(obs))
@@ -464,8 +538,11 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     write_csv(out / "gcp.csv", meas[cols], fmt)
     write_csv(out / "truth" / "gcp.csv", obs, {**fmt, "line": "%.6f", "element": "%.6f",
                                                  "E": "%.4f", "N": "%.4f"})
+    return meas, gross
 
-    # POS with noise
+
+def _write_pos(out: Path, cfg: SimConfig, truth_ds, seed: int) -> str:
+    """The mission's POS (the truth plus GPS and attitude noise) and ``truth/pos.csv``."""
     prng = np.random.default_rng([int(seed), 4])
     nt = truth_ds.sizes["time"]
     lat = truth_ds["lat"].values
@@ -485,53 +562,7 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     else:
         write_pos_csv(noisy, out / pos_name)
     write_pos_csv(truth_ds, out / "truth" / "pos.csv")
-
-    # truth calibration and truth.json
-    write_calibration(out / "truth" / "calibration.json", "pendulum",
-                      {k: {"value": v, "sigma": [0.0] * 3, "units": pset.block(k).units}
-                       for k, v in params.items()},
-                      note=f"simulation truth: preset {cfg.preset}, seed {seed}")
-    counts = {}
-    for iid in models:
-        sel = meas[meas.image_id == iid]
-        counts[iid] = {"control": int((sel.role == "control").sum()),
-                       "check": int((sel.role == "check").sum())}
-    timings["total"] = time.perf_counter() - clock
-    truth = {
-        "format": "swathflow-simulation-truth/1",
-        "preset": cfg.preset, "seed": int(seed),
-        "config": plain(asdict(cfg)),
-        "crs": plan.crs, "gsd": gsd, "centre_en": list(plan.centre),
-        "plan": plain(asdict(plan)),
-        "strips": strips,
-        "images": [{"id": iid, "direction": d, "strip": s, "lines": models[iid].n_lines,
-                    "elements": cfg.n_elements, "t0": float(lt["time"][0]),
-                    "t1": float(lt["time"][-1])} for iid, d, s, lt in swings],
-        "images_rendered": bool(cfg.render),
-        "parameters": params,
-        "direction_effect": {"enabled": bool(cfg.direction_effect),
-                             "opk_pos_L_minus_R": list(np.round(
-                                 np.subtract(params["opk_pos_L"], params["opk_pos_R"]), 6))},
-        "noise": {"gps_m": cfg.gps_noise, "attitude_deg": cfg.att_noise,
-                  "gcp_px": cfg.gcp_noise, "gcp_ground_m": cfg.ground_noise,
-                  "read_noise_dn": cfg.read_noise, "shot_noise": cfg.shot_noise},
-        "gross_errors": gross,
-        "gcp_counts": counts,
-        "gcp_target_radius_m": radius,
-        "radiometry": {"gain": cfg.gain, "offset": cfg.offset,
-                       "dn": "offset + gain * T(E, N) averaged over the pixel, + noise"},
-        "ortho": ({"file": "truth/ortho.tif", "transform": list(ortho_tr),
-                   "shape": list(ortho_shape), "supersample": cfg.ortho_supersample}
-                  if ortho_written else None),
-        "footprint_bounds": [xmin, ymin, xmax, ymax],
-        "texture": tex_info, "terrain": {**dem_info, "mean_h": terrain_mean,
-                                         "dem_cell": cfg.dem_cell},
-        "nadir_gsd_m": nadir_gsd,
-        "timings_s": {k: round(v, 3) for k, v in timings.items()},
-    }
-    write_text(out / "truth" / "truth.json", json.dumps(truth, indent=2) + "\n")
-    _write_toml(out, cfg, plan, gsd, pos_name, image_entries, sensor)
-    return truth
+    return pos_name
 
 
 def _write_toml(out, cfg, plan, gsd, pos_name, image_entries, sensor):
