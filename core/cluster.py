@@ -56,6 +56,9 @@ def dask_client(address: str | None = None, n_workers: int | None = None,
         raise SwathflowError(f"unknown cluster {cluster!r}: use one of {', '.join(CLUSTERS)}")
     n = n_workers or max(1, min(os.cpu_count() or 1, 4))
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=None, silence_logs=40) as local, \
+                      # CRITICAL: a worker that outlives the scheduler by a heartbeat at
+                      # shutdown logs a CommClosedError traceback after a successful run
+                      # (task failures still reach the client as exceptions)
+                      dashboard_address=None, silence_logs=50) as local, \
             Client(local) as client:
         yield client
