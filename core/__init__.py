@@ -6,9 +6,10 @@ in :mod:`swathflow.sensors`, Prefect tasks in :mod:`swathflow.tasks`, flows in
 """
 from .errors import FormatError, OutOfRangeError, SwathflowError
 from .mission import Mission, load_mission, validate_mission
+from .navigation import PosFormat
 from .pos import Trajectory, interpolate_pos, read_pos
 
 __version__ = "0.1.0"
 
-__all__ = ["FormatError", "Mission", "OutOfRangeError", "SwathflowError", "Trajectory",
-           "interpolate_pos", "load_mission", "read_pos", "validate_mission", "__version__"]
+__all__ = ["FormatError", "Mission", "OutOfRangeError", "PosFormat", "SwathflowError",
+           "Trajectory", "interpolate_pos", "load_mission", "read_pos", "validate_mission", "__version__"]

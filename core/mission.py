@@ -308,13 +308,17 @@ def _inspect(path) -> tuple[list[Problem], dict]:
                       f"{posc.get('max_gap')!r}", "max_gap = 1.0")
                 max_gap = 1.0
             try:
-                ds = read_pos(pp, posc.get("format"))
+                opts = {k: v for k, v in posc.items() if k not in ("file", "format", "max_gap")}
+                if isinstance(opts.get("times"), str):     # an LCF's .times file
+                    opts["times"] = str(_rel(root, opts["times"]))
+                ds = read_pos(pp, posc.get("format"), **opts)
                 traj = Trajectory.from_dataset(ds, max_gap=max_gap)
                 parts["pos"] = ds
             except SwathflowError as exc:
                 msg = str(exc).replace(str(pp) + ": ", "")
                 c.add(pp, "[pos]" if "format" in msg else "", msg,
-                      'set [pos] format = "sbet" or "csv"' if "unknown POS format" in msg
+                      'set [pos] format to a registered format (docs/navigation-formats.md)'
+                      if "unknown POS format" in msg or "not understood" in msg
                       else "re-export the POS (times strictly increasing, finite values)")
     parts["trajectory"] = traj
 
