@@ -96,10 +96,13 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         prog.start("mosaic")
         mos = stages.mosaic(rectified, out)
         prog.finish("mosaic")
+        prog.start("catalog")
+        stac = stages.catalog(mission, rectified, mos, cal, out)
+        prog.finish("catalog")
     report = str(Path(cal).parent / "report.html")
     return {"mission": info["name"], "eo": eo, "calibration": cal,
             "report": report if os.path.exists(report) else None,
-            "rectified": rectified, "mosaic": mos, "timings": prog.timings}
+            "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
 
 
 def _print_summary(result: dict) -> None:
@@ -110,6 +113,8 @@ def _print_summary(result: dict) -> None:
     print(f"  rectified    {len(result['rectified'])} swings in "
           f"{os.path.dirname(result['rectified'][0]) if result['rectified'] else '-'}")
     print(f"  mosaic       {result['mosaic']}")
+    if result.get("catalog"):
+        print(f"  catalogue    {result['catalog']}")
     print("  stage timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in result["timings"].items()))
 
 
