@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from swathflow import FormatError, Trajectory, read_pos
-from swathflow.navigation import GROUP, list_formats
-from swathflow.navigation.registry import BUILTINS
+from swathflow.formats.navigation import GROUP, list_formats
+from swathflow.formats.navigation.registry import BUILTINS
 
 ROOT = Path(__file__).resolve().parents[1]
 PLUGIN = ROOT / "tests" / "plugins" / "posformat"
@@ -187,7 +187,7 @@ def test_installed_format_plugin_reads_and_broken_ones_warn(plugin_site, tmp_pat
                                             "heading")])
     np.savetxt(tmp_path / "n.semi", rows, delimiter=";", fmt="%.12f")
     code = ("import json, sys; from swathflow import read_pos;"
-            "from swathflow.navigation import list_formats;"
+            "from swathflow.formats.navigation import list_formats;"
             f"ds = read_pos({str(tmp_path / 'n.semi')!r}, scale=2.0);"
             "print(json.dumps({'formats': {k: v.read.__module__ for k, v in "
             "list_formats().items()}, 'h': ds['h'].values.tolist()}))")

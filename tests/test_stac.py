@@ -16,7 +16,7 @@ from pystac.extensions.raster import RasterExtension
 from pystac.validation import validate_dict
 from rasterio.transform import from_origin
 from shapely.geometry import Polygon, shape
-from swathflow.stac import PROCESSING_SCHEMA, write_catalog
+from swathflow.formats.stac import PROCESSING_SCHEMA, write_catalog
 
 CRS = "EPSG:32633"
 X0, Y0, GSD = 500000.0, 5300000.0, 0.5

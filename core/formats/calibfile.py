@@ -1,0 +1,74 @@
+"""Calibration files (``calibration.json``, format ``swathflow-calibration/1``).
+
+See shared/spec/mission-format.md. A calibration file is reusable: another mission of the
+same installation names it in place of its ``[calibration]`` table.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from typing import Any, Mapping
+
+from swathflow.errors import FormatError
+from swathflow.io import write_text
+
+FORMAT = "swathflow-calibration/1"
+
+
+def _clean(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if hasattr(x, "tolist"):
+        return _clean(x.tolist())
+    return x
+
+
+def write_calibration(path, sensor: str, parameters: Mapping[str, Mapping[str, Any]],
+                      **extra: Any) -> None:
+    """Write ``calibration.json`` atomically. ``parameters``: name -> {value, sigma, units}."""
+    doc = {"format": FORMAT, "sensor": sensor,
+           "parameters": {k: {"value": list(v["value"]),
+                              "sigma": list(v.get("sigma", [None] * len(v["value"]))),
+                              "units": v.get("units", "")} for k, v in parameters.items()}}
+    doc.update(extra)
+    write_text(path, json.dumps(_clean(doc), indent=2) + "\n")
+
+
+def read_calibration(path) -> dict:
+    """Read and check a calibration file; returns the whole document.
+
+    ``doc["parameters"]`` maps name -> {"value": [...], "sigma": [...], "units": str}.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FormatError(f"{path}: calibration file not found")
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise FormatError(f"{path}: not valid JSON: {exc}") from None
+    if doc.get("format") != FORMAT:
+        raise FormatError(f"{path}: format must be {FORMAT!r}, found {doc.get('format')!r}")
+    params = doc.get("parameters")
+    if not isinstance(params, dict) or not params:
+        raise FormatError(f"{path}: 'parameters' must be a non-empty table")
+    for name, p in params.items():
+        if not isinstance(p, dict) or "value" not in p:
+            raise FormatError(f"{path}: parameter {name!r} needs a 'value'")
+    return doc
+
+
+def calibration_priors(doc: Mapping) -> dict:
+    """``ParameterSet.updated`` input from a calibration document (sigma None -> inf)."""
+    out = {}
+    for name, p in doc["parameters"].items():
+        entry = {"value": p["value"]}
+        if p.get("sigma") is not None:
+            entry["sigma"] = [math.inf if s is None else s for s in p["sigma"]]
+        out[name] = entry
+    return out

@@ -1,0 +1,151 @@
+"""POS trajectories: the reader entry point and interpolation to scan-line times.
+
+The readers are plugins (:mod:`swathflow.formats.navigation`, entry-point group
+``swathflow.pos_formats``): SBET, CSV, Resonon LCF, Inertial Explorer / POSPac text.
+
+A trajectory is an ``xarray.Dataset`` over ``time`` with ``lat``, ``lon`` (deg), ``h``
+(ellipsoidal m), ``roll``, ``pitch``, ``heading`` (deg, true heading clockwise from north).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+
+from swathflow.errors import FormatError, OutOfRangeError
+from swathflow.geometry.geodesy import geodetic_to_ecef
+
+POS_VARIABLES = ("lat", "lon", "h", "roll", "pitch", "heading")
+
+
+def _dataset(time, lat, lon, h, roll, pitch, heading, source: str, check: bool = True) -> xr.Dataset:
+    data = {k: ("time", np.asarray(v, dtype=float)) for k, v in
+            zip(POS_VARIABLES, (lat, lon, h, roll, pitch, heading))}
+    ds = xr.Dataset(data, coords={"time": np.asarray(time, dtype=float)},
+                    attrs={"source": source})
+    for k in ("lat", "lon", "roll", "pitch", "heading"):
+        ds[k].attrs["units"] = "deg"
+    ds["h"].attrs["units"] = "m"
+    ds["h"].attrs["long_name"] = "ellipsoidal height"
+    ds["heading"].attrs["long_name"] = "true heading, clockwise from north"
+    ds["time"].attrs["units"] = "s"
+    return check_trajectory(ds, source) if check else ds
+
+
+def check_trajectory(ds: xr.Dataset, source: str = "trajectory") -> xr.Dataset:
+    """Raise :class:`FormatError` unless times increase strictly and values are finite."""
+    t = ds["time"].values
+    if t.size < 2:
+        raise FormatError(f"{source}: a trajectory needs at least 2 epochs, found {t.size}")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        raise FormatError(f"{source}: times must increase strictly; epoch {bad[0] + 1} "
+                          f"(t={t[bad[0] + 1]!r}) does not follow {t[bad[0]]!r}")
+    for k in POS_VARIABLES:
+        nan = np.flatnonzero(~np.isfinite(ds[k].values))
+        if nan.size:
+            raise FormatError(f"{source}: {k} is not finite at epoch {nan[0]} "
+                              f"({nan.size} epochs in all)")
+    return ds
+
+
+def read_pos(path, format: str | None = None, **options) -> xr.Dataset:
+    """Read a POS trajectory with the registered reader for ``format`` (a name such as
+    ``"sbet"``, ``"csv"``, ``"lcf"``, ``"ascii"`` or a plugin's; default: from the suffix).
+    ``options`` go to the reader (docs/navigation-formats.md)."""
+    from swathflow.formats.navigation import read
+    return read(path, format, **options)
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A trajectory prepared for fast interpolation (numpy only).
+
+    Positions are interpolated linearly in ECEF, attitude angles linearly in time with the
+    heading unwrapped (spec/geometry.md, POS interpolation). Times outside the trajectory,
+    or inside a gap longer than ``max_gap`` seconds, raise :class:`OutOfRangeError`.
+    """
+
+    time: np.ndarray
+    ecef: np.ndarray      # (n, 3)
+    lat: np.ndarray       # deg
+    lon: np.ndarray       # deg, unwrapped
+    attitude: np.ndarray  # (n, 3) roll, pitch, heading (deg, heading unwrapped)
+    max_gap: float = 1.0
+    source: dict | None = None  # the columns as given (to_dataset returns them unchanged)
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset, max_gap: float = 1.0) -> "Trajectory":
+        ds = check_trajectory(ds, ds.attrs.get("source", "trajectory"))
+        lat, lon, h = (ds[k].values.astype(float) for k in ("lat", "lon", "h"))
+        ecef = geodetic_to_ecef(np.stack([lat, lon, h], axis=-1))
+        att = np.stack([ds["roll"].values, ds["pitch"].values,
+                        np.degrees(np.unwrap(np.radians(ds["heading"].values)))], axis=-1)
+        lon_u = np.degrees(np.unwrap(np.radians(lon)))
+        src = {k: ds[k].values.astype(float) for k in POS_VARIABLES}
+        return cls(ds["time"].values.astype(float), ecef, lat, lon_u, att, float(max_gap), src)
+
+    def _locate(self, t) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t, dtype=float)
+        tt = self.time
+        bad = ~((t >= tt[0]) & (t <= tt[-1]))
+        if np.any(bad):
+            tb = t[bad]
+            raise OutOfRangeError(
+                f"{np.count_nonzero(bad)} time(s) outside the trajectory "
+                f"[{tt[0]:.3f}, {tt[-1]:.3f}] s, e.g. {tb.flat[0]:.3f} s: the POS must cover "
+                f"every scan line (no extrapolation)")
+        i = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, tt.size - 2)
+        gap = tt[i + 1] - tt[i]
+        if np.any(gap > self.max_gap):
+            g = gap[gap > self.max_gap]
+            raise OutOfRangeError(
+                f"{g.size} time(s) fall in POS gaps longer than max_gap={self.max_gap} s "
+                f"(longest {g.max():.3f} s); raise max_gap only if interpolating across "
+                f"the gap is acceptable")
+        w = (t - tt[i]) / gap
+        return i, w
+
+    def interpolate(self, t) -> dict[str, np.ndarray]:
+        """Position (ECEF and lat/lon) and attitude at times ``t`` (any shape)."""
+        i, w = self._locate(t)
+        tab = self.__dict__.get("_table")
+        if tab is None:         # one gather per end instead of one per column
+            tab = np.column_stack([self.ecef, self.lat, self.lon, self.attitude])
+            object.__setattr__(self, "_table", tab)
+        a = tab[i]
+        v = a + (tab[i + 1] - a) * w[..., None]
+        return {"ecef": v[..., 0:3], "lat": v[..., 3], "lon": v[..., 4], "roll": v[..., 5],
+                "pitch": v[..., 6], "heading": v[..., 7]}
+
+    def to_dataset(self) -> xr.Dataset:
+        if self.source is not None:
+            return _dataset(self.time, *(self.source[k] for k in POS_VARIABLES), "trajectory")
+        from swathflow.geometry.geodesy import ecef_to_geodetic
+        llh = ecef_to_geodetic(self.ecef)
+        heading = (self.attitude[:, 2] + 180.0) % 360.0 - 180.0
+        return _dataset(self.time, llh[:, 0], llh[:, 1], llh[:, 2], self.attitude[:, 0],
+                        self.attitude[:, 1], heading, "trajectory")
+
+
+def interpolate_pos(ds: xr.Dataset, times, max_gap: float = 1.0) -> xr.Dataset:
+    """Interpolate a trajectory Dataset to ``times``; returns a Dataset over ``time``."""
+    traj = Trajectory.from_dataset(ds, max_gap=max_gap)
+    t = np.asarray(times, dtype=float)
+    r = traj.interpolate(t)
+    from swathflow.geometry.geodesy import ecef_to_geodetic
+    h = ecef_to_geodetic(r["ecef"])[..., 2]
+    heading = (r["heading"] + 180.0) % 360.0 - 180.0
+    lon = (r["lon"] + 180.0) % 360.0 - 180.0
+    return _dataset(t, r["lat"], lon, h, r["roll"], r["pitch"], heading, "interpolated",
+                    check=False)
+
+
+# the built-in readers, where they have always been importable from
+from swathflow.formats.navigation.csv import read_pos_csv, write_pos_csv
+from swathflow.formats.navigation.sbet import SBET_DTYPE, SBET_FIELDS, read_sbet, write_sbet
+
+__all__ = ["POS_VARIABLES", "SBET_DTYPE", "SBET_FIELDS", "Trajectory", "check_trajectory",
+           "interpolate_pos", "read_pos", "read_pos_csv", "read_sbet", "write_pos_csv",
+           "write_sbet"]

@@ -1,0 +1,207 @@
+"""Output grids: an immutable, north-up raster grid (CRS, affine transform, shape).
+
+Conventions follow rasterio: ``transform`` maps (col, row) of a pixel's top-left corner to
+(x, y); ``xy(row, col)`` gives the pixel centre by default; ``rowcol(x, y)`` is its inverse
+(integer pixel containing the point, or the continuous coordinate with ``op=None``, in which
+pixel centres sit at integers).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Iterator
+
+import numpy as np
+import pyproj
+from affine import Affine
+
+from swathflow.errors import FormatError
+from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
+
+
+def resolve_crs(spec, lat: float, lon: float) -> str:
+    """``"auto-utm"`` -> the UTM zone of (lat, lon) as ``"EPSG:nnnn"``; else the CRS as given
+    (checked to be projected)."""
+    if str(spec).lower() == "auto-utm":
+        return utm_crs_for(lat, lon).to_string()
+    try:
+        crs = pyproj.CRS.from_user_input(spec)
+    except pyproj.exceptions.CRSError as exc:
+        raise FormatError(f"output crs {spec!r} is not a valid CRS ({exc}); use 'EPSG:nnnn' "
+                          f"or 'auto-utm'") from None
+    if not crs.is_projected:
+        raise FormatError(f"output crs {spec!r} is not projected; use a projected CRS in "
+                          f"metres (for instance 'auto-utm')")
+    return str(spec)
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A north-up output grid: ``crs`` (any pyproj input, kept as given), ``transform``
+    (an :class:`affine.Affine`) and ``shape`` ``(rows, cols)``."""
+
+    crs: str
+    transform: Affine
+    shape: tuple[int, int]
+
+    def __post_init__(self):
+        object.__setattr__(self, "transform", Affine(*tuple(self.transform)[:6]))
+        object.__setattr__(self, "shape", (int(self.shape[0]), int(self.shape[1])))
+        t = self.transform
+        if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
+            raise ValueError(f"Grid needs a north-up transform, got {tuple(t)[:6]}")
+
+    # --- construction ---------------------------------------------------------------
+    @classmethod
+    def from_bounds(cls, crs, bounds, res: float, snap: bool = True) -> "Grid":
+        """The grid covering ``bounds = (xmin, ymin, xmax, ymax)`` with square pixels of
+        ``res``; with ``snap`` the edges fall on multiples of ``res`` (grids of one
+        mission then share pixel edges)."""
+        xmin, ymin, xmax, ymax = map(float, bounds)
+        res = float(res)
+        if not res > 0:
+            raise FormatError(f"grid resolution must be positive, got {res}")
+        if snap:
+            xmin = math.floor(xmin / res) * res
+            ymin = math.floor(ymin / res) * res
+            xmax = math.ceil(xmax / res) * res
+            ymax = math.ceil(ymax / res) * res
+        cols = max(int(round((xmax - xmin) / res)), 1)
+        rows = max(int(round((ymax - ymin) / res)), 1)
+        return cls(str(crs), Affine(res, 0.0, xmin, 0.0, -res, ymax), (rows, cols))
+
+    # --- properties -----------------------------------------------------------------------
+    @property
+    def height(self) -> int:
+        return self.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.shape[1]
+
+    @property
+    def res(self) -> tuple[float, float]:
+        return (self.transform.a, -self.transform.e)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        t = self.transform
+        return (t.c, t.f + t.e * self.height, t.c + t.a * self.width, t.f)
+
+    @property
+    def pyproj_crs(self) -> pyproj.CRS:
+        return pyproj.CRS.from_user_input(self.crs)
+
+    # --- coordinates ------------------------------------------------------------------------
+    def xy(self, row, col, offset: str = "center"):
+        """Map coordinates of pixels (centre, or ``"ul"`` top-left corner)."""
+        d = 0.5 if offset == "center" else 0.0
+        if offset not in ("center", "ul"):
+            raise ValueError("offset must be 'center' or 'ul'")
+        row = np.asarray(row, float) + d
+        col = np.asarray(col, float) + d
+        t = self.transform
+        return t.c + t.a * col, t.f + t.e * row
+
+    def rowcol(self, x, y, op=np.floor):
+        """Inverse of :meth:`xy`: the pixel containing (x, y) (``op=np.floor``) or, with
+        ``op=None``, the continuous (row, col) with pixel centres at integers."""
+        t = self.transform
+        col = (np.asarray(x, float) - t.c) / t.a
+        row = (np.asarray(y, float) - t.f) / t.e
+        if op is None:
+            return row - 0.5, col - 0.5
+        return op(row).astype(np.intp), op(col).astype(np.intp)
+
+    def centres(self, rows: slice = slice(None), cols: slice = slice(None)):
+        """2-D arrays (x, y) of the pixel centres in a window (slices of the grid)."""
+        r0, r1, _ = rows.indices(self.height)
+        c0, c1, _ = cols.indices(self.width)
+        x, y = self.xy(np.arange(r0, r1)[:, None], np.arange(c0, c1)[None, :])
+        return np.broadcast_arrays(x, y)
+
+    def window(self, rows: slice, cols: slice) -> "Grid":
+        """The sub-grid of a window."""
+        r0, r1, _ = rows.indices(self.height)
+        c0, c1, _ = cols.indices(self.width)
+        t = self.transform @ Affine.translation(c0, r0)
+        return Grid(self.crs, t, (r1 - r0, c1 - c0))
+
+    def tiles(self, size: int = 512) -> Iterator[tuple[slice, slice]]:
+        """Row-major windows ``(row_slice, col_slice)`` of at most ``size`` x ``size``."""
+        for r in range(0, self.height, size):
+            for c in range(0, self.width, size):
+                yield (slice(r, min(r + size, self.height)), slice(c, min(c + size, self.width)))
+
+    def chunks(self, size: int = 512) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """dask chunks matching :meth:`tiles`."""
+        def split(n):
+            return tuple(min(size, n - i) for i in range(0, n, size))
+        return split(self.height), split(self.width)
+
+    def to_ecef(self, x, y, terrain) -> np.ndarray:
+        """ECEF ``(..., 3)`` of map points on the terrain (ellipsoidal heights)."""
+        from swathflow.geometry.geodesy import geodetic_to_ecef
+        lon, lat = _to_lonlat(self.crs).transform(np.asarray(x, float), np.asarray(y, float))
+        h = terrain.height(lat, lon)
+        return geodetic_to_ecef(np.stack(np.broadcast_arrays(lat, lon, h), axis=-1))
+
+    def state(self) -> dict:
+        return {"crs": self.crs, "transform": list(tuple(self.transform)[:6]),
+                "shape": list(self.shape)}
+
+
+@lru_cache(maxsize=64)
+def _to_lonlat(crs: str):
+    return transformer(crs, "EPSG:4326")
+
+
+@lru_cache(maxsize=64)
+def _from_lonlat(crs: str):
+    return transformer("EPSG:4326", crs)
+
+
+def ecef_to_map(ground, crs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, y, ellipsoidal h) in ``crs`` of ECEF points ``(..., 3)``."""
+    llh = ecef_to_geodetic(ground)
+    x, y = _from_lonlat(crs).transform(llh[..., 1], llh[..., 0])
+    return np.asarray(x), np.asarray(y), llh[..., 2]
+
+
+def footprint_grid(model, terrain, gsd: float, crs="auto-utm", samples: int = 64,
+                   margin: float = 0.0) -> Grid:
+    """The grid (``gsd`` pixels, snapped) covering a sensor model's ground footprint.
+
+    The image border (``samples`` points per side, plus a coarse interior lattice for
+    relief) is projected onto the terrain; ``margin`` metres are added on every side.
+    """
+    from swathflow.geometry.terrain import open_terrain
+    terrain = open_terrain(terrain)
+    nl, ne = model.shape
+    lines = np.linspace(-0.5, nl - 0.5, samples)
+    elems = np.linspace(-0.5, ne - 0.5, samples)
+    ll, ee = np.meshgrid(lines, elems, indexing="ij")
+    img = np.stack([ll, ee], axis=-1)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # rays off the terrain are NaN
+        g = model.image_to_ground(img, terrain)
+    ok = np.isfinite(g).all(axis=-1)
+    if not ok.any():
+        raise FormatError("the image's footprint misses the terrain everywhere: check the "
+                          "terrain heights, the POS and the calibration")
+    llh = ecef_to_geodetic(g[ok])
+    crs = resolve_crs(crs, float(np.median(llh[:, 0])), float(np.median(llh[:, 1])))
+    x, y, _ = ecef_to_map(g[ok], crs)
+    return Grid.from_bounds(crs, (x.min() - margin, y.min() - margin, x.max() + margin,
+                                  y.max() + margin), gsd)
+
+
+def union_grid(grids, res: float | None = None) -> Grid:
+    """The snapped grid covering several grids of one CRS."""
+    grids = list(grids)
+    crs = grids[0].crs
+    b = np.array([g.bounds for g in grids])
+    return Grid.from_bounds(crs, (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()),
+                            res or grids[0].res[0])
