@@ -6,8 +6,8 @@ import os
 import pandas as pd
 import xarray as xr
 from swathflow.errors import FormatError
-from swathflow.io import atomic_path
 from swathflow.formats.pos import POS_VARIABLES, _dataset
+from swathflow.io import atomic_path
 
 from .registry import PosFormat
 

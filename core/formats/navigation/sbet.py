@@ -6,8 +6,8 @@ import os
 import numpy as np
 import xarray as xr
 from swathflow.errors import FormatError
-from swathflow.io import atomic_path
 from swathflow.formats.pos import _dataset
+from swathflow.io import atomic_path
 
 from .registry import PosFormat
 
