@@ -1,6 +1,6 @@
-"""Where each observation sits, for the report's figures: the observed image position,
-its acquisition time (the model's ``image_time``), its ground position, and every per-line quantity the sensor records
-(read from the model's ``lines``, so no sensor is named here)."""
+"""Where each observation sits, for the report's figures: the observed image position, its
+acquisition time (the model's ``image_time``), its ground position, and every per-line
+quantity the sensor records (read from the model's ``lines``, so no sensor is named here)."""
 from __future__ import annotations
 
 import numpy as np

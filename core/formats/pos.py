@@ -143,8 +143,8 @@ def interpolate_pos(ds: xr.Dataset, times, max_gap: float = 1.0) -> xr.Dataset:
 
 
 # the built-in readers, where they have always been importable from
-from swathflow.formats.navigation.csv import read_pos_csv, write_pos_csv
-from swathflow.formats.navigation.sbet import SBET_DTYPE, SBET_FIELDS, read_sbet, write_sbet
+from swathflow.formats.navigation.csv import read_pos_csv, write_pos_csv  # noqa: E402
+from swathflow.formats.navigation.sbet import SBET_DTYPE, SBET_FIELDS, read_sbet, write_sbet  # noqa: E402
 
 __all__ = ["POS_VARIABLES", "SBET_DTYPE", "SBET_FIELDS", "Trajectory", "check_trajectory",
            "interpolate_pos", "read_pos", "read_pos_csv", "read_sbet", "write_pos_csv",

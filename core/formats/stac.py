@@ -97,7 +97,7 @@ def _item(path: str, item_id: str, when: dt.datetime, level: str, lineage: str,
     from pystac.extensions.eo import Band, EOExtension
     from pystac.extensions.projection import ProjectionExtension
     from pystac.extensions.raster import RasterExtension
-    from swathflow import __version__
+    from swathflow._version import __version__
     with rasterio.open(path) as src:
         geom, res = valid_footprint(src)
         proj, bands = _proj(src), _raster_bands(src)

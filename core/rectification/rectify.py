@@ -599,7 +599,7 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
     ``<stem>.igm.tif`` when asked in ``products``). The grid is ``grid`` or the image's
     footprint at ``gsd`` in ``crs``. Returns a small summary dict."""
     import time
-    from swathflow import __version__
+    from swathflow._version import __version__
     if method not in METHODS:
         raise FormatError(f"unknown rectification method {method!r}; use one of "
                           f"{', '.join(METHODS)}")
