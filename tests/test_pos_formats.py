@@ -202,3 +202,29 @@ def test_installed_format_plugin_reads_and_broken_ones_warn(plugin_site, tmp_pat
     assert np.allclose(out["h"], 2.0 * tr["h"], atol=1e-6)
     assert "'broken'" in r.stderr and "failed to load" in r.stderr
     assert "not a PosFormat" in r.stderr and "clashes" in r.stderr
+
+
+def test_mission_toml_passes_pos_options(tiny_mission, tmp_path):
+    """[pos] format = "lcf" with a times file relative to the mission folder; an option the
+    reader does not know is listed by validation with the key and the fix."""
+    import shutil
+
+    from swathflow.formats.navigation.lcf import write_lcf
+    from swathflow.ingest.mission import inspect_mission, load_mission
+    m = tmp_path / "m"
+    shutil.copytree(tiny_mission, m)
+    sbet = read_pos(m / "pos.sbet")
+    write_lcf(sbet, m / "nav.lcf")
+    (m / "extra").mkdir()
+    np.savetxt(m / "extra" / "L1.times", sbet["time"].values[:5] + 0.01)
+    toml = (m / "mission.toml").read_text()
+    lcf = toml.replace('file = "pos.sbet"\nformat = "sbet"',
+                       'file = "nav.lcf"\nformat = "lcf"\ntimes = "extra/L1.times"')
+    (m / "mission.toml").write_text(lcf)
+    pos = load_mission(m).pos
+    assert np.allclose(pos["lat"], sbet["lat"], atol=1e-10)
+    assert np.allclose(pos["line_time"], sbet["time"].values[:5] + 0.01)
+    (m / "mission.toml").write_text(lcf.replace('times = "extra/L1.times"', 'colums = 3'))
+    problems, _ = inspect_mission(m)
+    text = "\n".join(map(str, problems))
+    assert "colums" in text and "accepts: times" in text and "registered format" in text, text

@@ -211,6 +211,21 @@ def _first_rows(mask, limit=5) -> str:
     return s + (f" (and {idx.size - limit} more)" if idx.size > limit else "")
 
 
+def _pos_options(root, posc: dict) -> dict:
+    """The [pos] keys a reader takes as options (all but file, format and max_gap); an LCF's
+    ``times`` file is relative to the mission folder."""
+    opts = {k: v for k, v in posc.items() if k not in ("file", "format", "max_gap")}
+    if isinstance(opts.get("times"), str):
+        opts["times"] = str(_rel(root, opts["times"]))
+    return opts
+
+
+def _pos_fix(msg: str) -> str:
+    if "unknown POS format" in msg or "not understood" in msg:
+        return "set [pos] format to a registered format (docs/navigation-formats.md)"
+    return "re-export the POS (times strictly increasing, finite values)"
+
+
 def _inspect(path) -> tuple[list[Problem], dict]:
     from swathflow.sensors.registry import _registry
     c = _Collector()
@@ -313,18 +328,12 @@ def _inspect(path) -> tuple[list[Problem], dict]:
                       f"{posc.get('max_gap')!r}", "max_gap = 1.0")
                 max_gap = 1.0
             try:
-                opts = {k: v for k, v in posc.items() if k not in ("file", "format", "max_gap")}
-                if isinstance(opts.get("times"), str):     # an LCF's .times file
-                    opts["times"] = str(_rel(root, opts["times"]))
-                ds = read_pos(pp, posc.get("format"), **opts)
+                ds = read_pos(pp, posc.get("format"), **_pos_options(root, posc))
                 traj = Trajectory.from_dataset(ds, max_gap=max_gap)
                 parts["pos"] = ds
             except SwathflowError as exc:
                 msg = str(exc).replace(str(pp) + ": ", "")
-                c.add(pp, "[pos]" if "format" in msg else "", msg,
-                      'set [pos] format to a registered format (docs/navigation-formats.md)'
-                      if "unknown POS format" in msg or "not understood" in msg
-                      else "re-export the POS (times strictly increasing, finite values)")
+                c.add(pp, "[pos]" if "format" in msg else "", msg, _pos_fix(msg))
     parts["trajectory"] = traj
 
     # [terrain]
