@@ -125,6 +125,7 @@ def test_catalogue_validates_and_describes_the_products(tmp_path, offline):
         box = Polygon.from_bounds(*foot.bounds)
         assert foot.area < 0.8 * box.area, iid
         assert items[iid].bbox == pytest.approx(list(foot.bounds))
+        assert foot.exterior.is_ccw, iid                      # RFC 7946 winding
         assert len(foot.exterior.coords) < 40, (iid, len(foot.exterior.coords))  # simplified
 
 

@@ -45,7 +45,9 @@ def valid_footprint(src, max_size: int = MAX_MASK) -> tuple[dict, float]:
         return {"type": "Polygon", "coordinates": []}, 0.0
     res = max(abs(tr.a), abs(tr.e))
     geom = shapely.union_all(polys).simplify(2.0 * res, preserve_topology=True)
-    return transform_geom(src.crs, "EPSG:4326", mapping(geom), precision=9), res
+    geo = shape(transform_geom(src.crs, "EPSG:4326", mapping(geom), precision=9))
+    # RFC 7946: exterior rings counter-clockwise, holes clockwise
+    return mapping(shapely.orient_polygons(geo, exterior_cw=False)), res
 
 
 def _bbox(geom: dict) -> list[float]:
