@@ -24,7 +24,7 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     """Rectify the mission's images into ``out_dir/<id>.tif`` with ``calibration`` (a
     calibration.json; default: the mission's priors). Returns one summary per image."""
     mission = load_mission(mission_path)
-    params, cal_tag = mission.priors, "mission priors (mission.toml [calibration])"
+    params, cal_tag = mission.priors, "none: mission priors (mission.toml [calibration])"
     if calibration:
         doc = read_calibration(calibration)
         if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):

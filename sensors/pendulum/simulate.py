@@ -105,6 +105,9 @@ class SimConfig:
     gcp_plan: dict = field(default_factory=dict)  # image_id -> (control, check)
     gcp_other: tuple = ()           # (lo, hi): check points on images not in gcp_plan
     exclusive_gcps: bool = False    # points seen by one image only (exact counts)
+    #: > 0: the first 3 control points of a swing lie where its recorded swing angle is
+    #: above this (deg), the next 3 where it is below minus this (calibration needs both)
+    gcp_swing_side: float = 0.0
     gcp_noise: float = 1.0          # px, per axis
     gross_fraction: float = 0.0
     gross_range: tuple = (10.0, 40.0)   # px
@@ -130,7 +133,7 @@ class SimConfig:
 
 PRESETS: dict[str, dict] = {
     # seconds: 1 strip, one L and one R swing, small images, a handful of GCPs
-    "tiny": dict(preset="tiny"),
+    "tiny": dict(preset="tiny", swing_max=15.0, gcp_swing_side=6.0),
     # the README demo: 2 strips x 4 swings
     "demo": dict(preset="demo", n_strips=2, swings_per_strip=4, n_elements=192,
                  focal_length=0.03, swing_max=15.0, agl=600.0, speed=45.0, gsd=0.3,
@@ -158,7 +161,13 @@ def preset_config(name: str, **overrides) -> SimConfig:
     unknown = set(overrides) - set(SimConfig.__dataclass_fields__)
     if unknown:
         raise SwathflowError(f"unknown simulation option(s) {', '.join(sorted(unknown))}")
-    return replace(cfg, **overrides)
+    cfg = replace(cfg, **overrides)
+    if not 0.0 <= cfg.gross_fraction <= 1.0:
+        raise SwathflowError(f"--gross-errors {cfg.gross_fraction}: a fraction of the GCP "
+                             f"measurements, between 0 and 1 (e.g. 0.05)")
+    if not (math.isfinite(cfg.gcp_noise) and cfg.gcp_noise >= 0):
+        raise SwathflowError(f"--gcp-noise {cfg.gcp_noise}: a noise in pixels, 0 or more")
+    return cfg
 
 
 # ------------------------------------------------------------------------------------------
@@ -229,17 +238,54 @@ def true_parameters(cfg: SimConfig, rng) -> dict:
 # ------------------------------------------------------------------------------------------
 # GCPs
 
+def _candidates(m, rng, k: int, band, margin: float, terrain, to_map) -> np.ndarray:
+    """``k`` random ground points (E, N) seen by model ``m`` away from its edges, on the
+    lines of ``band`` when given."""
+    lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
+    lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
+    li = rng.uniform(*(band or (lo_l, m.n_lines - 1 - lo_l)), k)
+    el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
+    o, d = m.ray(np.stack([li, el], -1))
+    g = intersect(o, d, terrain)
+    e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
+    cand = np.round(np.stack([e, n], -1), 3)
+    return cand[np.isfinite(cand).all(-1)]
+
+
+def _seen_elsewhere(c, iid, ids, models, terrain, to_map) -> bool:
+    xyz = _ground_xyz(c[None], terrain, to_map)
+    return any(np.isfinite(models[o].ground_to_image(xyz)).all() for o in ids if o != iid)
+
+
+def _side_bands(cfg, m, nc: int, margin: float) -> list:
+    """Line ranges for the first control points: 3 where the swing angle is above
+    ``cfg.gcp_swing_side``, 3 where it is below minus it (empty when not asked for)."""
+    sw = m.lines.get("swing")
+    if cfg.gcp_swing_side <= 0 or sw is None or nc < 6:
+        return []
+    idx = np.arange(sw.size)
+    ok = (idx > margin + 1) & (idx < sw.size - 2 - margin)
+    bands = []
+    for sel in (ok & (sw > cfg.gcp_swing_side), ok & (sw < -cfg.gcp_swing_side)):
+        if sel.sum() < 2:
+            return []
+        bands += [(float(idx[sel].min()), float(idx[sel].max()))] * 3
+    return bands
+
+
+def _gcp_counts(cfg, iid: str, rng) -> tuple[int, int]:
+    """(control, check) points to place on image ``iid``."""
+    if iid in cfg.gcp_plan:
+        return tuple(cfg.gcp_plan[iid])
+    if cfg.gcp_other:
+        return (0, int(rng.integers(cfg.gcp_other[0], cfg.gcp_other[1] + 1)))
+    return (cfg.gcp_control, cfg.gcp_check)
+
+
 def choose_gcps(cfg, models, terrain, to_map, rng):
     """Ground points and their true image coordinates in every image that sees them."""
     ids = list(models)
-    plan = {}
-    for k, iid in enumerate(ids):
-        if iid in cfg.gcp_plan:
-            plan[iid] = tuple(cfg.gcp_plan[iid])
-        elif cfg.gcp_other:
-            plan[iid] = (0, int(rng.integers(cfg.gcp_other[0], cfg.gcp_other[1] + 1)))
-        else:
-            plan[iid] = (cfg.gcp_control, cfg.gcp_check)
+    plan = {iid: _gcp_counts(cfg, iid, rng) for iid in ids}
     nadir_gsd = cfg.ifov * cfg.agl
     min_sep = 6 * cfg.target_radius_px * nadir_gsd
     # a target cut by the image edge cannot be measured: keep a margin (disk + ring + noise)
@@ -253,27 +299,19 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
             continue
         m = models[iid]
         got = []
+        side = _side_bands(cfg, m, nc, margin)
         for _ in range(20):
-            k = 4 * need
-            lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
-            lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
-            li = rng.uniform(lo_l, m.n_lines - 1 - lo_l, k)
-            el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
-            o, d = m.ray(np.stack([li, el], -1))
-            g = intersect(o, d, terrain)
-            e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-            cand = np.round(np.stack([e, n], -1), 3)
-            cand = cand[np.isfinite(cand).all(-1)]
+            band = side[len(got)] if len(got) < len(side) else None
+            cand = _candidates(m, rng, 4 * need, band, margin, terrain, to_map)
             for c in cand:
+                if len(got) < len(side) and side[len(got)] != band:
+                    break                  # side-banded slots: one band per draw
                 allp = np.concatenate([taken, np.array(got).reshape(-1, 2)])
                 if len(allp) and np.min(np.hypot(*(allp - c).T)) < min_sep:
                     continue
-                if cfg.exclusive_gcps:
-                    xyz = _ground_xyz(c[None], terrain, to_map)
-                    seen = [o2 for o2 in ids if o2 != iid
-                            and np.isfinite(models[o2].ground_to_image(xyz)).all()]
-                    if seen:
-                        continue
+                if cfg.exclusive_gcps and _seen_elsewhere(c, iid, ids, models, terrain,
+                                                          to_map):
+                    continue
                 got.append(c)
                 if len(got) == need:
                     break

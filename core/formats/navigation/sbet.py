@@ -27,6 +27,8 @@ def read_sbet(path) -> xr.Dataset:
     true_heading = platform_heading - wander_angle").
     """
     path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FormatError(f"{path}: not a file; name the SBET file")
     size = os.path.getsize(path)
     if size == 0 or size % SBET_DTYPE.itemsize:
         raise FormatError(
