@@ -22,10 +22,15 @@ M_PER_DEG = 111_320.0
 
 
 def _figure(ncols: int, nrows: int = 1, size=(5.2, 3.6)):
+    """A figure on its own canvas with fixed margins (in inches: constrained layout costs
+    half a second a figure)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    fig = Figure(figsize=(size[0] * ncols, size[1] * nrows), dpi=96, layout="constrained")
+    w, h = size[0] * ncols, size[1] * nrows
+    fig = Figure(figsize=(w, h), dpi=96)
     FigureCanvasAgg(fig)
+    fig.subplots_adjust(left=0.75 / w, right=1 - 0.2 / w, bottom=0.6 / h, top=1 - 0.45 / h,
+                        wspace=1.3 / size[0], hspace=1.0 / size[1])
     return fig, fig.subplots(nrows, ncols, squeeze=False)
 
 
@@ -140,7 +145,7 @@ def against(res: pd.DataFrame, column: str, label: str) -> str:
             ax.set_xlabel(label if column != "time" else f"{label} from {origin:.1f} s")
             ax.set_ylabel(f"{comp} (px)")
             if len(q):
-                ax.legend(fontsize=8)
+                ax.legend(fontsize=8, loc="upper right")
     return to_svg(fig)
 
 
