@@ -76,10 +76,10 @@ def test_every_registered_model_passes_the_contract(name):
     check_model(cls.example_model())
 
 
-def test_rotating_mirror_example_installs_and_passes_the_contract(tmp_path):
+def test_rotating_mirror_example_installs_and_passes_the_contract(mirror_site):
     """The third-party example (plugins/rotating-mirror) installs from its folder with pip,
     appears in `swathflow sensors`, and the contract suite passes for every model."""
-    site = _install(MIRROR, tmp_path / "site")
+    site = mirror_site
     r = _run(site, "import sys; from swathflow.flows.cli import main; sys.exit(main(['sensors']))")
     assert r.returncode == 0, r.stderr
     assert "rotating-mirror" in r.stdout and "swathflow_rotating_mirror" in r.stdout
@@ -91,6 +91,17 @@ def test_rotating_mirror_example_installs_and_passes_the_contract(tmp_path):
 
 # --- the rotating-mirror example's own hooks: its line-table column and its simulator ----------
 MIRROR_CLI = "import sys; from swathflow.flows.cli import main; sys.exit(main({args!r}))"
+
+
+def _cli(site, *commands):
+    """Run swathflow commands one after the other in one process (one start-up); returns
+    the completed process and the exit code of every command."""
+    code = ("import json; from swathflow.flows.cli import main\n"
+            f"codes = [main(a) for a in {[list(c) for c in commands]!r}]\n"
+            "print('EXIT CODES', json.dumps(codes))")
+    r = _run(site, code)
+    assert r.returncode == 0 and "EXIT CODES" in r.stdout, r.stdout + r.stderr
+    return r, json.loads(r.stdout.rsplit("EXIT CODES", 1)[1])
 
 
 @pytest.fixture(scope="module")
@@ -137,14 +148,12 @@ def test_rotating_mirror_mission_validates_and_rectifies_onto_the_truth(mirror_s
     footprint 0.009-0.030 px, median 32-px tile 0.049-0.054 px (the same with the
     noise-free POS: the floor is image noise and resampling of a 390 x 160 image); a model
     that ignored the plugin's scan_start column would be off by 0.63 px (bias 0.06 deg)."""
-    r = _run(mirror_site, MIRROR_CLI.format(args=["validate", str(mirror_mission)]))
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert "OK" in r.stdout and "rotating-mirror" in r.stdout
     out = tmp_path / "rect"
-    r = _run(mirror_site, MIRROR_CLI.format(args=[
-        "rectify", str(mirror_mission), "--calibration",
-        str(mirror_mission / "truth" / "calibration.json"), "--out", str(out)]))
-    assert r.returncode == 0, r.stdout + r.stderr
+    r, codes = _cli(mirror_site, ["validate", str(mirror_mission)],
+                    ["rectify", str(mirror_mission), "--calibration",
+                     str(mirror_mission / "truth" / "calibration.json"), "--out", str(out)])
+    assert codes == [0, 0], r.stdout + r.stderr
+    assert "OK" in r.stdout and "rotating-mirror" in r.stdout
     whole, median = _mirror_vs_truth(out, mirror_mission)
     assert whole < 0.1 and median < 0.1, (whole, median)
 
@@ -181,12 +190,14 @@ def test_rotating_mirror_line_table_checked_by_the_plugin(mirror_site, mirror_mi
     lt = pd.read_csv(p)
     lt.loc[7, "scan_start"] = 123.0
     lt.to_csv(p, index=False, float_format="%.9f")
-    r = _run(mirror_site, MIRROR_CLI.format(args=["validate", str(bad)]))
-    assert r.returncode == 2, r.stdout + r.stderr
+    nocol = tmp_path / "nocol"
+    shutil.copytree(mirror_mission, nocol)
+    lt.drop(columns="scan_start").to_csv(nocol / "images" / "M1.lines.csv", index=False,
+                                         float_format="%.9f")
+    r, codes = _cli(mirror_site, ["validate", str(bad)], ["validate", str(nocol)])
+    assert codes == [2, 2], r.stdout + r.stderr
     assert "Traceback" not in r.stderr
-    msg = r.stdout + r.stderr
-    assert "M1.lines.csv" in msg and "column scan_start, file row(s) 9" in msg
-    assert "beyond +-80 deg from nadir" in msg
-    lt.drop(columns="scan_start").to_csv(p, index=False, float_format="%.9f")
-    r = _run(mirror_site, MIRROR_CLI.format(args=["validate", str(bad)]))
-    assert r.returncode == 2 and "missing column(s) scan_start" in r.stdout + r.stderr
+    first, second = r.stdout.split(str(nocol), 1)
+    assert "M1.lines.csv" in first and "column scan_start, file row(s) 9" in first
+    assert "beyond +-80 deg from nadir" in first
+    assert "missing column(s) scan_start" in second

@@ -26,13 +26,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from swathflow.simulation.bundle import (Plan, make_trajectory, plain, square_grid, toml_value,
-                                        write_csv, write_mission_toml, write_swing)
+from swathflow.simulation.bundle import (Plan, make_trajectory, plain, toml_value,
+                                        write_mission_toml, write_swing)
 from swathflow.errors import SwathflowError
 from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
 from swathflow.geometry.intersect import intersect
 from swathflow.io import write_text
-from swathflow.formats.pos import Trajectory, write_pos_csv, write_sbet
+from swathflow.formats.pos import Trajectory
+from swathflow.sensors.pendulum.simwrite import (texture_with_targets, write_gcps, write_ortho,
+                                                 write_pos, write_terrain)
 
 #: papers.md section 1, Table 4 (Hai'an 2018): the true parameters of preset ``paper``
 TABLE4 = {
@@ -361,22 +363,11 @@ def _ground_xyz(en, terrain, to_map):
 # ------------------------------------------------------------------------------------------
 # the simulation
 
-def _dem_grid(plan: Plan, cfg: SimConfig):
-    """A north-up DEM grid (transform, shape) that covers the flight with a wide margin."""
-    half_w = (cfg.n_strips - 1) / 2 * plan.spacing + plan.swath * 0.9 + 0.3 * cfg.agl
-    half_l = plan.strip_length / 2 + 0.5 * cfg.agl + 50
-    return square_grid(plan.centre, math.hypot(half_w, half_l), cfg.dem_cell)
-
-
 def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = None,
              dem: str | None = None, progress=None, **overrides) -> dict:
     """Write a simulated mission to ``out``; returns the truth summary (truth.json)."""
     from swathflow.sensors import get_sensor
     from swathflow.formats.calibfile import write_calibration
-    from swathflow.formats.raster import write_geotiff
-    from swathflow.geometry.terrain import DEM
-    from swathflow.simulation.texture import (ImageTexture, ProceduralTerrain, ProceduralTexture,
-                                              RasterTerrain, area_average)
     say = progress or (lambda msg: None)
     clock = time.perf_counter()
     timings = {}
@@ -391,26 +382,7 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     to_map = transformer("EPSG:4978", plan.crs)
 
     # terrain -> dem.tif (the very DEM the mission uses is the truth terrain)
-    dem_tr, dem_shape = _dem_grid(plan, cfg)
-    if dem:
-        shape_src = RasterTerrain(dem, plan.centre, cell=1.0, base=cfg.terrain_base,
-                                  relief=cfg.terrain_relief)
-        rows_src, cols_src = shape_src.data.shape
-        shape_src.cell = dem_shape[0] * cfg.dem_cell / min(rows_src, cols_src)
-        hfun = shape_src
-        dem_info = {"source": str(dem), "source_range": shape_src.source_range,
-                    "vscale": shape_src.vscale, "cell_m": shape_src.cell}
-    else:
-        hfun = ProceduralTerrain(seed, cfg.terrain_base, cfg.terrain_relief,
-                                 cfg.terrain_wavelength, plan.centre)
-        dem_info = {"source": "procedural"}
-    rr, cc = np.indices(dem_shape)
-    a, _, c0, _, e, f0 = dem_tr
-    hgrid = hfun(c0 + (cc + 0.5) * a, f0 + (rr + 0.5) * e).astype(np.float32)
-    write_geotiff(out / "dem.tif", hgrid, plan.crs, dem_tr, nodata=-9999.0,
-                  tags={"vertical": "ellipsoidal", "source": dem_info["source"]})
-    terrain = DEM.open(out / "dem.tif")
-    terrain_mean = float(np.mean(hgrid))
+    terrain, terrain_mean, dem_info = write_terrain(out, cfg, plan, seed, dem)
     timings["terrain"] = time.perf_counter() - clock
 
     # trajectory, line tables, models
@@ -430,15 +402,8 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     # GCPs and the texture (with survey targets at the GCPs)
     pts, obs = choose_gcps(cfg, models, terrain, to_map, rng)
     nadir_gsd = cfg.ifov * cfg.agl
-    if texture:
-        tex0 = ImageTexture(texture, plan.centre,
-                            rotation_deg=float(rng.uniform(0, 360)))
-        tex_info = {"source": str(texture), "pixel_size_m": tex0.pixel_size}
-    else:
-        tex0 = ProceduralTexture(seed, nadir_gsd, plan.centre)
-        tex_info = {"source": "procedural", "scale_m": nadir_gsd}
+    tex, tex_info = texture_with_targets(cfg, plan, seed, texture, rng, pts, nadir_gsd)
     radius = cfg.target_radius_px * nadir_gsd
-    tex = tex0.with_targets(pts[["E", "N"]].to_numpy(), radius)
     timings["gcps"] = time.perf_counter() - clock - sum(timings.values())
 
     # images
@@ -454,83 +419,11 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     timings["images"] = time.perf_counter() - clock - sum(timings.values())
 
     # footprint -> output grid, truth ortho
-    gsd = cfg.gsd
-    border = []
-    from swathflow.ingest.mission import image_border
-    for m in models.values():
-        pb = image_border(m.shape, 40)
-        o, dvec = m.ray(pb)
-        g = intersect(o, dvec, terrain)
-        ee, nn, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-        border.append(np.stack([ee, nn], -1))
-    border = np.concatenate(border)
-    xmin = math.floor(np.nanmin(border[:, 0]) / gsd) * gsd
-    xmax = math.ceil(np.nanmax(border[:, 0]) / gsd) * gsd
-    ymin = math.floor(np.nanmin(border[:, 1]) / gsd) * gsd
-    ymax = math.ceil(np.nanmax(border[:, 1]) / gsd) * gsd
-    ortho_tr = (gsd, 0.0, xmin, 0.0, -gsd, ymax)
-    ortho_shape = (int(round((ymax - ymin) / gsd)), int(round((xmax - xmin) / gsd)))
-    ortho_written = bool(cfg.write_ortho)
-    if ortho_written:
-        say(f"truth ortho {ortho_shape[1]} x {ortho_shape[0]} at {gsd} m")
-        o = area_average(tex, ortho_tr, ortho_shape, cfg.ortho_supersample)
-        write_geotiff(out / "truth" / "ortho.tif", (cfg.offset + cfg.gain * o).astype(np.float32),
-                      plan.crs, ortho_tr, tags={"units": "expected DN (offset + gain * T)",
-                                                "gain": cfg.gain, "offset": cfg.offset})
+    ortho = write_ortho(out, cfg, plan, models, terrain, tex, to_map, say)
     timings["ortho"] = time.perf_counter() - clock - sum(timings.values())
 
-    # GCP observations: noise and gross errors
-    grng = np.random.default_rng([int(seed), 3])
-    meas = obs.copy()
-    meas["line"] = obs["line"] + grng.normal(0, cfg.gcp_noise, len(obs))
-    meas["element"] = obs["element"] + grng.normal(0, cfg.gcp_noise, len(obs))
-    gross = []
-    if cfg.gross_fraction > 0 and len(obs):
-        k = max(1, int(round(cfg.gross_fraction * len(obs))))
-        idx = np.sort(grng.choice(len(obs), k, replace=False))
-        size = grng.uniform(*cfg.gross_range, k)
-        ang = grng.uniform(0, 2 * np.pi, k)
-        meas.loc[idx, "line"] += size * np.sin(ang)
-        meas.loc[idx, "element"] += size * np.cos(ang)
-        gross = [{"gcp_id": obs.gcp_id[i], "image_id": obs.image_id[i], "size_px": float(s)}
-                 for i, s in zip(idx, size)]
-    for col, n in (("line", "n_lines"), ("element", "n_elements")):
-        size = meas.image_id.map({k: getattr(v, n) for k, v in models.items()})
-        meas[col] = np.clip(meas[col], -0.49, size - 0.51)
-    if cfg.ground_noise > 0:
-        de, dn = grng.normal(0, cfg.ground_noise, (2, len(pts)))
-        dh = grng.normal(0, cfg.ground_noise, len(pts))
-        lon2, lat2 = transformer(plan.crs, "EPSG:4326").transform(pts.E + de, pts.N + dn)
-        gmap = dict(zip(pts.gcp_id, zip(lon2, lat2, pts.h + dh)))
-        meas["x"] = [gmap[g][0] for g in meas.gcp_id]
-        meas["y"] = [gmap[g][1] for g in meas.gcp_id]
-        meas["z"] = [gmap[g][2] for g in meas.gcp_id]
-    cols = ["gcp_id", "image_id", "line", "element", "x", "y", "z", "role"]
-    fmt = {"line": "%.3f", "element": "%.3f", "x": "%.9f", "y": "%.9f", "z": "%.4f"}
-    write_csv(out / "gcp.csv", meas[cols], fmt)
-    write_csv(out / "truth" / "gcp.csv", obs, {**fmt, "line": "%.6f", "element": "%.6f",
-                                                 "E": "%.4f", "N": "%.4f"})
-
-    # POS with noise
-    prng = np.random.default_rng([int(seed), 4])
-    nt = truth_ds.sizes["time"]
-    lat = truth_ds["lat"].values
-    m_per_deg_lat = 111_132.0
-    m_per_deg_lon = 111_320.0 * np.cos(np.radians(lat))
-    noisy = truth_ds.copy(deep=True)
-    noisy["lat"] = ("time", lat + prng.normal(0, cfg.gps_noise, nt) / m_per_deg_lat)
-    noisy["lon"] = ("time", truth_ds["lon"].values + prng.normal(0, cfg.gps_noise, nt)
-                    / m_per_deg_lon)
-    noisy["h"] = ("time", truth_ds["h"].values + prng.normal(0, cfg.gps_noise, nt))
-    for kk in ("roll", "pitch", "heading"):
-        noisy[kk] = ("time", truth_ds[kk].values + prng.normal(0, cfg.att_noise, nt))
-    noisy["heading"] = (noisy["heading"] + 180.0) % 360.0 - 180.0
-    pos_name = "pos.sbet" if cfg.pos_format == "sbet" else "pos.csv"
-    if cfg.pos_format == "sbet":
-        write_sbet(noisy, out / pos_name)
-    else:
-        write_pos_csv(noisy, out / pos_name)
-    write_pos_csv(truth_ds, out / "truth" / "pos.csv")
+    meas, gross = write_gcps(out, cfg, plan, models, pts, obs, seed)
+    pos_name = write_pos(out, cfg, truth_ds, seed)
 
     # truth calibration and truth.json
     write_calibration(out / "truth" / "calibration.json", "pendulum",
@@ -547,7 +440,7 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
         "format": "swathflow-simulation-truth/1",
         "preset": cfg.preset, "seed": int(seed),
         "config": plain(asdict(cfg)),
-        "crs": plan.crs, "gsd": gsd, "centre_en": list(plan.centre),
+        "crs": plan.crs, "gsd": cfg.gsd, "centre_en": list(plan.centre),
         "plan": plain(asdict(plan)),
         "strips": strips,
         "images": [{"id": iid, "direction": d, "strip": s, "lines": models[iid].n_lines,
@@ -566,17 +459,17 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
         "gcp_target_radius_m": radius,
         "radiometry": {"gain": cfg.gain, "offset": cfg.offset,
                        "dn": "offset + gain * T(E, N) averaged over the pixel, + noise"},
-        "ortho": ({"file": "truth/ortho.tif", "transform": list(ortho_tr),
-                   "shape": list(ortho_shape), "supersample": cfg.ortho_supersample}
-                  if ortho_written else None),
-        "footprint_bounds": [xmin, ymin, xmax, ymax],
+        "ortho": ({"file": "truth/ortho.tif", "transform": list(ortho["transform"]),
+                   "shape": list(ortho["shape"]), "supersample": cfg.ortho_supersample}
+                  if ortho["written"] else None),
+        "footprint_bounds": ortho["bounds"],
         "texture": tex_info, "terrain": {**dem_info, "mean_h": terrain_mean,
                                          "dem_cell": cfg.dem_cell},
         "nadir_gsd_m": nadir_gsd,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
     }
     write_text(out / "truth" / "truth.json", json.dumps(truth, indent=2) + "\n")
-    _write_toml(out, cfg, plan, gsd, pos_name, image_entries, sensor)
+    _write_toml(out, cfg, plan, cfg.gsd, pos_name, image_entries, sensor)
     return truth
 
 
