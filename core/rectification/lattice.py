@@ -106,8 +106,25 @@ def _level(exact, cells, s, H, W):
     return err, all_nan, np.stack([q00, q01, q10, q11], axis=1)
 
 
-def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32) -> Leaves:
-    """The adaptive lattice of ``grid`` (a tile's own grid) as :class:`Leaves`."""
+def _children_leaves(v, parents, hs, out_cells, out_corners) -> None:
+    if not len(parents):
+        return
+    kids = np.concatenate([parents, parents + [hs, 0], parents + [0, hs], parents + [hs, hs]])
+    r, c = kids[:, 0], kids[:, 1]
+    out_cells.append(np.column_stack([kids, np.full(len(kids), hs)]))
+    out_corners.append(np.stack([v[r, c], v[r, c + hs], v[r + hs, c], v[r + hs, c + hs]],
+                                axis=1))
+
+
+def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
+           smooth: bool | None = None) -> Leaves:
+    """The adaptive lattice of ``grid`` (a tile's own grid) as :class:`Leaves`.
+
+    ``smooth`` (default: the terrain is a constant height, so the mapping is analytic)
+    lets cells whose parent missed by less than ``tol`` skip their own tests."""
+    from ..terrain import ConstantHeight
+    if smooth is None:
+        smooth = isinstance(terrain, ConstantHeight)
     h, w = grid.shape
     step = 1 << max(int(math.log2(max(step, 1))), 0)
     nr = max(math.ceil((h - 1) / step), 1)       # cells along rows
@@ -138,6 +155,14 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32) -> L
             for dj in (-1, 0, 1):
                 near[1 + di:lvl.shape[0] - 1 + di, 1 + dj:lvl.shape[1] - 1 + dj] |= lvl[1:-1, 1:-1]
         split = bad | (all_nan & near[r // s + 1, c // s + 1])
+        if smooth and hs > 1:
+            # on a smooth mapping the interpolation error falls with the square of the
+            # cell size: children of a cell that missed by less than ``tol`` miss by
+            # about a quarter of it, half the acceptance threshold. They are leaves
+            # without tests (their nine points are known already).
+            sure = split & (err < tol)
+            _children_leaves(exact.values, cells[sure], hs, out_cells, out_corners)
+            split &= ~sure
         sel = cells[split]
         cells = np.concatenate([sel, sel + [hs, 0], sel + [0, hs], sel + [hs, hs]])
         s = hs
