@@ -17,7 +17,7 @@ spec = importlib.util.spec_from_file_location(
     "tc", os.path.join(HERE, "..", "tests", "test_calibration.py"))
 tc = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(tc)
-from swathflow.calibration import calibrate, image_partials  # noqa: E402
+from swathflow.calibration.control import calibrate, image_partials  # noqa: E402
 
 
 def main():

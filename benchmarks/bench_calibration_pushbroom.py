@@ -24,9 +24,9 @@ def main() -> None:
     ap.add_argument("--vce", action="store_true", help="variance component estimation")
     ap.add_argument("--robust", action="store_true", help="robust phase and data snooping")
     a = ap.parse_args()
-    from swathflow.calibration_pushbroom import calibrate_pushbroom, mission_ties
-    from swathflow.mission import load_mission
-    from swathflow.simulate_pushbroom import simulate_pushbroom
+    from swathflow.sensors.pushbroom.calibration import calibrate_pushbroom, mission_ties
+    from swathflow.ingest.mission import load_mission
+    from swathflow.sensors.pushbroom.simulate import simulate as simulate_pushbroom
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "m"
         t0 = time.perf_counter()

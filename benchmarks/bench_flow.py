@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     work = Path(args.work or tempfile.mkdtemp(prefix="swathflow-bench-"))
     mission = work / f"{args.preset}-mission"
-    from swathflow.simulate import simulate
+    from swathflow.sensors.pendulum.simulate import simulate
     if not (mission / "mission.toml").exists():
         t = time.perf_counter()
         simulate(mission, preset=args.preset, seed=0)
@@ -33,7 +33,7 @@ def main(argv=None) -> int:
 
     from distributed import Client, LocalCluster
     from swathflow.flows.mission import run
-    from swathflow.mission import load_mission
+    from swathflow.ingest.mission import load_mission
     from swathflow.tasks import stages
 
     rows = []

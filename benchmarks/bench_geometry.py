@@ -28,9 +28,9 @@ def main(argv=None) -> int:
     import rasterio
     from rasterio.transform import from_origin
 
-    from swathflow.geodesy import ecef_to_geodetic, transformer, utm_crs_for
+    from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
     from swathflow.sensors.pendulum import PendulumModel
-    from swathflow.terrain import DEM
+    from swathflow.geometry.terrain import DEM
 
     n = args.points
     m = PendulumModel.example_model(n_lines=8000)

@@ -55,7 +55,7 @@ def generate(folder, n_strips, length, swath=180, overlap=0.2, seed=1, swing_row
 _CHILD = r"""
 import contextlib, json, sys
 from swathflow.cluster import dask_client
-from swathflow.mosaic import mosaic
+from swathflow.mosaicking.mosaic import mosaic
 a = json.loads(sys.argv[1])
 # as `swathflow mosaic` does: the overlaps are matched on a local Dask cluster
 ctx = dask_client() if a.get("cluster") and a.get("match", True) else contextlib.nullcontext()

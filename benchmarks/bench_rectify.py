@@ -29,9 +29,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from test_rectify import render, scene_model, texture  # noqa: E402
 
-from swathflow import rectify as R  # noqa: E402
-from swathflow.grid import ecef_to_map, footprint_grid  # noqa: E402
-from swathflow.terrain import ConstantHeight  # noqa: E402
+from swathflow.rectification import rectify as R  # noqa: E402
+from swathflow.geometry.grid import ecef_to_map, footprint_grid  # noqa: E402
+from swathflow.geometry.terrain import ConstantHeight  # noqa: E402
 
 
 def geoloc_arrays(model, terrain, crs, corner: bool = True, block: int = 256):
@@ -79,7 +79,7 @@ def _best(n, run):
 
 def _gdalwarp(raw, X, Y, grid, kernel, threads, tmp):
     import rasterio
-    from swathflow.raster import write_geotiff
+    from swathflow.formats.raster import write_geotiff
     gdal = shutil.which("gdalwarp")
     if gdal is None:
         return None
@@ -193,9 +193,9 @@ import json, resource, sys, time, os
 import numpy as np
 sys.path.insert(0, {tests!r})
 from test_rectify import scene_model
-from swathflow import rectify as R
-from swathflow.grid import footprint_grid
-from swathflow.terrain import ConstantHeight
+from swathflow.rectification import rectify as R
+from swathflow.geometry.grid import footprint_grid
+from swathflow.geometry.terrain import ConstantHeight
 import dask
 nl, ne, out_dir, gsd = {nl}, {ne}, {out!r}, {gsd}
 model = scene_model(n_lines=nl, n_elements=ne, swing={swing}, pixel_pitch=15e-6)

@@ -26,7 +26,7 @@ def main() -> None:
                     help="lines of a paper swing rendered to measure the rate")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
-    from swathflow.simulate import simulate
+    from swathflow.sensors.pendulum.simulate import simulate
     print(f"cpus: {os.cpu_count()}, load average: {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory() as tmp:
         for p in args.presets:
@@ -45,9 +45,10 @@ def _paper_rate(out: str, n: int) -> None:
     """Render ``n`` lines of the paper's L1 through the same code path and extrapolate."""
     import numpy as np
     from swathflow import load_mission
-    from swathflow.geodesy import transformer
-    from swathflow.simulate import preset_config, render_image
-    from swathflow.texture import ProceduralTexture
+    from swathflow.geometry.geodesy import transformer
+    from swathflow.sensors.pendulum.simulate import preset_config
+    from swathflow.simulation.bundle import render_image
+    from swathflow.simulation.texture import ProceduralTexture
     m = load_mission(out)
     full = m.model("L1")
     lt = {k: v[:n] for k, v in m.lines("L1").items() if k != "line"}

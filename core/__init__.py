@@ -4,9 +4,9 @@ The pure maths lives here (numpy, scipy, pyproj, rasterio; no Prefect). Sensor m
 in :mod:`swathflow.sensors`, Prefect tasks in :mod:`swathflow.tasks`, flows in
 :mod:`swathflow.flows`.
 """
-from .errors import FormatError, OutOfRangeError, SwathflowError
-from .mission import Mission, load_mission, validate_mission
-from .pos import Trajectory, interpolate_pos, read_pos
+from swathflow.errors import FormatError, OutOfRangeError, SwathflowError
+from swathflow.ingest.mission import Mission, load_mission, validate_mission
+from swathflow.formats.pos import Trajectory, interpolate_pos, read_pos
 
 __version__ = "0.1.0"
 

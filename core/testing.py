@@ -18,8 +18,8 @@ import sys
 import numpy as np
 import xarray as xr
 
-from .geodesy import geodetic_to_ecef, ecef_to_geodetic
-from .pos import Trajectory
+from swathflow.geometry.geodesy import geodetic_to_ecef, ecef_to_geodetic
+from swathflow.formats.pos import Trajectory
 
 
 def straight_trajectory(n_lines: int = 500, line_rate: float = 100.0, speed: float = 60.0,

@@ -102,17 +102,6 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             "rectified": rectified, "mosaic": mos, "timings": prog.timings}
 
 
-def _print_summary(result: dict) -> None:
-    print(f"mission {result['mission']}: done")
-    print(f"  calibration  {result['calibration']}")
-    if result.get("report"):
-        print(f"  report       {result['report']}")
-    print(f"  rectified    {len(result['rectified'])} swings in "
-          f"{os.path.dirname(result['rectified'][0]) if result['rectified'] else '-'}")
-    print(f"  mosaic       {result['mosaic']}")
-    print("  stage timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in result["timings"].items()))
-
-
 def run(mission, out, calibration=None, dask_address=None) -> dict:
     """Run the flow without the heartbeat overhead (DESIGN.md) and return its result."""
     from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
@@ -122,23 +111,3 @@ def run(mission, out, calibration=None, dask_address=None) -> dict:
         ctx = contextlib.nullcontext()
     with ctx:
         return mission_flow(str(mission), str(out), calibration, dask_address)
-
-
-def cli_run(args) -> int:
-    result = run(args.mission, args.out, args.calibration, args.dask_address)
-    _print_summary(result)
-    return 0
-
-
-def cli_demo(args) -> int:
-    from swathflow.simulate import simulate
-    out = Path(args.out).resolve()
-    mission = out / "mission"
-    t0 = time.perf_counter()
-    if not (mission / "mission.toml").exists():
-        print(f"simulating the {args.preset} mission into {mission} ...", file=sys.stderr)
-        simulate(mission, preset=args.preset, seed=0)
-    result = run(mission, out / "products")
-    _print_summary(result)
-    print(f"demo finished in {time.perf_counter() - t0:.0f} s; open {result.get('report') or ''}")
-    return 0

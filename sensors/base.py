@@ -4,7 +4,7 @@ A *sensor model* is one image's geometry: the plugin's sensor constants, its cal
 parameters, and the image support data (per-line table, trajectory). It is immutable;
 ``with_parameters`` returns a new model. Coordinates sit on the last axis: image
 ``(..., 2)`` as (line, element), ground ``(..., 3)`` in ECEF metres (EPSG:4978). Use
-:mod:`swathflow.geodesy` to go to and from latitude, longitude and height.
+:mod:`swathflow.geometry.geodesy` to go to and from latitude, longitude and height.
 
 A plugin is a subclass registered under the entry-point group ``swathflow.sensors``.
 It implements :meth:`SensorModel.build`, :meth:`default_parameters`, :meth:`ray`,
@@ -22,9 +22,9 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 
 from swathflow.errors import FormatError
-from swathflow.intersect import intersect
-from swathflow.pos import Trajectory
-from swathflow.terrain import Terrain, open_terrain
+from swathflow.geometry.intersect import intersect
+from swathflow.formats.pos import Trajectory
+from swathflow.geometry.terrain import Terrain, open_terrain
 
 #: points per pass of the vectorised projections (their temporaries then stay in the CPU
 #: cache: about 1.25x faster than one pass over 10^6 points)
@@ -165,6 +165,33 @@ class SensorModel(ABC):
     required_keys: ClassVar[tuple[str, ...]] = ()
     #: finite-difference steps per parameter unit (deg, m) for the default partials
     fd_steps: ClassVar[Mapping[str, float]] = {"deg": 1e-4, "m": 1e-4, "": 1e-6}
+    #: columns the per-line table (``<id>.lines.csv``) must carry besides ``line``
+    line_columns: ClassVar[tuple[str, ...]] = ("time",)
+    #: allowed values of an image's ``direction`` key in mission.toml (``None``: free)
+    directions: ClassVar[tuple[str, ...] | None] = None
+
+    # --- plugin hooks (what differs between scanners; the framework asks, never branches) --
+    @classmethod
+    def check_lines(cls, lines: Mapping[str, np.ndarray]) -> list[str]:
+        """Problems with one image's per-line table (column -> array), each a sentence
+        naming the column and the fix. The framework has checked already that the
+        :attr:`line_columns` are present, numeric and finite, and that ``time`` increases."""
+        return []
+
+    @classmethod
+    def calibration_strategy(cls) -> Any:
+        """The calibration strategy for this scanner: an object with
+        ``calibrate(mission, options) -> result`` (``result.write(dir)`` and
+        ``result.summary_lines()``), see :mod:`swathflow.calibration.strategy`. ``None``
+        (the default) selects the generic control-point adjustment."""
+        return None
+
+    @classmethod
+    def simulator(cls) -> Any:
+        """The scanner's mission simulator, or ``None``: an object with ``presets``
+        (names) and ``simulate(out, preset, seed, progress=None, **options) -> truth``,
+        see :mod:`swathflow.simulation`."""
+        return None
 
     # --- construction -----------------------------------------------------------------
     def __init__(self, sensor: Mapping[str, Any], lines: Mapping[str, Any],
@@ -190,7 +217,7 @@ class SensorModel(ABC):
     def build(cls, sensor, lines, trajectory, params=None, **image) -> "SensorModel":
         """The factory the registry calls: ``sensor`` is the mission's ``[sensor]`` table,
         ``lines`` the per-line table (column -> array), ``trajectory`` a
-        :class:`~swathflow.pos.Trajectory`, ``image`` the image's attributes (direction...)."""
+        :class:`~swathflow.formats.pos.Trajectory`, ``image`` the image's attributes (direction...)."""
         return cls(sensor, lines, trajectory, params, **image)
 
     @classmethod
@@ -274,7 +301,7 @@ class SensorModel(ABC):
     @classmethod
     def from_state(cls, state: Mapping) -> "SensorModel":
         import xarray as xr
-        from swathflow.pos import POS_VARIABLES
+        from swathflow.formats.pos import POS_VARIABLES
         tr = state["trajectory"]
         ds = xr.Dataset({k: ("time", np.asarray(tr[k], float)) for k in POS_VARIABLES},
                         coords={"time": np.asarray(tr["time"], float)})
@@ -316,7 +343,7 @@ class SensorModel(ABC):
 
     def image_to_ground(self, image, terrain: Terrain | float | str = 0.0) -> np.ndarray:
         """ECEF ground points ``(..., 3)`` of image points on the terrain (a constant
-        ellipsoidal height, a DEM path or a :class:`~swathflow.terrain.Terrain`).
+        ellipsoidal height, a DEM path or a :class:`~swathflow.geometry.terrain.Terrain`).
 
         Rays that miss the terrain give NaN; their count is reported as a warning. Large
         inputs go through in chunks of ``CHUNK`` points (the temporaries stay in cache)."""

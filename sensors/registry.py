@@ -12,7 +12,7 @@ from importlib.metadata import entry_points
 
 from swathflow.errors import SwathflowError
 
-from .base import SensorModel
+from swathflow.sensors.base import SensorModel
 
 GROUP = "swathflow.sensors"
 BUILTINS = {

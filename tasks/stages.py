@@ -25,7 +25,7 @@ _MISSIONS_LOCK = threading.Lock()
 def _load(mission_path: str):
     """load_mission, memoised per process on the mission folder's file stamps: every task
     of a run needs the mission, and loading it (POS, DEM, GCPs, checks) costs seconds."""
-    from swathflow.mission import load_mission
+    from swathflow.ingest.mission import load_mission
     root = Path(mission_path).resolve()
     stamp = tuple(sorted((str(p), p.stat().st_mtime_ns, p.stat().st_size)
                          for p in root.rglob("*") if p.is_file()))
@@ -67,7 +67,7 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
     line before the heavy stages start)."""
     import pandas as pd
     from swathflow.io import atomic_path
-    from swathflow.pos import interpolate_pos as interp
+    from swathflow.formats.pos import interpolate_pos as interp
     m = _load(mission_path)
     paths = []
     for iid in m.images:
@@ -90,7 +90,7 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
 def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -> str:
     """Per-swing-direction calibration from the mission's control points, or the given
     calibration file (checked), or, without control points, the mission's priors."""
-    from swathflow.calibfile import read_calibration, write_calibration
+    from swathflow.formats.calibfile import read_calibration, write_calibration
     m = _load(mission_path)
     out = Path(out_dir) / "calibration" / "calibration.json"
     if calibration:
@@ -110,14 +110,8 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
         write_calibration(out, m.sensor.get("model", ""), m.priors.to_dict(),
                           note="no control points: the mission's prior values, uncalibrated")
     else:
-        models = {iid: m.model(iid) for iid in m.images}
-        if m.sensor.get("model") == "pushbroom":     # tie points, sparse, C0/C1 constraints
-            from swathflow.calibration_pushbroom import calibrate_pushbroom, mission_ties
-            res = calibrate_pushbroom(models, m.gcps, mission_ties(m), m.priors)
-        else:
-            from swathflow.calibration import calibrate as run
-            res = run(models, m.gcps, m.priors)
-        res.write(out.parent)
+        from swathflow.calibration.strategy import calibrate_mission
+        calibrate_mission(m).write(out.parent)     # the sensor plugin's strategy
     mark_done(out, key)
     return str(out)
 
@@ -125,10 +119,10 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
 @task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
 def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
     """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration."""
-    from swathflow.calibfile import calibration_priors, read_calibration
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
     from swathflow.cache import file_digest
-    from swathflow.grid import footprint_grid
-    from swathflow.rectify import rectify_image
+    from swathflow.geometry.grid import footprint_grid
+    from swathflow.rectification.rectify import rectify_image
     m = _load(mission_path)
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
     key = stage_key("rectify", _mission_files(m) + _image_files(m, image_id) + [calibration])
@@ -150,7 +144,7 @@ def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) ->
 @task(name="mosaic", cache_policy=NO_CACHE)
 def mosaic(rectified: list[str], out_dir: str) -> str:
     """Strip matching and feathered mosaic of the rectified swings: ``OUT/mosaic.tif``."""
-    from swathflow.mosaic import mosaic as run
+    from swathflow.mosaicking.mosaic import mosaic as run
     out = Path(out_dir) / "mosaic.tif"
     key = stage_key("mosaic", rectified)
     if is_fresh(out, key):

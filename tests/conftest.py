@@ -29,7 +29,7 @@ def prefect_harness():
 @pytest.fixture(scope="session")
 def tiny_mission(tmp_path_factory):
     """A simulated ``tiny`` mission (seed 1) with its truth; shared, treat as read-only."""
-    from swathflow.simulate import simulate
+    from swathflow.sensors.pendulum.simulate import simulate
     out = tmp_path_factory.mktemp("tiny") / "mission"
     simulate(out, preset="tiny", seed=1)
     return out

@@ -111,7 +111,7 @@ def make_swings(folder, n_strips=5, swath=180, length=600, overlap=0.2, n_swings
     footprint masks on the grid or None, grid shape)``.
     """
     from affine import Affine
-    from swathflow.raster import write_geotiff
+    from swathflow.formats.raster import write_geotiff
     rng = np.random.default_rng(seed)
     os.makedirs(folder, exist_ok=True)
     step = int(round(swath * (1 - overlap)))

@@ -13,8 +13,8 @@ import pytest
 import xarray as xr
 from scipy import stats
 
-from swathflow.calibration import CalibrationError, calibrate, image_partials
-from swathflow.pos import Trajectory
+from swathflow.calibration.control import CalibrationError, calibrate, image_partials
+from swathflow.formats.pos import Trajectory
 from swathflow.sensors.registry import get_sensor
 
 SENSOR = {"pixel_pitch": 15e-6, "focal_length": 0.16, "n_elements": 1024, "k0": 511.5,
@@ -251,7 +251,7 @@ def test_drift_option_runs_and_finds_no_drift(models, clean_obs, priors):
 
 
 def test_write_outputs(paper_result, tmp_path):
-    from swathflow.calibfile import calibration_priors, read_calibration
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
     paths = paper_result.write(tmp_path)
     doc = read_calibration(paths["calibration"])
     assert set(doc["parameters"]) == set(ORDER)
@@ -267,7 +267,7 @@ def test_write_outputs(paper_result, tmp_path):
 
 
 def test_cli_on_simulated_paper_mission(tmp_path):
-    pytest.importorskip("swathflow.simulate")
+    pytest.importorskip("swathflow.sensors.pendulum.simulate")
     from swathflow.flows.cli import main
     mission = tmp_path / "paper"
     assert main(["simulate", str(mission), "--preset", "paper", "--seed", "3"]) == 0
@@ -283,7 +283,7 @@ def test_cli_on_simulated_paper_mission(tmp_path):
 
 
 def test_cli_clear_error_without_points(tmp_path, capsys):
-    pytest.importorskip("swathflow.simulate")
+    pytest.importorskip("swathflow.sensors.pendulum.simulate")
     from swathflow.flows.cli import main
     mission = tmp_path / "paper"
     assert main(["simulate", str(mission), "--preset", "tiny", "--seed", "1"]) == 0

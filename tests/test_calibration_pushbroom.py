@@ -1,4 +1,4 @@
-"""Push-broom calibration (swathflow.calibration_pushbroom) against simulator truth.
+"""Push-broom calibration (swathflow.sensors.pushbroom.calibration) against simulator truth.
 
 Missions come from the push-broom simulator (geometry only): the truth parameters (lever
 arm, boresight, smooth APs, fix corrections) are known, and the image measurements carry
@@ -12,10 +12,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from swathflow.calibration_pushbroom import calibrate_pushbroom, mission_ties, read_ties
+from swathflow.sensors.pushbroom.calibration import calibrate_pushbroom, mission_ties, read_ties
 from swathflow.errors import FormatError
-from swathflow.mission import load_mission
-from swathflow.simulate_pushbroom import simulate_pushbroom
+from swathflow.ingest.mission import load_mission
+from swathflow.sensors.pushbroom.simulate import simulate as simulate_pushbroom
 from swathflow.sensors.pushbroom import continuity_residuals
 
 NOISE = 0.3

@@ -22,8 +22,8 @@ def _outputs(out: Path) -> dict:
 
 
 def _check_against_truth(mission: Path, result: dict, tol_px: float = 0.25):
-    from swathflow.mission import load_mission
-    from swathflow.rectify import phase_shift
+    from swathflow.ingest.mission import load_mission
+    from swathflow.rectification.rectify import phase_shift
     m = load_mission(mission)
     with rasterio.open(mission / "truth" / "ortho.tif") as t:
         truth = t.read(1, masked=True).astype(float).filled(np.nan)
@@ -67,7 +67,7 @@ def test_flow_end_to_end_and_rerun_reuses_outputs(tiny_mission, tmp_path):
 
 
 def test_changed_calibration_recomputes_only_what_depends_on_it(tiny_mission, tmp_path):
-    from swathflow.calibfile import read_calibration, write_calibration
+    from swathflow.formats.calibfile import read_calibration, write_calibration
     from swathflow.flows.mission import run
     out = tmp_path / "out"
     cal = tmp_path / "cal.json"
@@ -151,9 +151,9 @@ def test_killed_dask_worker_does_not_break_rectification(tiny_mission, tmp_path)
 def test_flow_calibrates_and_maps_a_pushbroom_mission(tmp_path):
     """The same flow on a three-line push-broom mission: its own calibration (tie points,
     C0/C1), rectification and mosaic, unchanged; every view lands on the truth ortho."""
-    from swathflow.calibfile import read_calibration
+    from swathflow.formats.calibfile import read_calibration
     from swathflow.flows.mission import run
-    from swathflow.simulate_pushbroom import simulate_pushbroom
+    from swathflow.sensors.pushbroom.simulate import simulate as simulate_pushbroom
     mission = tmp_path / "pb"
     simulate_pushbroom(mission, preset="pushbroom", seed=1)
     result = run(mission, tmp_path / "out")

@@ -2,8 +2,8 @@
 import numpy as np
 from hypothesis import example, given, settings, strategies as st
 
-from swathflow.geodesy import ecef_to_geodetic, geodetic_to_ecef
-from swathflow.rotations import r_en, r_nb, r_opk, rx, ry, rz
+from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from swathflow.geometry.rotations import r_en, r_nb, r_opk, rx, ry, rz
 from swathflow.sensors.pendulum import PendulumModel
 from swathflow.testing import straight_trajectory
 
@@ -79,7 +79,7 @@ def test_round_trip_random_sensors(params, swing, direction, heading, roll, y0, 
 
 @given(angles, angles, angles)
 def test_closed_form_builders_equal_the_spec_products(a, b, c):
-    from swathflow.rotations import r_ph
+    from swathflow.geometry.rotations import r_ph
     assert np.allclose(r_nb(a, b, c), rz(c) @ ry(b) @ rx(a), atol=1e-14)
     assert np.allclose(r_ph(a, b), rx(a) @ ry(b), atol=1e-14)
     lat, lon = a / 2, b

@@ -1,4 +1,4 @@
-"""Output grids (swathflow.grid): coordinates against rasterio's conventions, snapping,
+"""Output grids (swathflow.geometry.grid): coordinates against rasterio's conventions, snapping,
 tiling, auto-UTM and footprints against independent projections."""
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import rasterio.transform
 from affine import Affine
 
 from swathflow.errors import FormatError
-from swathflow.geodesy import ecef_to_geodetic, transformer
-from swathflow.grid import Grid, ecef_to_map, footprint_grid, resolve_crs, union_grid
-from swathflow.terrain import ConstantHeight
+from swathflow.geometry.geodesy import ecef_to_geodetic, transformer
+from swathflow.geometry.grid import Grid, ecef_to_map, footprint_grid, resolve_crs, union_grid
+from swathflow.geometry.terrain import ConstantHeight
 
 
 def _grid():

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mosaic_synth import texture
-from swathflow.matching import (BlockMatch, combine_blocks, gradient_refine, match_block,
+from swathflow.mosaicking.matching import (BlockMatch, combine_blocks, gradient_refine, match_block,
                                 mmgd_search, phase_correlation)
 
 SHIFTS = [(0.3, -2.7), (1.45, 3.2), (-4.1, 0.6), (2.5, 2.5), (-0.8, -4.9)]

@@ -13,9 +13,9 @@ import rasterio
 
 from swathflow import load_mission
 from swathflow.errors import SwathflowError
-from swathflow.geodesy import geodetic_to_ecef
-from swathflow.mission import ImageEntry, Mission
-from swathflow.simulate import PRIORS, simulate
+from swathflow.geometry.geodesy import geodetic_to_ecef
+from swathflow.ingest.mission import ImageEntry, Mission
+from swathflow.sensors.pendulum.simulate import PRIORS, simulate
 
 pytestmark = pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
 
@@ -117,7 +117,7 @@ def test_model_reproduces_truth_gcps(tiny):
     """With the TRUE parameters the mission's model (built on the NOISY POS) puts the true
     ground points at their true image coordinates to a fraction of a pixel; with the
     priors (no calibration) it is off by many pixels."""
-    from swathflow.calibfile import calibration_priors, read_calibration
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
     m = load_mission(tiny)
     truth = m.priors.updated(calibration_priors(read_calibration(
         tiny / "truth" / "calibration.json")))
@@ -156,7 +156,7 @@ def test_simulator_envi_option(tmp_path):
 
 
 def test_csv_pos_and_auto_utm(copy):
-    from swathflow.pos import read_pos, write_pos_csv
+    from swathflow.formats.pos import read_pos, write_pos_csv
     write_pos_csv(read_pos(copy / "pos.sbet"), copy / "pos.csv")
     (copy / "pos.sbet").unlink()
     _edit_toml(copy, 'file = "pos.sbet"\nformat = "sbet"', 'file = "pos.csv"\nformat = "csv"')
@@ -177,7 +177,7 @@ def test_load_raises_listing_all_problems(copy):
 
 def test_gcps_in_a_projected_crs(copy, tiny):
     """[gcp].crs may be projected (x, y) with ellipsoidal z: lat/lon come back the same."""
-    from swathflow.geodesy import transformer
+    from swathflow.geometry.geodesy import transformer
     g = pd.read_csv(copy / "gcp.csv")
     e, n = transformer("EPSG:4326", "EPSG:32651").transform(g["x"].to_numpy(), g["y"].to_numpy())
     g["x"], g["y"] = e, n

@@ -11,9 +11,9 @@ import pytest
 import rasterio
 
 from mosaic_synth import (ImageTruth, make_swings, random_shifts, truth_grid)
-from swathflow import mosaic as M
+from swathflow.mosaicking import mosaic as M
 from swathflow.errors import FormatError, SwathflowError
-from swathflow.matching import OverlapMatch, gradient_refine
+from swathflow.mosaicking.matching import OverlapMatch, gradient_refine
 
 LAKE = (200, 400, 130, 200)         # a flat area covering part of the strip 0/1 overlap
 N = 5
@@ -70,7 +70,7 @@ def test_scan_inputs(scene):
 
 def test_scan_inputs_rejects_misaligned(scene, tmp_path):
     from affine import Affine
-    from swathflow.raster import write_geotiff
+    from swathflow.formats.raster import write_geotiff
     bad = tmp_path / "bad.tif"
     write_geotiff(bad, np.ones((10, 10), np.float32), "EPSG:32633",
                   Affine(2.0, 0, 500000.7, 0, -2.0, 4000000.0), nodata=-9999)

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from spec_vectors import VECTORS, load_cases, pos_dataset
-from swathflow.geodesy import ecef_to_geodetic, geodetic_to_ecef
-from swathflow.pos import Trajectory
+from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from swathflow.formats.pos import Trajectory
 from swathflow.sensors import get_sensor
 
 CASES = load_cases("pendulum-v1.json")

@@ -5,7 +5,7 @@ import xarray as xr
 
 from spec_vectors import DATA
 from swathflow import FormatError, OutOfRangeError, read_pos
-from swathflow.pos import (SBET_DTYPE, Trajectory, interpolate_pos, read_sbet, write_pos_csv,
+from swathflow.formats.pos import (SBET_DTYPE, Trajectory, interpolate_pos, read_sbet, write_pos_csv,
                            write_sbet)
 
 SBET = DATA / "pdal-sbet" / "2-points.sbet"

@@ -6,11 +6,11 @@ from hypothesis import given, settings, strategies as st
 
 from spec_vectors import load_cases, pos_dataset
 from swathflow.errors import FormatError
-from swathflow.geodesy import ecef_to_geodetic, geodetic_to_ecef
-from swathflow.pos import Trajectory
-from swathflow.rotations import r_en
+from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from swathflow.formats.pos import Trajectory
+from swathflow.geometry.rotations import r_en
 from swathflow.sensors import get_sensor
-from swathflow.sensors.pushbroom import (PushbroomModel, continuity_matrix,
+from swathflow.sensors.pushbroom.model import (PushbroomModel, continuity_matrix,
                                          continuity_residuals, example_sensor, views)
 
 CASES = load_cases("pushbroom-v1.json")

@@ -1,4 +1,4 @@
-"""Rectification (swathflow.rectify) against known truth.
+"""Rectification (swathflow.rectification.rectify) against known truth.
 
 The scene: a pendulum swing built from the spec vectors' first case (its real-looking
 trajectory and calibration; a coarser detector so the test stays small), a raw image
@@ -17,10 +17,10 @@ import pytest
 
 from spec_vectors import load_cases, pos_dataset
 from truth_ortho import overlap_with_truth
-from swathflow import rectify as R
-from swathflow.grid import Grid, ecef_to_map, footprint_grid
-from swathflow.pos import Trajectory
-from swathflow.terrain import DEM, ConstantHeight
+from swathflow.rectification import rectify as R
+from swathflow.geometry.grid import Grid, ecef_to_map, footprint_grid
+from swathflow.formats.pos import Trajectory
+from swathflow.geometry.terrain import DEM, ConstantHeight
 
 GSD = 1.5
 
@@ -78,7 +78,7 @@ def render(model, terrain, crs, block: int = 256) -> np.ndarray:
 
 def hills_dem(path, grid: Grid, base=5.0, relief=120.0, cell=4.0):
     """A DEM GeoTIFF (ellipsoidal heights) with a hill and ridges under ``grid``."""
-    from swathflow.raster import write_geotiff
+    from swathflow.formats.raster import write_geotiff
     xmin, ymin, xmax, ymax = grid.bounds
     pad = 200.0
     g = Grid.from_bounds(grid.crs, (xmin - pad, ymin - pad, xmax + pad, ymax + pad), cell)
@@ -327,7 +327,7 @@ def test_paper_size_swing_peak_memory_below_2gb():
 # end to end on a simulated mission bundle (truth ortho from the simulator)
 # ----------------------------------------------------------------------------------------
 def _simulate(tmp, preset="tiny", extra=()):
-    pytest.importorskip("swathflow.simulate")
+    pytest.importorskip("swathflow.sensors.pendulum.simulate")
     from swathflow.flows.cli import main
     out = tmp / "mission"
     assert main(["simulate", str(out), "--preset", preset, "--seed", "3", *extra]) == 0
@@ -336,7 +336,7 @@ def _simulate(tmp, preset="tiny", extra=()):
 
 def _compare_with_truth(mission_dir, out_dir, tile=32):
     import rasterio
-    from swathflow.raster import read_raster
+    from swathflow.formats.raster import read_raster
     truth_path = mission_dir / "truth" / "ortho.tif"
     if not truth_path.exists():
         pytest.skip("the simulator wrote no truth/ortho.tif")
@@ -414,8 +414,8 @@ def test_cli_rectify_real_texture_over_real_dem(tmp_path):
     # the geometry itself, directly: rectifier coordinates vs the exact model, every pixel
     import rasterio
     import warnings
-    from swathflow.calibfile import calibration_priors, read_calibration
-    from swathflow.mission import load_mission
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
+    from swathflow.ingest.mission import load_mission
     m = load_mission(mission)
     params = m.priors.updated(calibration_priors(read_calibration(
         mission / "truth" / "calibration.json")))

@@ -50,7 +50,7 @@ def test_installed_plugin_is_found_and_broken_ones_warn(plugin_site):
     assert r.returncode == 0, r.stderr
     found = json.loads(r.stdout.strip().splitlines()[-1])
     assert found["sample-nadir"] == "swathflow_sample_plugins"
-    assert found["pendulum"] == "swathflow.sensors.pendulum"    # the clash did not replace it
+    assert found["pendulum"] == "swathflow.sensors.pendulum.model"    # the clash did not replace it
     assert "sample-broken" not in found and "sample-notamodel" not in found
     assert "sample-broken" in r.stderr and "failed to load" in r.stderr
     assert "not a SensorModel" in r.stderr

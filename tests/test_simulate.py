@@ -13,13 +13,14 @@ import pytest
 import rasterio
 
 from swathflow import load_mission
-from swathflow.calibfile import calibration_priors, read_calibration
+from swathflow.formats.calibfile import calibration_priors, read_calibration
 from swathflow.errors import SwathflowError
-from swathflow.geodesy import geodetic_to_ecef, transformer
-from swathflow.pos import Trajectory, read_pos
-from swathflow.raster import read_raster
+from swathflow.geometry.geodesy import geodetic_to_ecef, transformer
+from swathflow.formats.pos import Trajectory, read_pos
+from swathflow.formats.raster import read_raster
 from swathflow.sensors import get_sensor
-from swathflow.simulate import footprint_en, preset_config, simulate, spline_en
+from swathflow.sensors.pendulum.simulate import preset_config, simulate
+from swathflow.simulation.bundle import footprint_en, spline_en
 
 pytestmark = pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
 
@@ -98,7 +99,7 @@ def test_deterministic_for_a_seed(tmp_path):
 
 
 def test_bundle_is_valid_and_complete(tiny):
-    from swathflow.mission import validate_mission
+    from swathflow.ingest.mission import validate_mission
     assert validate_mission(tiny) == []
     for name in ("mission.toml", "pos.sbet", "dem.tif", "gcp.csv", "images/L1.tif",
                  "images/R1.lines.csv", "truth/calibration.json", "truth/pos.csv",
@@ -309,7 +310,7 @@ def test_rendered_targets_land_where_the_model_projects_them(tiny):
 def test_demo_render_geometry_and_radiometry(tmp_path):
     """The README demo, rendered: valid, targets where the model projects them (swings
     of +-15 deg, two strips flown in opposite directions), images agree with the ortho."""
-    from swathflow.mission import validate_mission
+    from swathflow.ingest.mission import validate_mission
     out = tmp_path / "demo"
     simulate(out, "demo", seed=0)
     assert validate_mission(out) == []
@@ -349,7 +350,7 @@ def test_rendered_image_agrees_with_truth_ortho(tiny):
 def _check_image_vs_ortho(out):
     m, models = _true_models(out)
     r = read_raster(out / "truth" / "ortho.tif")
-    from swathflow.terrain import bilinear
+    from swathflow.geometry.terrain import bilinear
     rng = np.random.default_rng(0)
     for iid, model in models.items():
         dn = m.image(iid)["dn"].values.astype(float)

@@ -1,4 +1,4 @@
-"""The push-broom simulator (swathflow.simulate_pushbroom): bundles that validate, truth
+"""The push-broom simulator (swathflow.sensors.pushbroom.simulate): bundles that validate, truth
 that reproduces the measurements, and the unchanged rectifier on a rendered mission."""
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import re
 import numpy as np
 import pandas as pd
 
-from swathflow.calibfile import calibration_priors, read_calibration
-from swathflow.mission import load_mission, validate_mission
+from swathflow.formats.calibfile import calibration_priors, read_calibration
+from swathflow.ingest.mission import load_mission, validate_mission
 from swathflow.sensors.pushbroom import continuity_residuals
-from swathflow.simulate_pushbroom import simulate_pushbroom
+from swathflow.sensors.pushbroom.simulate import simulate as simulate_pushbroom
 from truth_ortho import overlap_with_truth
 
 
@@ -62,8 +62,8 @@ def test_geometry_only_bundle_and_truth(tmp_path):
 
 def test_cli_simulate_validate_rectify_nadir_against_truth(tmp_path):
     from swathflow.flows.cli import main
-    from swathflow.raster import read_raster
-    from swathflow.rectify import phase_shift
+    from swathflow.formats.raster import read_raster
+    from swathflow.rectification.rectify import phase_shift
     import rasterio
     mission = tmp_path / "mission"
     assert main(["simulate", str(mission), "--preset", "pushbroom", "--seed", "3"]) == 0

@@ -6,11 +6,11 @@ from rasterio.transform import from_origin
 
 from swathflow import SwathflowError
 from swathflow.errors import FormatError
-from swathflow.geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer
-from swathflow.intersect import intersect
+from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer
+from swathflow.geometry.intersect import intersect
 from swathflow.sensors import RayMissWarning
 from swathflow.sensors.pendulum import PendulumModel
-from swathflow.terrain import DEM, ConstantHeight, open_terrain
+from swathflow.geometry.terrain import DEM, ConstantHeight, open_terrain
 
 E0, N0 = 500000.0, 3430000.0   # UTM 51N, near 31 N 123 E
 SLOPE_E, SLOPE_N, H0 = 0.15, -0.08, 40.0
@@ -82,7 +82,7 @@ def test_orthometric_dem_needs_a_stated_geoid(plane_dem):
 
 
 def test_missing_geoid_grid_is_an_error_not_a_noop(plane_dem, monkeypatch):
-    import swathflow.terrain as t
+    import swathflow.geometry.terrain as t
     monkeypatch.setattr(t, "_find_geoid_grid", lambda name: None)
     with pytest.raises(SwathflowError, match="proj-data"):
         DEM.open(plane_dem, vertical="orthometric", geoid="egm96")

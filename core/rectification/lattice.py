@@ -122,7 +122,7 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
 
     ``smooth`` (default: the terrain is a constant height, so the mapping is analytic)
     lets cells whose parent missed by less than ``tol`` skip their own tests."""
-    from ..terrain import ConstantHeight
+    from swathflow.geometry.terrain import ConstantHeight
     if smooth is None:
         smooth = isinstance(terrain, ConstantHeight)
     h, w = grid.shape
@@ -187,8 +187,8 @@ def inverse_map(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     ``grid`` (NaN where the image does not see the ground; coordinates beyond the
     detector's ends are kept, the caller masks them). ``stats`` (a dict) receives the
     count of exact evaluations."""
-    from ..terrain import open_terrain
-    from .kernel import lattice_coords_f64
+    from swathflow.geometry.terrain import open_terrain
+    from swathflow.rectification.kernel import lattice_coords_f64
     lv = leaves(model, grid, open_terrain(terrain), tol, step)
     if stats is not None:
         stats["exact_evaluations"] = stats.get("exact_evaluations", 0) + lv.exact_evaluations

@@ -19,8 +19,7 @@ import re
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from ..errors import FormatError
+from swathflow.errors import FormatError
 
 ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8",
                15: "u8"}
@@ -48,6 +47,17 @@ class BandInfo:
         if self.fwhm is not None:
             t["fwhm"] = repr(self.fwhm)
         return t
+
+
+def _open_raw(path):
+    """rasterio.open for raw (non-georeferenced) images, without the warning."""
+    import warnings
+
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        return rasterio.open(os.fspath(path))
 
 
 # ----------------------------------------------------------------------------------------
@@ -214,8 +224,6 @@ class RawImage:
         """``(bands, l1 - l0, e1 - e0)`` in the native dtype (native byte order)."""
         if self.data is None:
             from rasterio.windows import Window
-
-            from ..mission import _open_raw
             with _open_raw(self.path) as src:
                 a = src.read([i + 1 for i in self.selected],
                              window=Window(e0, l0, e1 - e0, l1 - l0))
@@ -251,8 +259,6 @@ def _with_rasterio(img: RawImage, sel) -> RawImage:
 
 def _open_rasterio(path: str, nodata=None) -> RawImage:
     import rasterio
-
-    from ..mission import _open_raw
     try:
         with _open_raw(path) as src:
             shape3 = (src.count, src.height, src.width)

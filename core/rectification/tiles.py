@@ -12,12 +12,11 @@ import math
 import warnings
 
 import numpy as np
-
-from ..errors import FormatError
-from ..terrain import open_terrain
-from .kernel import lattice_coords, resample_window
-from .lattice import TOLERANCE_PX, leaves
-from .rawimage import RawImage, open_raw_image
+from swathflow.errors import FormatError
+from swathflow.geometry.terrain import open_terrain
+from swathflow.rectification.kernel import lattice_coords, resample_window
+from swathflow.rectification.lattice import TOLERANCE_PX, leaves
+from swathflow.rectification.rawimage import RawImage, open_raw_image
 
 KERNELS = ("nearest", "bilinear", "cubic")
 MARGIN = {"nearest": 1, "bilinear": 2, "cubic": 3}

@@ -30,8 +30,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from swathflow.errors import FormatError
-from swathflow.linesolve import bracket_lines, secant_lines
-from swathflow.rotations import apply, apply_t, r_en, r_nb, r_opk
+from swathflow.geometry.linesolve import bracket_lines, secant_lines
+from swathflow.geometry.rotations import apply, apply_t, r_en, r_nb, r_opk
 from swathflow.sensors.base import Parameter, ParameterSet, SensorModel
 
 

@@ -6,8 +6,8 @@ import pytest
 import xarray as xr
 
 from swathflow.errors import FormatError
-from swathflow.pos import Trajectory
-from swathflow.rotations import r_en
+from swathflow.formats.pos import Trajectory
+from swathflow.geometry.rotations import r_en
 from swathflow.testing import check_model
 from swathflow_rotating_mirror import RotatingMirrorModel
 

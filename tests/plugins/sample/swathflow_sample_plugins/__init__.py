@@ -2,7 +2,7 @@
 but a lever arm, enough to exercise the registry and the contract suite."""
 import numpy as np
 
-from swathflow.rotations import apply, apply_t, r_en, r_nb
+from swathflow.geometry.rotations import apply, apply_t, r_en, r_nb
 from swathflow.sensors.base import Parameter, ParameterSet, SensorModel
 
 
@@ -41,7 +41,7 @@ class SampleNadirModel(SensorModel):
         return np.interp(np.asarray(image, float)[..., 0], self._idx, self._lines["time"])
 
     def ground_to_image(self, ground, clip=True):
-        from swathflow.linesolve import bracket_lines, secant_lines
+        from swathflow.geometry.linesolve import bracket_lines, secant_lines
         g = np.asarray(ground, float).reshape(-1, 3)
         out = np.full((g.shape[0], 2), np.nan)
         j, fj, fj1, found = bracket_lines(

@@ -3,7 +3,7 @@ pushbroom...``).
 
 A three-line camera (forward / nadir / backward lines at about +25 / 0 / -25 deg, each CCD
 line made of segments) flies parallel strips over the simulator's procedural terrain and
-texture (:mod:`swathflow.texture`). The truth has smooth additional parameters (one cubic
+texture (:mod:`swathflow.simulation.texture`). The truth has smooth additional parameters (one cubic
 over the whole line per view and polynomial, re-expanded per segment, so C0/C1 hold
 exactly), a lever arm, a boresight and LIM orientation-fix corrections. The mission's POS
 is the one the camera's geometry is defined on (the fix corrections model its slowly
@@ -16,7 +16,7 @@ image per CCD line and strip (``view`` = forward/nadir/backward), line tables, `
 measured in the images, ground unknown), ``[sensor.fixes]`` and the priors; plus
 ``truth/`` (calibration.json, pos.csv, gcp.csv, ties.csv, ortho.tif, truth.json).
 
-Images are rendered through the sensor plugin with :func:`swathflow.simulate.render_image`
+Images are rendered through the sensor plugin with :func:`swathflow.sensors.pendulum.simulate.render_image`
 (``render=False``: blank images, for geometry-only calibration tests).
 """
 from __future__ import annotations
@@ -31,13 +31,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import SwathflowError
-from .geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
-from .io import write_text
-from .pos import Trajectory, write_pos_csv, write_sbet
-from .simulate import (Plan, _cli_overrides, _plain, _toml_value, _write_csv,  # shared
-                       _write_mission_toml, make_trajectory, square_grid,
-                       write_swing)
+from swathflow.errors import SwathflowError
+from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
+from swathflow.io import write_text
+from swathflow.formats.pos import Trajectory, write_pos_csv, write_sbet
+from swathflow.simulation.bundle import (Plan, make_trajectory, plain, square_grid, toml_value,
+                                        write_csv, write_mission_toml, write_swing)
 
 VIEWS = {"forward": 25.0, "nadir": 0.0, "backward": -25.0}
 VIEW_LETTER = {"forward": "F", "nadir": "N", "backward": "B"}
@@ -73,7 +72,7 @@ class PushbroomConfig:
     terrain_relief: float = 15.0
     terrain_wavelength: float = 500.0
     dem_cell: float = 2.0
-    # aircraft motion (as swathflow.simulate)
+    # aircraft motion (as swathflow.sensors.pendulum.simulate)
     roll_amp: float = 1.0
     pitch_amp: float = 0.4
     pitch_mean: float = 1.5
@@ -106,7 +105,7 @@ class PushbroomConfig:
     tie_noise: float = 0.3          # px
     edge_margin: float = 3.0        # px from the image edges
     target_radius_px: float = 1.5
-    # rendering (as swathflow.simulate.render_image)
+    # rendering (as swathflow.sensors.pendulum.simulate.render_image)
     render: bool = True
     supersample: int = 2
     node_step: int = 8
@@ -321,14 +320,14 @@ def _obs_frame(obs, ids, id_col) -> pd.DataFrame:
 # ------------------------------------------------------------------------------------------
 # the simulation
 
-def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=None,
+def simulate(out, preset: str = "pushbroom", seed: int = 0, progress=None,
                        **overrides) -> dict:
     """Write a simulated push-broom mission to ``out``; returns the truth summary."""
     from swathflow.sensors import get_sensor
-    from .calibfile import write_calibration
-    from .raster import write_geotiff
-    from .terrain import DEM
-    from .texture import ProceduralTerrain, ProceduralTexture, area_average
+    from swathflow.formats.calibfile import write_calibration
+    from swathflow.formats.raster import write_geotiff
+    from swathflow.geometry.terrain import DEM
+    from swathflow.simulation.texture import ProceduralTerrain, ProceduralTexture, area_average
     say = progress or (lambda msg: None)
     clock = time.perf_counter()
     cfg = preset_config(preset, **overrides)
@@ -395,8 +394,8 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
         entries.append((iid, *paths, view, s))
 
     # footprint -> truth ortho
-    from .intersect import intersect
-    from .mission import image_border
+    from swathflow.geometry.intersect import intersect
+    from swathflow.ingest.mission import image_border
     border = []
     for m in models.values():
         o, d = m.ray(image_border(m.shape, 40))
@@ -431,9 +430,9 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
     gobs["line"] += grng.normal(0, cfg.gcp_noise, len(gobs))
     gobs["element"] += grng.normal(0, cfg.gcp_noise, len(gobs))
     fmt = {"line": "%.4f", "element": "%.4f", "x": "%.10f", "y": "%.10f", "z": "%.4f"}
-    _write_csv(out / "gcp.csv", gobs[["gcp_id", "image_id", "line", "element", "x", "y", "z",
+    write_csv(out / "gcp.csv", gobs[["gcp_id", "image_id", "line", "element", "x", "y", "z",
                                       "role"]], fmt)
-    _write_csv(out / "truth" / "gcp.csv", truth_g, {**fmt, "line": "%.6f", "element": "%.6f",
+    write_csv(out / "truth" / "gcp.csv", truth_g, {**fmt, "line": "%.6f", "element": "%.6f",
                                                      "X": "%.4f", "Y": "%.4f", "Z": "%.4f"})
     tobs = _obs_frame(t_obs, tie_ids, "tie_id")
     k = tobs.pop("_k").to_numpy()
@@ -443,8 +442,8 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
     truth_t["X"], truth_t["Y"], truth_t["Z"] = t_xyz[k, 0], t_xyz[k, 1], t_xyz[k, 2]
     tobs["line"] += grng.normal(0, cfg.tie_noise, len(tobs))
     tobs["element"] += grng.normal(0, cfg.tie_noise, len(tobs))
-    _write_csv(out / "ties.csv", tobs, {"line": "%.4f", "element": "%.4f"})
-    _write_csv(out / "truth" / "ties.csv", truth_t,
+    write_csv(out / "ties.csv", tobs, {"line": "%.4f", "element": "%.4f"})
+    write_csv(out / "truth" / "ties.csv", truth_t,
                {"line": "%.6f", "element": "%.6f", "lon": "%.10f", "lat": "%.10f",
                 "h": "%.4f", "X": "%.4f", "Y": "%.4f", "Z": "%.4f"})
 
@@ -472,9 +471,9 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
     priors = prior_table(cfg, fix_t.size)
     truth = {
         "format": "swathflow-simulation-truth/1", "sensor": "pushbroom",
-        "preset": cfg.preset, "seed": int(seed), "config": _plain(asdict(cfg)),
+        "preset": cfg.preset, "seed": int(seed), "config": plain(asdict(cfg)),
         "crs": plan.crs, "gsd": gsd, "centre_en": list(plan.centre),
-        "plan": _plain(asdict(plan)), "strips": strips,
+        "plan": plain(asdict(plan)), "strips": strips,
         "images": [{"id": iid, "view": v, "strip": s, "lines": models[iid].n_lines,
                     "elements": cfg.n_elements, "t0": float(lt["time"][0]),
                     "t1": float(lt["time"][-1])} for iid, v, s, lt in images],
@@ -505,28 +504,9 @@ def simulate_pushbroom(out, preset: str = "pushbroom", seed: int = 0, progress=N
 
 
 def _write_toml(out, cfg, plan, pos_name, entries, sensor, priors):
-    lines = [f"{k} = {_toml_value(v)}" for k, v in sensor.items() if k not in ("views", "fixes")]
-    lines += ["", "[sensor.views]"] + [f"{k} = {_toml_value(float(v))}"
+    lines = [f"{k} = {toml_value(v)}" for k, v in sensor.items() if k not in ("views", "fixes")]
+    lines += ["", "[sensor.views]"] + [f"{k} = {toml_value(float(v))}"
                                        for k, v in sensor["views"].items()]
-    lines += ["", "[sensor.fixes]", f"time = {_toml_value(sensor['fixes']['time'])}"]
-    _write_mission_toml(out, cfg.preset, plan.crs, cfg.gsd, pos_name, lines, priors, entries,
+    lines += ["", "[sensor.fixes]", f"time = {toml_value(sensor['fixes']['time'])}"]
+    write_mission_toml(out, cfg.preset, plan.crs, cfg.gsd, pos_name, lines, priors, entries,
                         "view", ties=True)
-
-
-def cli_simulate_pushbroom(args) -> int:
-    """``swathflow simulate OUT --preset pushbroom[-demo|-calib|-bench]``."""
-    overrides = _cli_overrides(args, ("gcp_noise", "image_format", "pos_format"))
-    if getattr(args, "geometry_only", False):
-        overrides["write_ortho"] = False
-    for key in ("texture", "dem"):
-        if getattr(args, key, None):
-            raise SwathflowError(f"--{key} is not supported by the push-broom presets yet")
-    t0 = time.perf_counter()
-    truth = simulate_pushbroom(args.out, args.preset, args.seed,
-                               progress=lambda m: print(m, flush=True), **overrides)
-    n_obs = sum(v["control"] + v["check"] for v in truth["gcp_counts"].values())
-    print(f"wrote {args.out}: {len(truth['images'])} push-broom images, {n_obs} GCP and "
-          f"{truth['tie_observations']} tie observations, "
-          f"{'rendered' if truth['images_rendered'] else 'geometry only'}, in "
-          f"{time.perf_counter() - t0:.1f} s (truth in {os.path.join(args.out, 'truth')})")
-    return 0

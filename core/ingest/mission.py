@@ -18,15 +18,14 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .errors import SwathflowError
-from .pos import Trajectory, read_pos
-from .terrain import DEM, ConstantHeight, Terrain
+from swathflow.errors import SwathflowError
+from swathflow.formats.pos import Trajectory, read_pos
+from swathflow.geometry.terrain import DEM, ConstantHeight, Terrain
 
 GCP_COLUMNS = ("gcp_id", "image_id", "line", "element", "x", "y", "z", "role")
 GCP_ROLES = ("control", "check")
 #: per-line columns every line table needs; plugins may ask for more (``line_columns``)
 BASE_LINE_COLUMNS = ("line", "time")
-KNOWN_LINE_COLUMNS = {"pendulum": ("time", "swing", "pitch_comp"), "pushbroom": ("time",)}
 IMAGE_KEYS = ("id", "file", "lines", "direction", "strip")
 
 
@@ -156,11 +155,16 @@ class Mission:
         ds = xr.Dataset({"dn": (("line", "element"), arr)}, coords=coords, attrs=attrs)
         return ds
 
+    @property
+    def sensor_class(self):
+        """The registered sensor-model class (plugin) of the mission's ``[sensor] model``."""
+        from swathflow.sensors import get_sensor
+        return get_sensor(self.sensor["model"])
+
     def model(self, image_id: str, params=None):
         """The sensor model of one image (``params`` default: the mission's priors)."""
-        from swathflow.sensors import get_sensor
         e = self.images[image_id]
-        cls = get_sensor(self.sensor["model"])
+        cls = self.sensor_class
         lt = {k: v for k, v in self.lines(image_id).items() if k != "line"}
         return cls.build(self.sensor, lt, self.trajectory,
                          self.priors if params is None else params,
@@ -367,8 +371,7 @@ def _inspect(path) -> tuple[list[Problem], dict]:
         entries = []
     need_cols = BASE_LINE_COLUMNS
     if cls is not None:
-        extra = getattr(cls, "line_columns", None) or KNOWN_LINE_COLUMNS.get(cls.name, ("time",))
-        need_cols = tuple(dict.fromkeys(BASE_LINE_COLUMNS + tuple(extra)))
+        need_cols = tuple(dict.fromkeys(BASE_LINE_COLUMNS + tuple(cls.line_columns)))
     n_el = None
     if "n_elements" in sensor:
         try:
@@ -391,9 +394,11 @@ def _inspect(path) -> tuple[list[Problem], dict]:
             c.add(toml, where, "duplicate image id", "give every image a unique id")
             continue
         direction = str(e.get("direction", ""))
-        if cls is not None and cls.name == "pendulum" and direction.upper() not in ("L", "R"):
-            c.add(toml, where + ".direction", f"must be 'L' or 'R', got {direction!r}",
-                  'direction = "L" for a left swing, "R" for a right swing')
+        allowed = cls.directions if cls is not None else None
+        if allowed and direction.upper() not in allowed:
+            c.add(toml, where + ".direction", f"must be one of {', '.join(allowed)} for sensor "
+                  f"{cls.name!r}, got {direction!r}",
+                  f"direction = {allowed[0]!r} (see 'swathflow sensors' for the model)")
         try:
             strip = int(e.get("strip", 0))
         except (TypeError, ValueError):
@@ -457,6 +462,10 @@ def _inspect(path) -> tuple[list[Problem], dict]:
             c.add(lp, f"column line, file row(s) {_first_rows(bad)}",
                   "line numbers must be 0, 1, 2, ... in order", "one row per line, in order")
             ok = False
+        if ok and cls is not None:
+            for msg in cls.check_lines({k2: v for k2, v in cols.items() if k2 != "line"}):
+                c.add(lp, "", msg, "")
+                ok = False
         t = cols["time"]
         if not np.isfinite(t).all():
             continue
@@ -496,7 +505,7 @@ def _inspect(path) -> tuple[list[Problem], dict]:
 
     # output CRS
     if isinstance(crs, str) and crs.lower() == "auto-utm" and traj is not None:
-        from .geodesy import utm_crs_for
+        from swathflow.geometry.geodesy import utm_crs_for
         parts["crs"] = utm_crs_for(float(np.mean(traj.lat)),
                                    float((np.mean(traj.lon) + 180) % 360 - 180)).to_string()
 
@@ -528,7 +537,7 @@ def _inspect(path) -> tuple[list[Problem], dict]:
 
 
 def _priors(cls, sensor, cal, root, toml, c):
-    from .calibfile import calibration_priors, read_calibration
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
     try:
         base = cls.default_parameters(sensor)
     except (KeyError, TypeError, ValueError) as exc:
@@ -647,7 +656,7 @@ def _gcps(cfg, root, toml, images, shapes, c):
 def _gcp_geodetic(df: pd.DataFrame, crs: str) -> pd.DataFrame:
     """Add lat, lon, h (EPSG:4979) and X, Y, Z (ECEF) to a GCP table."""
     import pyproj
-    from .geodesy import geodetic_to_ecef, transformer
+    from swathflow.geometry.geodesy import geodetic_to_ecef, transformer
     src = pyproj.CRS.from_user_input(crs)
     x, y, z = (df[k].to_numpy(float) for k in ("x", "y", "z"))
     if src.to_epsg() == 4979 or (src.is_geographic and len(src.axis_info) == 3):
@@ -678,8 +687,8 @@ def image_border(shape, n: int = 24) -> np.ndarray:
 def _check_dem_cover(model, dem: DEM, iid: str, c: _Collector) -> None:
     """The ground seen by the image's border, at the DEM's lowest and highest heights,
     must lie on valid DEM cells."""
-    from .geodesy import ecef_to_geodetic
-    from .intersect import intersect
+    from swathflow.geometry.geodesy import ecef_to_geodetic
+    from swathflow.geometry.intersect import intersect
     pts = image_border(model.shape)
     origin, direction = model.ray(pts)
     miss = []
@@ -706,7 +715,8 @@ def _check_dem_cover(model, dem: DEM, iid: str, c: _Collector) -> None:
 # ------------------------------------------------------------------------------------------
 # public entry points
 
-def _inspect_safe(path) -> tuple[list[Problem], dict]:
+def inspect_mission(path) -> tuple[list[Problem], dict]:
+    """Every problem found in a mission folder and the parts read (config, images...)."""
     try:
         return _inspect(path)
     except SwathflowError as exc:  # defensive: a check raised instead of collecting
@@ -719,12 +729,12 @@ def _inspect_safe(path) -> tuple[list[Problem], dict]:
 
 def validate_mission(path) -> list[Problem]:
     """Every problem found in a mission folder (empty list: the mission is usable)."""
-    return _inspect_safe(path)[0]
+    return inspect_mission(path)[0]
 
 
 def load_mission(path) -> Mission:
     """Read a mission folder; raises SwathflowError listing every problem."""
-    problems, p = _inspect_safe(path)
+    problems, p = inspect_mission(path)
     if problems:
         raise SwathflowError(format_problems(path, problems))
     return Mission(path=p["root"], name=p["name"], config=p["config"], crs=p["crs"],
@@ -736,15 +746,3 @@ def load_mission(path) -> Mission:
 def format_problems(path, problems: list[Problem]) -> str:
     head = f"mission {os.fspath(path)} has {len(problems)} problem(s):"
     return "\n".join([head] + [f"  - {pr}" for pr in problems])
-
-
-def cli_validate(args) -> int:
-    """``swathflow validate MISSION``: print every problem; exit 1 if any."""
-    problems, p = _inspect_safe(args.mission)
-    if problems:
-        print(format_problems(args.mission, problems))
-        return 1
-    n = 0 if p["gcps"] is None else len(p["gcps"])
-    print(f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
-          f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m)")
-    return 0

@@ -16,8 +16,8 @@ import numpy as np
 import pyproj
 from affine import Affine
 
-from .errors import FormatError
-from .geodesy import ecef_to_geodetic, transformer, utm_crs_for
+from swathflow.errors import FormatError
+from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
 
 
 def resolve_crs(spec, lat: float, lon: float) -> str:
@@ -142,7 +142,7 @@ class Grid:
 
     def to_ecef(self, x, y, terrain) -> np.ndarray:
         """ECEF ``(..., 3)`` of map points on the terrain (ellipsoidal heights)."""
-        from .geodesy import geodetic_to_ecef
+        from swathflow.geometry.geodesy import geodetic_to_ecef
         lon, lat = _to_lonlat(self.crs).transform(np.asarray(x, float), np.asarray(y, float))
         h = terrain.height(lat, lon)
         return geodetic_to_ecef(np.stack(np.broadcast_arrays(lat, lon, h), axis=-1))
@@ -176,7 +176,7 @@ def footprint_grid(model, terrain, gsd: float, crs="auto-utm", samples: int = 64
     The image border (``samples`` points per side, plus a coarse interior lattice for
     relief) is projected onto the terrain; ``margin`` metres are added on every side.
     """
-    from .terrain import open_terrain
+    from swathflow.geometry.terrain import open_terrain
     terrain = open_terrain(terrain)
     nl, ne = model.shape
     lines = np.linspace(-0.5, nl - 0.5, samples)

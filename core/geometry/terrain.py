@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import FormatError, SwathflowError
-from .geodesy import transformer
+from swathflow.errors import FormatError, SwathflowError
+from swathflow.geometry.geodesy import transformer
 
 GEOID_GRIDS = {"egm96": "egm96_15.gtx", "egm2008": "egm08_25.gtx"}
 

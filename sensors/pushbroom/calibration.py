@@ -12,7 +12,7 @@ observed minus computed through ``ground_to_image``. The AP continuity (C0) and 
 
 The Jacobian is sparse (a tie point's rows touch its own three coordinates and the
 parameters of one image, and an image depends only on the fixes around its time), so the
-generic engine :func:`swathflow.adjust.solve` runs on sparse normal equations (SuperLU).
+generic engine :func:`swathflow.adjustment.adjust.solve` runs on sparse normal equations (SuperLU).
 Internally every parameter is scaled by its prior sigma (AP coefficients span 12 orders of
 magnitude otherwise).
 
@@ -35,10 +35,10 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from .adjust import Problem, RankDeficiencyError, Solution, solve
-from .calibration import (CalibrationError, CalibrationResult, build_unknowns,
+from swathflow.adjustment.adjust import Problem, RankDeficiencyError, Solution, solve
+from swathflow.calibration.control import (CalibrationError, CalibrationResult, build_unknowns,
                           residual_table, summarize)
-from .errors import FormatError
+from swathflow.errors import FormatError
 
 TIE_COLUMNS = ("tie_id", "image_id", "line", "element")
 #: a weak prior (m) on the tie coordinates around their first intersection: it adds no
@@ -453,7 +453,7 @@ def _gap(st: _Setup, z, free, obs_sigma, tie_sigma, alpha, sig=None):
 # --- results -----------------------------------------------------------------------------
 @dataclass
 class PushbroomCalibrationResult(CalibrationResult):
-    """A :class:`~swathflow.calibration.CalibrationResult` (same report and file) plus the
+    """A :class:`~swathflow.calibration.control.CalibrationResult` (same report and file) plus the
     push-broom extras: tie points, C0/C1 residuals, the method and the other solution."""
 
     method: str = "joint"
@@ -469,6 +469,30 @@ class PushbroomCalibrationResult(CalibrationResult):
     def max_continuity_residual(self) -> float:
         c = self.continuity
         return float(np.abs(c["residual"]).max()) if c is not None and len(c) else 0.0
+
+    def summary_lines(self) -> list[str]:
+        """What a person reads on the terminal after a calibration."""
+        cx, cy = self.check_rms()
+        out = [f"calibrated {self.options['model']} push-broom parameters ({self.method}) and "
+               f"{self.options['tie_points']} tie points from "
+               f"{self.options['observations'] // 2} image points in "
+               f"{self.timings.get('total', float('nan')):.1f} s (sigma0 {self.sigma0:.3f}, "
+               f"{len(self.rejected)} rejected, C0/C1 max residual "
+               f"{self.max_continuity_residual:.1e})",
+               f"  check points: RMS x {cx:.3f} y {cy:.3f} px"]
+        if self.tie_residuals is not None:
+            tr = self.tie_residuals[self.tie_residuals["used"]]
+            out.append(f"  tie points:   RMS x {_rms(tr['x']):.3f} y {_rms(tr['y']):.3f} px "
+                       f"({len(self.tie_residuals) - len(tr)} tie observations rejected)")
+        if self.alternative is not None:
+            a = self.alternative
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = np.abs(self.values - a.values) / np.where(self.sigmas > 0, self.sigmas,
+                                                              np.nan)
+            state = "converged" if a.solution.converged else "NOT converged (--max-rounds)"
+            out.append(f"  two-step: {len(a.rounds)} rounds, {state}; largest difference "
+                       f"from the joint solution {np.nanmax(d):.3f} sigma")
+        return out
 
     def check_rms(self) -> tuple[float, float]:
         """RMS of the check-point residuals after calibration, (x, y) pixels."""
@@ -504,7 +528,7 @@ class PushbroomCalibrationResult(CalibrationResult):
         return doc
 
     def extra_html(self) -> str:
-        from .report import _table
+        from swathflow.calibration.report import _table
         out = ["<h2>Push-broom calibration</h2>",
                f"<p>Method <b>{self.method}</b>. Residuals: x = element (across track along "
                f"the CCD line), y = line (along track). C0/C1 constraints (hard): largest "
@@ -538,9 +562,9 @@ class PushbroomCalibrationResult(CalibrationResult):
         return "\n".join(out)
 
     def write(self, out_dir) -> dict[str, str]:
-        from .calibfile import write_calibration
-        from .io import write_text
-        from .report import render_report
+        from swathflow.formats.calibfile import write_calibration
+        from swathflow.io import write_text
+        from swathflow.calibration.report import render_report
         os.makedirs(out_dir, exist_ok=True)
         doc = self.calibration_document()
         cal = os.path.join(out_dir, "calibration.json")
@@ -549,7 +573,7 @@ class PushbroomCalibrationResult(CalibrationResult):
         rep = os.path.join(out_dir, "report.html")
         write_text(rep, html)
         if self.ties is not None:
-            from .io import atomic_path
+            from swathflow.io import atomic_path
             with atomic_path(os.path.join(out_dir, "ties.csv")) as tmp:
                 self.ties.to_csv(tmp, index=False)
         return {"calibration": cal, "report": rep}
@@ -619,7 +643,7 @@ def _result(st: _Setup, sol: Solution, models, gcps, priors, method, options,
     if st.tie_ids.size:
         T = st.ties(sol.x)
         tc = np.diag(sol.cov)[n:].reshape(-1, 3)
-        from .geodesy import ecef_to_geodetic
+        from swathflow.geometry.geodesy import ecef_to_geodetic
         llh = ecef_to_geodetic(T)
         ties = pd.DataFrame({"tie_id": st.tie_ids, "X": T[:, 0], "Y": T[:, 1], "Z": T[:, 2],
                              "lat": llh[:, 0], "lon": llh[:, 1], "h": llh[:, 2],
@@ -724,46 +748,24 @@ def calibrate_pushbroom(models: Mapping[str, object], gcps: pd.DataFrame | None,
     return main
 
 
-# --- command line ------------------------------------------------------------------------
-def cli_calibrate_pushbroom(args, mission=None) -> int:
-    """``swathflow calibrate MISSION --out DIR [--method joint|two-step|both]`` for a
-    push-broom mission (dispatched from :func:`swathflow.calibration.cli_calibrate`)."""
-    from .mission import load_mission
-    mission = mission if mission is not None else load_mission(args.mission)
-    ties = mission_ties(mission)
-    models = {iid: mission.model(iid) for iid in mission.image_ids}
-    if mission.gcps is None or not len(mission.gcps):
-        raise CalibrationError(f"{args.mission}: no control points (add [gcp] file = "
-                               f"\"gcp.csv\" to mission.toml)")
-    cal_images = None
-    if getattr(args, "images", None):
-        cal_images = [s.strip() for s in args.images.split(",") if s.strip()]
-    method = str(getattr(args, "method", None) or "joint")
-    res = calibrate_pushbroom(models, mission.gcps, ties, mission.priors, method=method,
-                              fixed=list(getattr(args, "fix", None) or []),
-                              robust=not getattr(args, "no_robust", False),
-                              vce=not getattr(args, "no_vce", False),
-                              obs_sigma_px=float(getattr(args, "sigma_px", 1.0) or 1.0),
-                              calibration_images=cal_images,
-                              max_rounds=int(getattr(args, "max_rounds", None) or 50))
-    paths = res.write(args.out)
-    cx, cy = res.check_rms()
-    print(f"calibrated {res.options['model']} push-broom parameters ({res.method}) and "
-          f"{res.options['tie_points']} tie points from {res.options['observations'] // 2} "
-          f"image points in {res.timings.get('total', float('nan')):.1f} s (sigma0 "
-          f"{res.sigma0:.3f}, {len(res.rejected)} rejected, C0/C1 max residual "
-          f"{res.max_continuity_residual:.1e})")
-    print(f"  check points: RMS x {cx:.3f} y {cy:.3f} px")
-    if res.tie_residuals is not None:
-        tr = res.tie_residuals[res.tie_residuals["used"]]
-        print(f"  tie points:   RMS x {_rms(tr['x']):.3f} y {_rms(tr['y']):.3f} px "
-              f"({len(res.tie_residuals) - len(tr)} tie observations rejected)")
-    if res.alternative is not None:
-        a = res.alternative
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d = np.abs(res.values - a.values) / np.where(res.sigmas > 0, res.sigmas, np.nan)
-        state = "converged" if a.solution.converged else "NOT converged (--max-rounds)"
-        print(f"  two-step: {len(a.rounds)} rounds, {state}; largest difference from the "
-              f"joint solution {np.nanmax(d):.3f} sigma")
-    print(f"wrote {paths['calibration']} and {paths['report']}")
-    return 0
+# --- the plugin's calibration strategy ---------------------------------------------------
+class PushbroomCalibration:
+    """Control points, tie points (ground unknown), orientation fixes and C0/C1 constraints;
+    ``options.extra``: ``method`` (joint, two-step, both) and ``max_rounds``."""
+
+    def calibrate(self, mission, options):
+        if mission.gcps is None or not len(mission.gcps):
+            raise CalibrationError(f"{mission.path}: no control points (add [gcp] file = "
+                                   f"\"gcp.csv\" to mission.toml)")
+        models = {iid: mission.model(iid) for iid in mission.image_ids}
+        extra = dict(options.extra)
+        return calibrate_pushbroom(models, mission.gcps, mission_ties(mission), mission.priors,
+                                   method=str(extra.get("method") or "joint"),
+                                   fixed=list(options.fixed), robust=options.robust,
+                                   vce=options.vce, obs_sigma_px=options.sigma_px,
+                                   calibration_images=(list(options.images)
+                                                       if options.images else None),
+                                   max_rounds=int(extra.get("max_rounds") or 50))
+
+
+STRATEGY = PushbroomCalibration()

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from .io import write_text
+from swathflow.io import write_text
 
 CSS = """
 body{font-family:system-ui,sans-serif;margin:2em;color:#222;max-width:1200px}
@@ -142,7 +142,7 @@ def _paper_table(summary: pd.DataFrame, image: str) -> str:
 
 
 def render_report(result) -> str:
-    """HTML text of the report for a :class:`~swathflow.calibration.CalibrationResult`."""
+    """HTML text of the report for a :class:`~swathflow.calibration.control.CalibrationResult`."""
     opts = result.options
     sol = result.solution
     out = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>swathflow calibration"
@@ -237,7 +237,7 @@ def render_report(result) -> str:
 
 
 def summarize_frame(res: pd.DataFrame, by) -> pd.DataFrame:
-    from .calibration import summarize
+    from swathflow.calibration.control import summarize
     return summarize(res, by)
 
 

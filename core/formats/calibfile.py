@@ -10,8 +10,8 @@ import math
 import os
 from typing import Any, Mapping
 
-from .errors import FormatError
-from .io import write_text
+from swathflow.errors import FormatError
+from swathflow.io import write_text
 
 FORMAT = "swathflow-calibration/1"
 

@@ -2,7 +2,7 @@
 
 :func:`calibrate` estimates a sensor plugin's calibration parameters from image
 observations of ground control points by weighted least squares
-(:mod:`swathflow.adjust`) on back-projection residuals in image space, with a
+(:mod:`swathflow.adjustment.adjust`) on back-projection residuals in image space, with a
 pseudo-observation (prior) for every parameter, variance component estimation, robust
 blunder handling and optional time-linear drift of chosen parameter blocks.
 
@@ -25,8 +25,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from .adjust import Problem, RankDeficiencyError, Solution, solve
-from .errors import FormatError, SwathflowError
+from swathflow.adjustment.adjust import Problem, RankDeficiencyError, Solution, solve
+from swathflow.errors import FormatError, SwathflowError
 
 DIRECTION_SUFFIXES = ("_L", "_R")
 DIRECTION_NAMES = {"L": "left-swing", "R": "right-swing"}
@@ -468,7 +468,7 @@ class CalibrationResult:
                        for a, b in zip(i[keep], j[keep])), key=lambda t: -abs(t[2]))
 
     def calibration_document(self) -> dict:
-        """Keyword arguments for :func:`swathflow.calibfile.write_calibration`."""
+        """Keyword arguments for :func:`swathflow.formats.calibfile.write_calibration`."""
         ps = self.parameters
         params = {b.name: {"value": list(b.value), "sigma": list(b.sigma), "units": b.units}
                   for b in ps.blocks}
@@ -499,10 +499,23 @@ class CalibrationResult:
                               "note": "value(t) = value + rate * (t - t_ref) / 3600"}
         return {"sensor": self.sensor, "parameters": params, **extra}
 
+    def summary_lines(self) -> list[str]:
+        """What a person reads on the terminal after a calibration."""
+        s = self.summary
+        out = [f"calibrated {len(self.unknowns.names)} parameters from "
+               f"{int((self.residuals['stage'] == 'after').sum())} image points "
+               f"(sigma0 {self.sigma0:.3f}, {len(self.rejected)} rejected, "
+               f"{self.iterations} iterations)"]
+        for _, r in s[s["stage"] == "after"].iterrows():
+            out.append(f"  {r['image_id']:>8} {r['role']:<8} n={r['n']:4d}  mean x "
+                       f"{r['mean_x']:+8.3f} y {r['mean_y']:+8.3f}  std x {r['std_x']:7.3f} "
+                       f"y {r['std_y']:7.3f} px")
+        return out
+
     def write(self, out_dir) -> dict[str, str]:
         """Write ``calibration.json`` and ``report.html`` into ``out_dir`` (atomically)."""
-        from .calibfile import write_calibration
-        from .report import write_report
+        from swathflow.formats.calibfile import write_calibration
+        from swathflow.calibration.report import write_report
         os.makedirs(out_dir, exist_ok=True)
         doc = self.calibration_document()
         cal = os.path.join(out_dir, "calibration.json")
@@ -674,48 +687,3 @@ def calibrate(models: Mapping[str, object], obs: pd.DataFrame, priors=None, *,
                               "obs_sigma_px": obs_sigma_px,
                               "alpha": alpha},
                              t_ref if drift else None)
-
-
-# --- command line ------------------------------------------------------------------------
-def cli_calibrate(args) -> int:
-    """``swathflow calibrate MISSION --out DIR``."""
-    from .mission import load_mission
-    mission = load_mission(args.mission)
-    if mission.sensor.get("model") == "pushbroom":     # three-line camera: sparse, ties
-        from .calibration_pushbroom import cli_calibrate_pushbroom
-        return cli_calibrate_pushbroom(args, mission)
-    images = list(getattr(mission, "images"))
-    ids = [getattr(im, "id", None) or getattr(im, "image_id", None) or im
-           if not isinstance(im, str) else im for im in images]
-    ids = [str(i) for i in ids]
-    models = {iid: mission.model(iid) for iid in ids}
-    gcps = mission.gcps
-    if gcps is None or len(gcps) == 0:
-        raise CalibrationError(f"{args.mission}: no control points (add [gcp] file = "
-                               f"\"gcp.csv\" to mission.toml)")
-    cal_images = None
-    if getattr(args, "images", None):
-        cal_images = [s.strip() for s in args.images.split(",") if s.strip()]
-    model = str(getattr(args, "model", "15") or "15")
-    if model not in ("15", "12"):
-        raise CalibrationError(f"--model must be 15 or 12, got {model}")
-    res = calibrate(models, gcps, mission.priors, shared_boresight=(model == "12"),
-                    fixed=list(getattr(args, "fix", None) or []),
-                    drift=bool(getattr(args, "drift", False)),
-                    robust=not getattr(args, "no_robust", False),
-                    vce=not getattr(args, "no_vce", False),
-                    vce_priors=bool(getattr(args, "vce_priors", False)),
-                    obs_sigma_px=float(getattr(args, "sigma_px", 1.0) or 1.0),
-                    calibration_images=cal_images)
-    paths = res.write(args.out)
-    s = res.summary
-    after = s[(s["stage"] == "after")]
-    print(f"calibrated {len(res.unknowns.names)} parameters from "
-          f"{int((res.residuals['stage'] == 'after').sum())} image points "
-          f"(sigma0 {res.sigma0:.3f}, {len(res.rejected)} rejected, "
-          f"{res.iterations} iterations)")
-    for _, r in after.iterrows():
-        print(f"  {r['image_id']:>8} {r['role']:<8} n={r['n']:4d}  mean x {r['mean_x']:+8.3f} "
-              f"y {r['mean_y']:+8.3f}  std x {r['std_x']:7.3f} y {r['std_y']:7.3f} px")
-    print(f"wrote {paths['calibration']} and {paths['report']}")
-    return 0

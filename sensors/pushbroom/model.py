@@ -20,9 +20,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from swathflow.errors import FormatError
-from swathflow.rotations import T, apply, apply_t, r_en, r_nb, r_opk
+from swathflow.geometry.rotations import T, apply, apply_t, r_en, r_nb, r_opk
 
-from .base import Parameter, ParameterSet, SensorModel
+from swathflow.sensors.base import Parameter, ParameterSet, SensorModel
 
 #: nominal along-track angles of the three lines of a three-line camera (deg)
 THREE_LINE_VIEWS = {"forward": 25.0, "nadir": 0.0, "backward": -25.0}
@@ -114,6 +114,16 @@ class PushbroomModel(SensorModel):
     required_keys = ("n_elements",)
     #: columns the per-line table (images/<id>.lines.csv) must have besides ``line``
     line_columns = ("time",)
+
+    @classmethod
+    def calibration_strategy(cls):
+        from swathflow.sensors.pushbroom.calibration import STRATEGY
+        return STRATEGY
+
+    @classmethod
+    def simulator(cls):
+        from swathflow.sensors.pushbroom import simulate
+        return simulate
     #: exact correction steps follow the interpolated solve when linear interpolation of
     #: the state between lines is estimated to be off by more than this (pixels)
     exact_threshold_px: float = 1e-4
@@ -673,7 +683,7 @@ def _matvec(m, v) -> np.ndarray:
 
 
 def _bracket(f_at, n: int, K: int):
-    """Like :func:`swathflow.linesolve.bracket_lines` (same returns; ``f_at(None, j)``
+    """Like :func:`swathflow.geometry.linesolve.bracket_lines` (same returns; ``f_at(None, j)``
     evaluates all points at one line ``j``), but faster for the
     near-linear push-broom condition: each step evaluates ``m`` and ``m + 1`` at a guess
     (first the bracket's chord, then a Newton step with the local slope ``f(m+1) - f(m)``)
@@ -793,7 +803,7 @@ def example_trajectory(t0: float = 995.0, t1: float = 1015.0, lat0: float = 34.0
                        heading: float = 30.0, rate: float = 200.0):
     """A straight flight line with a gentle attitude wobble, as a Trajectory."""
     import xarray as xr
-    from swathflow.pos import Trajectory
+    from swathflow.formats.pos import Trajectory
     t = np.arange(t0, t1 + 0.5 / rate, 1.0 / rate)
     d = speed * (t - t0)
     R = 6378137.0

@@ -40,7 +40,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy import stats
 
-from .errors import SwathflowError
+from swathflow.errors import SwathflowError
 
 
 class AdjustmentError(SwathflowError):

@@ -5,7 +5,7 @@ Steps (:func:`mosaic` runs them all):
 1. :func:`scan_inputs` reads the rectified swings' headers: one common grid (same CRS, pixel
    size, aligned transforms), each swing's place on it, image id and strip number.
 2. :func:`find_overlaps` lists the pairs whose footprints overlap (bounds, then valid masks).
-3. :func:`match_pair` estimates each overlap's systematic offset (swathflow.matching: the
+3. :func:`match_pair` estimates each overlap's systematic offset (swathflow.mosaicking.matching: the
    paper's minimum-mean-grey-difference search, phase correlation, least-squares polish,
    texture check, outlier rejection). Low-texture overlaps are reported and skipped.
 4. :func:`solve_network` solves one least-squares network for per-strip (or per-image)
@@ -24,7 +24,6 @@ Radiometric offset ``b``: ``image = truth + b``; the mosaic subtracts ``b``.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
@@ -35,14 +34,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from .cluster import dask_client
-from .errors import FormatError, SwathflowError
-from .io import atomic_path, write_text
-from .matching import OverlapMatch, combine_blocks, match_block
+from swathflow.errors import FormatError, SwathflowError
+from swathflow.io import atomic_path, write_text
+from swathflow.mosaicking.matching import OverlapMatch, combine_blocks, match_block
 
 __all__ = ["Swing", "Layout", "scan_inputs", "find_overlaps", "match_pair", "solve_network",
-           "render_tile", "write_mosaic", "mosaic", "mission_strips", "quicklook", "seam_lines", "seam_visibility", "cli_mosaic",
-           "TAG_IMAGE", "TAG_STRIP"]
+           "render_tile", "write_mosaic", "mosaic", "mission_strips", "find_inputs",
+           "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP"]
 
 # plain tag names: GDAL splits "a:b=c" metadata at the colon, so no namespaced keys
 TAG_IMAGE = "image_id"
@@ -873,7 +871,7 @@ def seam_visibility(image, footprints, valid=None, band: int = 1):
 
 
 # --- CLI ----------------------------------------------------------------------------------------
-def _find_inputs(source):
+def find_inputs(source):
     """Rectified swings under ``source``: a folder of GeoTIFFs, or a mission/run folder
     with a ``rectified/`` subfolder."""
     source = os.fspath(source)
@@ -912,41 +910,3 @@ def mission_strips(path) -> dict:
                 raise FormatError(f"{toml}: images[{k}].strip must be an integer, got "
                                   f"{e['strip']!r}") from None
     return out
-
-
-def cli_mosaic(args) -> int:
-    paths = _find_inputs(args.source)
-    out = os.fspath(args.out)
-    # absolute: the overlaps may be matched by worker processes elsewhere
-    paths = [os.path.abspath(p) for p in paths if os.path.abspath(p) != os.path.abspath(out)]
-    mission = getattr(args, "mission", None)
-    if mission is None and os.path.isfile(os.path.join(os.fspath(args.source), "mission.toml")):
-        mission = args.source
-    strips = mission_strips(mission) if mission else None
-    log = (lambda s: print(s, flush=True)) if not getattr(args, "quiet", False) else None
-    workers = getattr(args, "workers", None)
-    address = getattr(args, "dask_address", None)
-    # the overlap matching holds the GIL: worker processes, as in the mission flow
-    cluster = not getattr(args, "no_match", False) and (
-        address or (workers or os.cpu_count() or 1) > 1)
-    with (dask_client(address, n_workers=workers) if cluster else contextlib.nullcontext()):
-        rep = _cli_run(args, paths, out, strips, log, workers)
-    if log:
-        for nd in rep.get("nodes", []):
-            log(f"  node {nd['node']}: offset (row, col) = {nd['offset']} px, "
-                f"sigma {nd['sigma']}, radiometric {nd['radiometric']}")
-        log(f"wrote {out} ({rep['shape'][0]} x {rep['shape'][1]} px, {rep['seconds']:.1f} s, "
-            f"{rep['mpx_per_s']} Mpx/s), {os.path.splitext(out)[0]}.png and "
-            f"{os.path.splitext(out)[0]}.json")
-    return 0
-
-
-def _cli_run(args, paths, out, strips, log, workers) -> dict:
-    return mosaic(paths, out, per_image=getattr(args, "per_image", False),
-                  anchors=getattr(args, "anchor", None) or (),
-                  feather=getattr(args, "feather", 64),
-                  mode="cut" if getattr(args, "no_feather", False) else "feather",
-                  balance=not getattr(args, "no_balance", False),
-                  match=not getattr(args, "no_match", False),
-                  max_shift=getattr(args, "max_shift", 12),
-                  tile=getattr(args, "tile", 1024), workers=workers, strips=strips, log=log)

@@ -34,14 +34,14 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import FormatError, SwathflowError
-from .grid import Grid, ecef_to_map, footprint_grid
-from .io import atomic_path
-from .rectification.lattice import TOLERANCE_PX, exact_raw, inverse_map
-from .rectification.rawimage import RawImage, open_raw_image
-from .rectification.tiles import (KERNELS, check_inputs, glt_blocks, output_plan, rectify,
-                                  rectify_blocks, rectify_tile)
-from .terrain import open_terrain
+from swathflow.errors import FormatError, SwathflowError
+from swathflow.geometry.grid import Grid, ecef_to_map, footprint_grid
+from swathflow.geometry.terrain import open_terrain
+from swathflow.io import atomic_path
+from swathflow.rectification.lattice import TOLERANCE_PX, exact_raw, inverse_map
+from swathflow.rectification.rawimage import RawImage, open_raw_image
+from swathflow.rectification.tiles import (KERNELS, check_inputs, glt_blocks, output_plan,
+                                           rectify, rectify_blocks, rectify_tile)
 
 __all__ = ["KERNELS", "TOLERANCE_PX", "RawImage", "RawSource", "exact_raw", "inverse_map",
            "open_raw_image", "rectify", "rectify_image", "rectify_tile", "resample",
@@ -319,7 +319,7 @@ def _store_here(sources, targets, scheduler=None, batch: int | None = None) -> N
 def _band_metadata(dst, infos) -> None:
     """Band descriptions, wavelengths (ENVI-style items, and GDAL's IMAGERY domain
     CENTRAL_WAVELENGTH_UM / FWHM_UM where the unit is known) on an open dataset."""
-    from .rectification.rawimage import _UNITS_NM
+    from swathflow.rectification.rawimage import _UNITS_NM
     for i, b in enumerate(infos, start=1):
         if b.description:
             dst.set_band_description(i, b.description)
@@ -353,7 +353,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     import dask.array as da
     import rasterio
     from rasterio.shutil import copy as rio_copy
-    from .raster import _crs
+    from swathflow.formats.raster import _crs
     with contextlib.ExitStack() as stack:
         sources, targets, parts = [], [], []
         for o in outputs:
@@ -417,7 +417,7 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
     in the raw dtype (``dtype`` overrides, see :func:`output_plan`), with the bands'
     descriptions, wavelengths and units. Returns a small summary dict."""
     import time
-    from . import __version__
+    from swathflow import __version__
     if method not in METHODS:
         raise FormatError(f"unknown rectification method {method!r}; use one of "
                           f"{', '.join(METHODS)}")
@@ -625,61 +625,3 @@ def shift_report(rect: np.ndarray, truth: np.ndarray, tile: int = 128, margin: i
             "skipped_tiles": skipped, "worst_tile": worst,
             "worst_tile_px": float(mags.max()) if tiles else float("nan"),
             "median_tile_px": float(np.median(mags)) if tiles else float("nan")}
-
-
-# ----------------------------------------------------------------------------------------
-# command line
-# ----------------------------------------------------------------------------------------
-def cli_rectify(args) -> int:
-    """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image."""
-    import hashlib
-    import json
-    import time
-    from .calibfile import calibration_priors, read_calibration
-    from .mission import load_mission
-    mission = load_mission(args.mission)
-    params, cal_tag = mission.priors, "mission priors (mission.toml [calibration])"
-    if getattr(args, "calibration", None):
-        doc = read_calibration(args.calibration)
-        if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):
-            raise FormatError(f"{args.calibration}: calibration is for sensor "
-                              f"{doc['sensor']!r}, the mission uses "
-                              f"{mission.sensor.get('model')!r}")
-        params = mission.priors.updated(calibration_priors(doc))
-        with open(args.calibration, "rb") as f:
-            digest = hashlib.sha256(f.read()).hexdigest()[:16]
-        cal_tag = f"{os.path.abspath(args.calibration)} (sha256 {digest})"
-    ids = mission.image_ids
-    if getattr(args, "images", None):
-        want = [i.strip() for i in args.images.split(",") if i.strip()]
-        missing = [i for i in want if i not in ids]
-        if missing:
-            raise FormatError(f"{args.mission}: no image(s) {', '.join(missing)}; the mission "
-                              f"has {', '.join(ids)}")
-        ids = want
-    products = tuple(p.strip() for p in (getattr(args, "products", "") or "").split(",")
-                     if p.strip())
-    method = getattr(args, "method", "exact") or "exact"
-    kernel = getattr(args, "kernel", "bilinear") or "bilinear"
-    tol = float(getattr(args, "tolerance", None) or TOLERANCE_PX)
-    tile = int(getattr(args, "tile", None) or 512)
-    os.makedirs(args.out, exist_ok=True)
-    summaries = []
-    for iid in ids:
-        model = mission.model(iid, params)
-        grid = footprint_grid(model, mission.terrain, mission.gsd, mission.crs)
-        out = os.path.join(args.out, f"{iid}.tif")
-        t0 = time.perf_counter()
-        s = rectify_image(model, mission.image(iid), mission.terrain, out, grid=grid,
-                          method=method, kernel=kernel, tol=tol, tile=tile, products=products,
-                          tags={"image_id": iid, "calibration": cal_tag,
-                                "mission": mission.name,
-                                "parameters": json.dumps(model.parameters.values_dict())})
-        s["image_id"] = iid
-        summaries.append(s)
-        print(f"{iid}: {grid.shape[0]} x {grid.shape[1]} px -> {out} "
-              f"({time.perf_counter() - t0:.1f} s)")
-    from .io import write_text
-    write_text(os.path.join(args.out, "rectify.json"),
-               json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")
-    return 0

@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .errors import FormatError, OutOfRangeError
-from .geodesy import geodetic_to_ecef
+from swathflow.errors import FormatError, OutOfRangeError
+from swathflow.geometry.geodesy import geodetic_to_ecef
 
 POS_VARIABLES = ("lat", "lon", "h", "roll", "pitch", "heading")
 
@@ -79,7 +79,7 @@ def read_sbet(path) -> xr.Dataset:
 
 def write_sbet(ds: xr.Dataset, path) -> None:
     """Write a trajectory as SBET (wander angle 0; velocities etc. zero). Atomic."""
-    from .io import atomic_path
+    from swathflow.io import atomic_path
     rec = np.zeros(ds.sizes["time"], dtype=SBET_DTYPE)
     rec["time"] = ds["time"].values
     rec["lat"] = np.radians(ds["lat"].values)
@@ -112,7 +112,7 @@ def read_pos_csv(path) -> xr.Dataset:
 
 
 def write_pos_csv(ds: xr.Dataset, path) -> None:
-    from .io import atomic_path
+    from swathflow.io import atomic_path
     df = pd.DataFrame({"time": ds["time"].values,
                        **{k: ds[k].values for k in POS_VARIABLES}})
     with atomic_path(path) as tmp:
@@ -196,7 +196,7 @@ class Trajectory:
     def to_dataset(self) -> xr.Dataset:
         if self.source is not None:
             return _dataset(self.time, *(self.source[k] for k in POS_VARIABLES), "trajectory")
-        from .geodesy import ecef_to_geodetic
+        from swathflow.geometry.geodesy import ecef_to_geodetic
         llh = ecef_to_geodetic(self.ecef)
         heading = (self.attitude[:, 2] + 180.0) % 360.0 - 180.0
         return _dataset(self.time, llh[:, 0], llh[:, 1], llh[:, 2], self.attitude[:, 0],
@@ -208,7 +208,7 @@ def interpolate_pos(ds: xr.Dataset, times, max_gap: float = 1.0) -> xr.Dataset:
     traj = Trajectory.from_dataset(ds, max_gap=max_gap)
     t = np.asarray(times, dtype=float)
     r = traj.interpolate(t)
-    from .geodesy import ecef_to_geodetic
+    from swathflow.geometry.geodesy import ecef_to_geodetic
     h = ecef_to_geodetic(r["ecef"])[..., 2]
     heading = (r["heading"] + 180.0) % 360.0 - 180.0
     lon = (r["lon"] + 180.0) % 360.0 - 180.0

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import FormatError
-from .io import atomic_path
+from swathflow.errors import FormatError
+from swathflow.io import atomic_path
 
 
 def _affine(transform):

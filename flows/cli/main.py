@@ -47,11 +47,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("validate", help="check a mission folder and list every problem")
     s.add_argument("mission", help="mission folder (with mission.toml)")
-    s.set_defaults(func=_call("swathflow.mission:cli_validate"))
+    s.set_defaults(func=_call("swathflow.flows.cli.commands:validate"))
 
     s = sub.add_parser("simulate", help="write a simulated mission bundle with its truth")
     s.add_argument("out", help="output mission folder")
-    s.add_argument("--preset", default="tiny", help="tiny, demo, paper, area (default tiny)")
+    s.add_argument("--preset", default="tiny",
+                   help="a preset of a sensor plugin's simulator: tiny, demo, paper, area "
+                        "(pendulum), pushbroom, pushbroom-demo, ... (default tiny)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--texture", help="orthophoto GeoTIFF/JPEG+world file for the ground truth")
     s.add_argument("--dem", help="DEM GeoTIFF for the terrain shape")
@@ -70,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of GCP measurements with a 10-40 px gross error")
     s.add_argument("--image-format", choices=("tif", "envi"), help="raw image format")
     s.add_argument("--pos-format", choices=("sbet", "csv"), help="POS file format")
-    s.set_defaults(func=_call("swathflow.simulate:cli_simulate"))
+    s.set_defaults(func=_call("swathflow.flows.cli.commands:simulate"))
 
     s = sub.add_parser("calibrate", help="estimate calibration parameters from control points")
     s.add_argument("mission")
@@ -99,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-rounds", type=int, default=50,
                    help="two-step scheme: stop after this many rounds even when it is not "
                         "yet within 0.1 sigma of the joint optimum (default 50)")
-    s.set_defaults(func=_call("swathflow.calibration:cli_calibrate"))
+    s.set_defaults(func=_call("swathflow.flows.cli.commands:calibrate"))
 
     s = sub.add_parser("rectify", help="orthorectify every swing to a COG")
     s.add_argument("mission")
@@ -117,7 +119,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tolerance", type=float, default=0.05,
                    help="bound on the interpolated raw coordinates' error, pixels (default 0.05)")
     s.add_argument("--tile", type=int, default=512, help="output tile size (default 512)")
-    s.set_defaults(func=_call("swathflow.rectify:cli_rectify"))
+    s.add_argument("--bands", default="",
+                   help="bands to rectify (default all), comma separated: 1-based indices "
+                        "and ranges (1,4-6) or wavelengths with a unit (550nm,0.67um: the "
+                        "nearest band, from the ENVI header or GDAL band metadata)")
+    s.add_argument("--dtype", choices=("uint8", "uint16", "int16", "uint32", "int32",
+                                       "float32", "float64"),
+                   help="output data type (default: the raw image's; float64 raw -> "
+                        "float32). Integer output keeps the raw nodata value, or writes a "
+                        "mask band; float output uses NaN")
+    s.set_defaults(func=_call("swathflow.flows.cli.commands:rectify"))
 
     s = sub.add_parser("mosaic", help="match strips and blend rectified swings into a mosaic")
     s.add_argument("source", help="mission folder or folder of rectified swings")
@@ -144,19 +155,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="match the overlaps on an existing Dask scheduler (default: a local "
                         "cluster of --workers processes)")
     s.add_argument("--quiet", action="store_true")
-    s.set_defaults(func=_call("swathflow.mosaic:cli_mosaic"))
+    s.set_defaults(func=_call("swathflow.flows.cli.commands:mosaic"))
 
     s = sub.add_parser("run", help="run the whole mission flow (Prefect, Dask)")
     s.add_argument("mission")
     s.add_argument("--out", required=True, help="output folder")
     s.add_argument("--calibration", help="use this calibration.json instead of calibrating")
     s.add_argument("--dask-address", help="an existing Dask scheduler (default: local cluster)")
-    s.set_defaults(func=_call("swathflow.flows.mission:cli_run"))
+    s.set_defaults(func=_call("swathflow.flows.cli.commands:run"))
 
     s = sub.add_parser("demo", help="simulate the demo mission and run the whole flow on it")
     s.add_argument("--out", default="swathflow-demo", help="output folder (default ./swathflow-demo)")
     s.add_argument("--preset", default="demo", help=argparse.SUPPRESS)
-    s.set_defaults(func=_call("swathflow.flows.mission:cli_demo"))
+    s.set_defaults(func=_call("swathflow.flows.cli.commands:demo"))
     return p
 
 

@@ -145,7 +145,7 @@ class ImageTexture(Texture):
     metres per pixel (default: its own pixel size in metres); mirrored beyond its edges."""
 
     def __init__(self, path, centre, pixel_size: float | None = None, rotation_deg: float = 0.0):
-        from .raster import read_raster
+        from swathflow.formats.raster import read_raster
         r = read_raster(path, band=None)
         data = r.data.astype(np.float32)
         grey = data[:3].mean(0) if data.shape[0] >= 3 else data[0]
@@ -225,7 +225,7 @@ class RasterTerrain:
     ``base + (H - mean(H)) * vscale`` and its grid centred at ``centre`` with ``cell`` m."""
 
     def __init__(self, path, centre, cell: float, base: float, relief: float):
-        from .raster import read_raster
+        from swathflow.formats.raster import read_raster
         r = read_raster(path, masked_to_nan=True)
         d = r.data.astype(float)
         if np.isnan(d).any():

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geodesy import _A, _E2, ecef_to_geodetic, up_vector
-from .terrain import ConstantHeight, Terrain
+from swathflow.geometry.geodesy import _A, _E2, ecef_to_geodetic, up_vector
+from swathflow.geometry.terrain import ConstantHeight, Terrain
 
 
 def _ellipsoid_hit(origin, direction, h):

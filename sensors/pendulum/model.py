@@ -11,10 +11,10 @@ from typing import Any, Mapping
 import numpy as np
 
 from swathflow.errors import FormatError
-from swathflow.linesolve import bracket_lines, plane_brackets, secant_lines
-from swathflow.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
+from swathflow.geometry.linesolve import bracket_lines, plane_brackets, secant_lines
+from swathflow.geometry.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
 
-from .base import CHUNK, Parameter, ParameterSet, SensorModel
+from swathflow.sensors.base import CHUNK, Parameter, ParameterSet, SensorModel
 
 #: root estimates (secant, inverse quadratic) further apart than this (lines) mark a
 #: condition that is not smooth inside the line: those points are solved exactly
@@ -27,6 +27,13 @@ class PendulumModel(SensorModel):
     name = "pendulum"
     kind = "whisk-broom"
     required_keys = ("pixel_pitch", "focal_length", "n_elements", "k0")
+    line_columns = ("time", "swing", "pitch_comp")
+    directions = ("L", "R")
+
+    @classmethod
+    def simulator(cls):
+        from swathflow.sensors.pendulum import simulate
+        return simulate
 
     @classmethod
     def check_config(cls, sensor: Mapping[str, Any]) -> list[str]:

@@ -1,0 +1,2 @@
+"""Weighted least squares with priors, variance components and robust blunder handling
+(sensor-agnostic)."""

@@ -1,0 +1,66 @@
+"""Calibration strategies: how a sensor plugin's parameters are estimated for a mission.
+
+The framework never branches on a sensor's name: it asks the plugin
+(:meth:`SensorModel.calibration_strategy <swathflow.sensors.base.SensorModel.calibration_strategy>`)
+and falls back to :data:`CONTROL_POINTS`, the generic control-point adjustment of
+:mod:`swathflow.calibration.control`. A strategy is any object with
+``calibrate(mission, options) -> result``; the result has ``write(out_dir)`` (returning the
+written paths) and ``summary_lines()`` (what a person reads on the terminal).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Protocol
+
+from swathflow.calibration.control import CalibrationError, calibrate
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """What a user chooses for a calibration; ``extra`` holds strategy-specific options
+    (for instance a push-broom camera's ``method`` and ``max_rounds``)."""
+
+    fixed: tuple[str, ...] = ()
+    images: tuple[str, ...] | None = None      # control points of these images enter
+    robust: bool = True
+    vce: bool = True
+    vce_priors: bool = False
+    sigma_px: float = 1.0
+    shared_boresight: bool = False             # one boresight for every swing direction
+    drift: bool = False
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+class CalibrationStrategy(Protocol):
+    def calibrate(self, mission, options: CalibrationOptions) -> Any: ...
+
+
+class ControlPointCalibration:
+    """The default: every parameter of the plugin from control points, per-direction
+    blocks (``name_L``/``name_R``) separated, priors as pseudo-observations."""
+
+    def calibrate(self, mission, options: CalibrationOptions):
+        if mission.gcps is None or len(mission.gcps) == 0:
+            raise CalibrationError(f"{mission.path}: no control points (add [gcp] file = "
+                                   f"\"gcp.csv\" to mission.toml)")
+        models = {iid: mission.model(iid) for iid in mission.image_ids}
+        return calibrate(models, mission.gcps, mission.priors,
+                         shared_boresight=options.shared_boresight,
+                         fixed=list(options.fixed), drift=options.drift,
+                         robust=options.robust, vce=options.vce,
+                         vce_priors=options.vce_priors, obs_sigma_px=options.sigma_px,
+                         calibration_images=(list(options.images) if options.images
+                                             else None))
+
+
+CONTROL_POINTS = ControlPointCalibration()
+
+
+def strategy_for(mission) -> CalibrationStrategy:
+    """The calibration strategy of a mission's sensor plugin (or the default)."""
+    return mission.sensor_class.calibration_strategy() or CONTROL_POINTS
+
+
+def calibrate_mission(mission, options: CalibrationOptions | None = None):
+    """Calibrate a loaded mission with its sensor plugin's strategy."""
+    return strategy_for(mission).calibrate(mission, options or CalibrationOptions())

@@ -1,0 +1,1 @@
+"""Stage 1, ingest: a mission folder loaded and checked (every problem at once)."""

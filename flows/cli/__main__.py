@@ -1,0 +1,5 @@
+import sys
+
+from swathflow.flows.cli.main import main
+
+sys.exit(main())

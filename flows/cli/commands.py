@@ -1,0 +1,165 @@
+"""Command handlers: each turns parsed arguments into plain typed calls of the stage
+functions and prints what a person reads. Stage functions print nothing; they report
+progress through a ``progress`` callback (a line of text)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+from pathlib import Path
+
+
+def _say(args):
+    """The progress callback of a command: a line on stdout unless ``--quiet``."""
+    if getattr(args, "quiet", False):
+        return None
+    return lambda line: print(line, flush=True)
+
+
+def _ids(text: str | None) -> tuple[str, ...] | None:
+    if not text:
+        return None
+    return tuple(s.strip() for s in text.split(",") if s.strip()) or None
+
+
+def validate(args) -> int:
+    """``swathflow validate MISSION``: every problem with its fix; exit 2 if any."""
+    from swathflow.ingest.mission import format_problems, inspect_mission
+    problems, p = inspect_mission(args.mission)
+    if problems:
+        print(format_problems(args.mission, problems))
+        return 2
+    n = 0 if p["gcps"] is None else len(p["gcps"])
+    print(f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
+          f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m)")
+    return 0
+
+
+def simulation_options(args) -> dict:
+    """Simulator options given on the command line (the simulator checks them)."""
+    keys = ("texture", "dem", "gcp_noise", "gross_fraction", "image_format", "pos_format",
+            "direction_omega")
+    out = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
+    if getattr(args, "no_direction_effect", False):
+        out["direction_effect"] = False
+    if getattr(args, "geometry_only", False):
+        out["render"] = False
+        out["write_ortho"] = False
+    if getattr(args, "render", False):
+        out["render"] = True
+        out["write_ortho"] = True
+    return out
+
+
+def simulate(args) -> int:
+    """``swathflow simulate OUT --preset NAME --seed N``."""
+    from swathflow.simulation import simulate as run
+    t0 = time.perf_counter()
+    truth = run(args.out, args.preset, args.seed, progress=_say(args),
+                **simulation_options(args))
+    n_obs = sum(v["control"] + v["check"] for v in truth["gcp_counts"].values())
+    ties = truth.get("tie_observations")
+    print(f"wrote {args.out}: {len(truth['images'])} images, {n_obs} GCP "
+          f"{'and ' + str(ties) + ' tie ' if ties else ''}observations, "
+          f"{'rendered' if truth['images_rendered'] else 'geometry only'}, "
+          f"in {time.perf_counter() - t0:.1f} s (truth in {os.path.join(args.out, 'truth')})")
+    return 0
+
+
+def calibrate(args) -> int:
+    """``swathflow calibrate MISSION --out DIR``: the sensor plugin's calibration strategy."""
+    from swathflow.calibration.strategy import CalibrationOptions, calibrate_mission
+    from swathflow.ingest.mission import load_mission
+    mission = load_mission(args.mission)
+    options = CalibrationOptions(
+        fixed=tuple(args.fix or ()), images=_ids(args.images), robust=not args.no_robust,
+        vce=not args.no_vce, vce_priors=args.vce_priors, sigma_px=args.sigma_px,
+        shared_boresight=(args.model == "12"), drift=args.drift,
+        extra={"method": args.method, "max_rounds": args.max_rounds})
+    result = calibrate_mission(mission, options)
+    paths = result.write(args.out)
+    for line in result.summary_lines():
+        print(line)
+    print(f"wrote {paths['calibration']} and {paths['report']}")
+    return 0
+
+
+def rectify(args) -> int:
+    """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image."""
+    from swathflow.rectification.mission import rectify_mission
+    products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
+    rectify_mission(args.mission, args.out, calibration=args.calibration,
+                    images=_ids(args.images), method=args.method, kernel=args.kernel,
+                    tol=args.tolerance, tile=args.tile, products=products,
+                    progress=lambda line: print(line, flush=True),
+                    bands=args.bands or None, dtype=args.dtype)
+    return 0
+
+
+def mosaic(args) -> int:
+    """``swathflow mosaic SOURCE --out FILE.tif``: match strips, feather, write a COG."""
+    from swathflow.cluster import dask_client
+    from swathflow.mosaicking.mosaic import find_inputs, mission_strips
+    from swathflow.mosaicking.mosaic import mosaic as run
+    out = os.fspath(args.out)
+    # absolute: the overlaps may be matched by worker processes elsewhere
+    paths = [os.path.abspath(p) for p in find_inputs(args.source)
+             if os.path.abspath(p) != os.path.abspath(out)]
+    mission = args.mission
+    if mission is None and os.path.isfile(os.path.join(os.fspath(args.source), "mission.toml")):
+        mission = args.source
+    strips = mission_strips(mission) if mission else None
+    log = _say(args)
+    workers = args.workers
+    # the overlap matching holds the GIL: worker processes, as in the mission flow
+    cluster = not args.no_match and (args.dask_address or (workers or os.cpu_count() or 1) > 1)
+    with (dask_client(args.dask_address, n_workers=workers) if cluster
+          else contextlib.nullcontext()):
+        rep = run(paths, out, per_image=args.per_image, anchors=args.anchor or (),
+                  feather=args.feather, mode="cut" if args.no_feather else "feather",
+                  balance=not args.no_balance, match=not args.no_match,
+                  max_shift=args.max_shift, tile=args.tile, workers=workers, strips=strips,
+                  log=log)
+    if log:
+        for nd in rep.get("nodes", []):
+            log(f"  node {nd['node']}: offset (row, col) = {nd['offset']} px, "
+                f"sigma {nd['sigma']}, radiometric {nd['radiometric']}")
+        log(f"wrote {out} ({rep['shape'][0]} x {rep['shape'][1]} px, {rep['seconds']:.1f} s, "
+            f"{rep['mpx_per_s']} Mpx/s), {os.path.splitext(out)[0]}.png and "
+            f"{os.path.splitext(out)[0]}.json")
+    return 0
+
+
+def _print_summary(result: dict) -> None:
+    print(f"mission {result['mission']}: done")
+    print(f"  calibration  {result['calibration']}")
+    if result.get("report"):
+        print(f"  report       {result['report']}")
+    print(f"  rectified    {len(result['rectified'])} swings in "
+          f"{os.path.dirname(result['rectified'][0]) if result['rectified'] else '-'}")
+    print(f"  mosaic       {result['mosaic']}")
+    print("  stage timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in result["timings"].items()))
+
+
+def run(args) -> int:
+    """``swathflow run MISSION --out DIR``: the whole flow."""
+    from swathflow.flows.mission import run as run_flow
+    _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address))
+    return 0
+
+
+def demo(args) -> int:
+    """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
+    from swathflow.flows.mission import run as run_flow
+    from swathflow.simulation import simulate as simulate_mission
+    out = Path(args.out).resolve()
+    mission = out / "mission"
+    t0 = time.perf_counter()
+    if not (mission / "mission.toml").exists():
+        print(f"simulating the {args.preset} mission into {mission} ...", file=sys.stderr)
+        simulate_mission(mission, preset=args.preset, seed=0)
+    result = run_flow(mission, out / "products")
+    _print_summary(result)
+    print(f"demo finished in {time.perf_counter() - t0:.0f} s; open {result.get('report') or ''}")
+    return 0
