@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from swathflow.errors import FormatError
 from swathflow.rectification import kernel as K
 from swathflow.rectification.rawimage import open_raw_image, parse_bands
@@ -95,7 +94,7 @@ def test_multiband_each_band_its_own_pattern():
 def test_lattice_painting_matches_bilinear_closed_form():
     # one 8-pixel leaf over a 9 x 9 tile: corners of a bilinear function are reproduced
     # everywhere; a 1-pixel leaf painted later overwrites its four pixels exactly
-    f = lambda r, c: np.stack([1.5 * r - 0.25 * c + 0.01 * r * c + 3, 0.5 * c + 2], axis=-1)  # noqa: E731
+    f = lambda r, c: np.stack([1.5 * r - 0.25 * c + 0.01 * r * c + 3, 0.5 * c + 2], axis=-1)
     cells = np.array([[0, 0, 8], [4, 4, 1]], np.int64)
     corners = np.array([[f(0, 0), f(0, 8), f(8, 0), f(8, 8)],
                         [f(4, 4) + 0.3, f(4, 5) + 0.3, f(5, 4) + 0.3, np.full(2, np.nan)]])

@@ -11,11 +11,10 @@ import math
 
 import numpy as np
 import pytest
-
-from test_rectify import scene_model, texture
 from swathflow.geometry.grid import ecef_to_map, footprint_grid
 from swathflow.geometry.terrain import ConstantHeight
 from swathflow.rectification import rectify as R
+from test_rectify import scene_model, texture
 
 BANDS = [(0.0, 1.0, 0.0, 0.0), (400.0, -1.0, 7.0, -3.0), (200.0, 0.5, -11.0, 5.0)]
 
@@ -36,7 +35,7 @@ def scene():
     cube = np.stack([band_truth(k, x, y) for k in range(len(BANDS))])
     gx, gy = grid.centres()
     truth = np.stack([band_truth(k, gx, gy) for k in range(len(BANDS))])
-    return dict(model=model, terrain=terrain, grid=grid, cube=cube, truth=truth)
+    return {"model": model, "terrain": terrain, "grid": grid, "cube": cube, "truth": truth}
 
 
 def _as(kind, cube):

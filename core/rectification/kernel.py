@@ -144,6 +144,38 @@ def _weights(x, n, kernel, idx, wts):
     return 4
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _sample(raw, b, il, wl, na, ie, we, nq, has_nodata, nodata):
+    """Weighted sum of a pixel's taps in band ``b``; NaN where a tap of non-zero weight
+    is nodata."""
+    acc = 0.0
+    for p in range(na):
+        if wl[p] == 0.0:
+            continue
+        for q in range(nq):
+            wgt = wl[p] * we[q]
+            if wgt == 0.0:
+                continue
+            v = raw[b, il[p], ie[q]]
+            if math.isnan(v) or (has_nodata and v == nodata):
+                return np.nan
+            acc += wgt * v
+    return acc
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _to_int(acc, lo, hi, avoid, out_nodata):
+    """Round half up, clamp to [lo, hi], and step off the nodata value with ``avoid``."""
+    acc = math.floor(acc + 0.5)
+    if acc < lo:
+        acc = lo
+    elif acc > hi:
+        acc = hi
+    if avoid and acc == out_nodata:
+        acc = acc + 1 if acc < hi else acc - 1
+    return acc
+
+
 @njit(cache=True, nogil=True)
 def resample_bands(raw, coords, kernel, has_nodata, nodata, out, out_nodata, lo, hi,
                    is_int, avoid, valid):
@@ -155,8 +187,8 @@ def resample_bands(raw, coords, kernel, has_nodata, nodata, out, out_nodata, lo,
     (``has_nodata`` and equal to ``nodata``, or NaN). Nodata pixels get ``out_nodata``.
     Integer output (``is_int``) is rounded half up and clamped to ``[lo, hi]``; with
     ``avoid`` a valid value equal to ``out_nodata`` moves one unit towards the range's
-    inside (GDAL's warper does the same), so it cannot be mistaken for nodata. ``valid`` ``(h, w)``
-    uint8 receives 255 where every band is valid, else 0 (a mask band)."""
+    inside (GDAL's warper does the same), so it cannot be mistaken for nodata. ``valid``
+    ``(h, w)`` uint8 receives 255 where every band is valid, else 0 (a mask band)."""
     nb, nl, ne = raw.shape
     _, h, w = coords.shape
     il = np.empty(4, np.int64)
@@ -176,35 +208,14 @@ def resample_bands(raw, coords, kernel, has_nodata, nodata, out, out_nodata, lo,
                     valid[r, c] = 0
                     continue
                 na = _weights(li, nl, kernel, il, wl)
-                ne_ = _weights(ei, ne, kernel, ie, we)
-                acc = 0.0
-                bad = False
-                for p in range(na):
-                    if wl[p] == 0.0:
-                        continue
-                    for q in range(ne_):
-                        wgt = wl[p] * we[q]
-                        if wgt == 0.0:
-                            continue
-                        v = raw[b, il[p], ie[q]]
-                        if math.isnan(v) or (has_nodata and v == nodata):
-                            bad = True
-                            break
-                        acc += wgt * v
-                    if bad:
-                        break
-                if bad:
+                nq = _weights(ei, ne, kernel, ie, we)
+                acc = _sample(raw, b, il, wl, na, ie, we, nq, has_nodata, nodata)
+                if math.isnan(acc):
                     out[b, r, c] = out_nodata
                     valid[r, c] = 0
                     continue
                 if is_int:
-                    acc = math.floor(acc + 0.5)
-                    if acc < lo:
-                        acc = lo
-                    elif acc > hi:
-                        acc = hi
-                    if avoid and acc == out_nodata:
-                        acc = acc + 1 if acc < hi else acc - 1
+                    acc = _to_int(acc, lo, hi, avoid, out_nodata)
                 out[b, r, c] = acc
     return out
 

@@ -6,7 +6,7 @@ import hashlib
 import json
 import os
 import time
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 from swathflow.errors import FormatError
 from swathflow.formats.calibfile import calibration_priors, read_calibration

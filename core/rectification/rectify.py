@@ -30,25 +30,29 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
-
 from swathflow.errors import FormatError, SwathflowError
 from swathflow.geometry.grid import Grid, ecef_to_map, footprint_grid
 from swathflow.geometry.terrain import open_terrain
-from swathflow.io import atomic_path
 from swathflow.rectification.lattice import TOLERANCE_PX, exact_raw, inverse_map
 from swathflow.rectification.rawimage import RawImage, open_raw_image
-from swathflow.rectification.tiles import (KERNELS, check_inputs, glt_blocks, output_plan,
-                                           rectify, rectify_blocks, rectify_tile)
+from swathflow.rectification.tiles import (
+    KERNELS,
+    check_inputs,
+    glt_blocks,
+    output_plan,
+    rectify,
+    rectify_blocks,
+    rectify_tile,
+)
+from swathflow.rectification.writing import GDAL_CACHE_MB, write_cog, write_cogs  # noqa: F401
 
 __all__ = ["KERNELS", "TOLERANCE_PX", "RawImage", "RawSource", "exact_raw", "inverse_map",
            "open_raw_image", "rectify", "rectify_image", "rectify_tile", "resample",
            "write_cog", "write_cogs"]
 METHODS = ("exact", "polynomial")
-#: GDAL block cache while writing (MB): GDAL's default is 5 % of the machine's memory
-GDAL_CACHE_MB = 256
 
 
 # ----------------------------------------------------------------------------------------
@@ -250,160 +254,6 @@ def igm_block(model, terrain, crs, l0: int, l1: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------
-# streaming Cloud-Optimized GeoTIFF writing (memory bounded by one tile)
-# ----------------------------------------------------------------------------------------
-class _WindowWriter:
-    """A ``__setitem__`` target for ``dask.array.store`` writing windows of a rasterio
-    dataset (2-D: band 1; 3-D: bands)."""
-
-    def __init__(self, dst, bands: int | None = None, mask: bool = False):
-        self.dst = dst
-        self.bands = bands
-        self.mask = mask
-
-    def __setitem__(self, key, value):
-        from rasterio.windows import Window
-        if self.mask:                       # last plane: the mask band (0 / 255)
-            _, rs, cs = key
-            win = Window(cs.start, rs.start, cs.stop - cs.start, rs.stop - rs.start)
-            value = np.asarray(value)
-            self.dst.write(value[:-1], window=win)
-            self.dst.write_mask(value[-1].astype(np.uint8), window=win)
-            return
-        if self.bands is None:
-            rs, cs = key
-            self.dst.write(np.asarray(value), 1, window=Window(cs.start, rs.start,
-                                                              cs.stop - cs.start,
-                                                              rs.stop - rs.start))
-        else:
-            _, rs, cs = key
-            self.dst.write(np.asarray(value), window=Window(cs.start, rs.start,
-                                                            cs.stop - cs.start,
-                                                            rs.stop - rs.start))
-
-
-def _store_here(sources, targets, scheduler=None, batch: int | None = None) -> None:
-    """Compute the arrays' blocks on the active scheduler (threads, or a distributed
-    cluster) and write each block in THIS process as it arrives. The targets are open
-    files, which must never travel to a worker; memory stays bounded by one batch of
-    blocks. Blocks of one batch share their graph, so common tiles are computed once."""
-    import dask
-    from dask.array.core import slices_from_chunks
-    items = []
-    for arr, tgt in zip(sources, targets):
-        for blk, slc in zip(arr.to_delayed().ravel(), slices_from_chunks(arr.chunks)):
-            items.append((blk, slc, tgt))
-    client = None
-    if scheduler is None:
-        try:
-            from distributed import default_client
-            client = default_client()
-        except (ImportError, ValueError):
-            client = None
-    n = batch or (4 * max(1, sum(client.nthreads().values())) if client else 16)
-    for i in range(0, len(items), n):
-        chunk = items[i:i + n]
-        if client is not None:
-            from distributed import as_completed
-            futures = client.compute([blk for blk, _, _ in chunk])
-            index = {f.key: k for k, f in enumerate(futures)}
-            for fut, value in as_completed(futures, with_results=True):
-                _, slc, tgt = chunk[index[fut.key]]
-                tgt[slc] = value
-        else:
-            values = dask.compute(*[blk for blk, _, _ in chunk], scheduler=scheduler)
-            for (_, slc, tgt), value in zip(chunk, values):
-                tgt[slc] = value
-
-
-def _band_metadata(dst, infos) -> None:
-    """Band descriptions, wavelengths (ENVI-style items, and GDAL's IMAGERY domain
-    CENTRAL_WAVELENGTH_UM / FWHM_UM where the unit is known) on an open dataset."""
-    from swathflow.rectification.rawimage import _UNITS_NM
-    for i, b in enumerate(infos, start=1):
-        if b.description:
-            dst.set_band_description(i, b.description)
-        dst.update_tags(i, **b.tags())
-        um = _UNITS_NM.get((b.units or "").lower().replace("µ", "u"))
-        if b.wavelength is not None and um:
-            imagery = {"CENTRAL_WAVELENGTH_UM": repr(b.wavelength * um / 1e3)}
-            if b.fwhm is not None:
-                imagery["FWHM_UM"] = repr(b.fwhm * um / 1e3)
-            dst.update_tags(i, ns="IMAGERY", **imagery)
-
-
-def write_cog(path, arrays, grid: Grid | None, nodata=None, tags: Mapping | None = None,
-              blocksize: int = 512, dtype=None, compress: str = "deflate",
-              overview_resampling: str = "average", scheduler=None) -> None:
-    """Compute a dask/numpy array (2-D, or 3-D bands) and write it as a Cloud-Optimized
-    GeoTIFF atomically, window by window. See :func:`write_cogs`."""
-    write_cogs([dict(path=path, array=arrays, grid=grid, nodata=nodata, tags=tags,
-                     dtype=dtype)], blocksize, compress, overview_resampling, scheduler)
-
-
-def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
-               overview_resampling: str = "average", scheduler=None) -> None:
-    """Write several rasters computed in ONE dask graph (shared tiles computed once).
-
-    Each output is a dict: ``path``, ``array`` (dask or numpy, 2-D or bands x rows x cols),
-    ``grid`` (None: ungeoreferenced, raw geometry), ``nodata``, ``tags``, ``dtype``. Each
-    is streamed into a tiled GeoTIFF beside its target (memory bounded by the tiles in
-    flight), then laid out by GDAL's COG driver with internal overviews, atomically."""
-    import contextlib
-    import dask.array as da
-    import rasterio
-    from rasterio.shutil import copy as rio_copy
-    from swathflow.formats.raster import _crs
-    with contextlib.ExitStack() as stack:
-        sources, targets, parts = [], [], []
-        for o in outputs:
-            arr = o["array"]
-            if not hasattr(arr, "chunks"):
-                arr = da.from_array(np.asarray(arr), chunks=blocksize)
-            dtype = np.dtype(o.get("dtype") or arr.dtype)
-            if dtype != arr.dtype:
-                arr = arr.astype(dtype)
-            bands = arr.shape[0] if arr.ndim == 3 else None
-            if bands == 1 and not o.get("mask"):
-                arr, bands = arr[0], None
-            rows, cols = arr.shape[-2:]
-            count = (bands or 1) - (1 if o.get("mask") else 0)
-            profile = dict(driver="GTiff", width=cols, height=rows, count=count,
-                           dtype=dtype.name, tiled=True, blockxsize=blocksize,
-                           blockysize=blocksize, compress=compress, BIGTIFF="IF_SAFER")
-            if o.get("grid") is not None:
-                profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
-            if o.get("nodata") is not None:
-                profile["nodata"] = o["nodata"]
-            final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
-            part = stack.enter_context(atomic_path(os.fspath(o["path"]) + ".part",
-                                                   suffix=".tif"))
-            with warnings.catch_warnings(), rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
-                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-                dst = stack.enter_context(rasterio.open(part, "w", **profile))
-            if o.get("tags"):
-                dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
-            _band_metadata(dst, o.get("bands") or ())
-            sources.append(arr)
-            targets.append(_WindowWriter(dst, bands, bool(o.get("mask"))))
-            parts.append((dst, part, final, o["path"]))
-        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
-            _store_here(sources, targets, scheduler)
-        for dst, part, final, path in parts:
-            dst.close()
-            pred = {"PREDICTOR": "YES"} if compress == "deflate" else {}
-            with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-                rio_copy(part, final, driver="COG", COMPRESS=compress.upper(),
-                         BLOCKSIZE=blocksize,
-                         OVERVIEW_RESAMPLING=overview_resampling.upper(),
-                         BIGTIFF="IF_SAFER", **pred)
-    for _, _, _, path in parts:                      # the .part files are renamed, not kept
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(os.fspath(path) + ".part")
-
-
-# ----------------------------------------------------------------------------------------
 # one image, end to end
 # ----------------------------------------------------------------------------------------
 def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd=None,
@@ -417,6 +267,7 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
     in the raw dtype (``dtype`` overrides, see :func:`output_plan`), with the bands'
     descriptions, wavelengths and units. Returns a small summary dict."""
     import time
+
     from swathflow import __version__
     if method not in METHODS:
         raise FormatError(f"unknown rectification method {method!r}; use one of "
@@ -445,16 +296,16 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
         dt, out_nodata, use_mask = output_plan(source, dtype)
         arr = rectify_blocks(model, source, grid, terrain, kernel, tol, tile, dtype=dtype,
                              mask_plane=use_mask)
-        outs = [dict(path=out_path, array=arr, grid=grid, nodata=out_nodata, tags=base,
-                     mask=use_mask, bands=source.band_info)]
+        outs = [{"path": out_path, "array": arr, "grid": grid, "nodata": out_nodata, "tags": base,
+                     "mask": use_mask, "bands": source.band_info}]
         summary.update(bands=source.count, dtype=dt.name,
                        nodata="mask band" if use_mask else str(out_nodata))
         if "glt" in products:
-            outs.append(dict(path=stem + ".glt.tif",
-                             array=glt_blocks(model, source, grid, terrain, kernel, tol, tile),
-                             grid=grid, nodata=0, dtype=np.int32,
-                             tags={**base, "product": "GLT", "bands": "element+1,line+1",
-                                   "convention": "ENVI GLT, 1-based, 0 = none"}))
+            outs.append({"path": stem + ".glt.tif",
+                             "array": glt_blocks(model, source, grid, terrain, kernel, tol, tile),
+                             "grid": grid, "nodata": 0, "dtype": np.int32,
+                             "tags": {**base, "product": "GLT", "bands": "element+1,line+1",
+                                   "convention": "ENVI GLT, 1-based, 0 = none"}})
         write_cogs(outs, blocksize=tile, scheduler=scheduler)
     else:
         st: dict = {}
@@ -493,7 +344,7 @@ def _xcorr_peak(a, w, b, upsample: int = 20) -> np.ndarray:
     peak = np.array(np.unravel_index(np.argmax(cc), cc.shape), float)
     n = np.array(a.shape, float)
     peak = np.where(peak > n // 2, peak - n, peak)
-    size = int(math.ceil(upsample * 1.5))
+    size = math.ceil(upsample * 1.5)
     rows = (np.arange(size) - size // 2) / upsample + peak[0]
     cols = (np.arange(size) - size // 2) / upsample + peak[1]
     kr = np.fft.fftfreq(a.shape[0]) * a.shape[0]

@@ -173,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     import warnings
+
     from swathflow.errors import SwathflowError
     # raw scanner images carry no geotransform by nature: rasterio's warning about it is
     # noise here (catch_warnings around each open is not thread-safe under Dask threads)
