@@ -17,7 +17,8 @@ spec = importlib.util.spec_from_file_location(
     "tc", os.path.join(HERE, "..", "tests", "test_calibration.py"))
 tc = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(tc)
-from swathflow.calibration.control import calibrate, image_partials  # noqa: E402
+from swathflow.calibration.control import calibrate  # noqa: E402
+from swathflow.calibration.partials import image_partials  # noqa: E402
 
 
 def main():

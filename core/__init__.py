@@ -8,7 +8,7 @@ from swathflow.errors import FormatError, OutOfRangeError, SwathflowError
 from swathflow.ingest.mission import Mission, load_mission, validate_mission
 from swathflow.formats.pos import Trajectory, interpolate_pos, read_pos
 
-__version__ = "0.1.0"
+from swathflow._version import __version__
 
 __all__ = ["FormatError", "Mission", "OutOfRangeError", "SwathflowError", "Trajectory",
            "interpolate_pos", "load_mission", "read_pos", "validate_mission", "__version__"]

@@ -35,7 +35,7 @@ def file_digest(path) -> str:
 
 def stage_key(stage: str, files: Iterable = (), **params: Any) -> str:
     """A key for a stage output from its input files' content and its parameters."""
-    from swathflow import __version__
+    from swathflow._version import __version__
     doc = {"stage": stage, "version": __version__,
            "files": sorted(file_digest(f) for f in files if f is not None and os.path.exists(f)),
            "params": params}

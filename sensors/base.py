@@ -114,7 +114,7 @@ class ParameterSet:
                 continue
             v = values[b.name]
             if isinstance(v, Mapping):
-                kw2 = {}
+                kw2: dict[str, Any] = {}
                 for key in ("value", "sigma", "fixed"):
                     if key in v:
                         x = v[key]
@@ -230,7 +230,7 @@ class SensorModel(ABC):
     def default_parameters(cls, sensor: Mapping[str, Any]) -> ParameterSet:
         """The calibration parameters with their default values and prior sigmas."""
 
-    def _setup(self) -> None:
+    def _setup(self) -> None:  # noqa: B027 - an optional hook, empty by default
         """Precompute per-image quantities (called once by ``__init__``)."""
 
     # --- state ----------------------------------------------------------------------------

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from swathflow.adjustment.adjust import AdjustmentError, Problem, RankDeficiencyError, solve
+from swathflow.adjustment import AdjustmentError, Problem, RankDeficiencyError, solve
 from swathflow.errors import SwathflowError
 
 

@@ -13,7 +13,9 @@ import pytest
 import xarray as xr
 from scipy import stats
 
-from swathflow.calibration.control import CalibrationError, calibrate, image_partials
+from swathflow.calibration.control import calibrate
+from swathflow.calibration.partials import image_partials
+from swathflow.calibration.unknowns import CalibrationError
 from swathflow.formats.pos import Trajectory
 from swathflow.sensors.registry import get_sensor
 

@@ -142,7 +142,7 @@ def _paper_table(summary: pd.DataFrame, image: str) -> str:
 
 
 def render_report(result) -> str:
-    """HTML text of the report for a :class:`~swathflow.calibration.control.CalibrationResult`."""
+    """HTML text of the report for a :class:`~swathflow.calibration.result.CalibrationResult`."""
     opts = result.options
     sol = result.solution
     out = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>swathflow calibration"
@@ -237,7 +237,7 @@ def render_report(result) -> str:
 
 
 def summarize_frame(res: pd.DataFrame, by) -> pd.DataFrame:
-    from swathflow.calibration.control import summarize
+    from swathflow.calibration.result import summarize
     return summarize(res, by)
 
 

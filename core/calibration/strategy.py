@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Protocol
 
-from swathflow.calibration.control import CalibrationError, calibrate
+from swathflow.calibration.control import calibrate
+from swathflow.calibration.unknowns import CalibrationError
 
 
 @dataclass(frozen=True)

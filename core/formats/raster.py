@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
+from affine import Affine
+
 import numpy as np
 
 from swathflow.errors import FormatError
@@ -17,7 +19,6 @@ from swathflow.io import atomic_path
 
 
 def _affine(transform):
-    from affine import Affine
     if isinstance(transform, Affine):
         return transform
     t = tuple(transform)
@@ -101,7 +102,7 @@ class Raster:
 
     data: np.ndarray = field(repr=False)
     crs: str | None           # WKT, or None when the file has no CRS
-    transform: object         # affine.Affine
+    transform: Affine
     nodata: float | None
     tags: dict
     path: str = ""

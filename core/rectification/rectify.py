@@ -267,8 +267,7 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
     in the raw dtype (``dtype`` overrides, see :func:`output_plan`), with the bands'
     descriptions, wavelengths and units. Returns a small summary dict."""
     import time
-
-    from swathflow import __version__
+    from swathflow._version import __version__
     if method not in METHODS:
         raise FormatError(f"unknown rectification method {method!r}; use one of "
                           f"{', '.join(METHODS)}")

@@ -21,6 +21,7 @@ class Texture:
 
     targets: np.ndarray | None = None
     target_radius: float = 1.0
+    _tree: cKDTree | None = None
 
     def base(self, e, n) -> np.ndarray:  # pragma: no cover - interface
         raise NotImplementedError

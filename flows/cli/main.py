@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="swathflow",
         description="Calibrate, orthorectify and mosaic airborne line-scanner imagery.",
         epilog="Start with 'swathflow demo'. Each command has its own --help.")
-    from swathflow import __version__
+    from swathflow._version import __version__
     p.add_argument("--version", action="version", version=f"swathflow {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 

@@ -329,8 +329,8 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     from swathflow.formats.calibfile import write_calibration
     from swathflow.formats.raster import write_geotiff
     from swathflow.geometry.terrain import DEM
-    from swathflow.simulation.texture import (ImageTexture, ProceduralTerrain, ProceduralTexture, RasterTerrain,
-                          area_average)
+    from swathflow.simulation.texture import (ImageTexture, ProceduralTerrain, ProceduralTexture,
+                                              RasterTerrain, area_average)
     say = progress or (lambda msg: None)
     clock = time.perf_counter()
     timings = {}

@@ -12,7 +12,7 @@ observed minus computed through ``ground_to_image``. The AP continuity (C0) and 
 
 The Jacobian is sparse (a tie point's rows touch its own three coordinates and the
 parameters of one image, and an image depends only on the fixes around its time), so the
-generic engine :func:`swathflow.adjustment.adjust.solve` runs on sparse normal equations (SuperLU).
+generic engine :func:`swathflow.adjustment.solve` runs on sparse normal equations (SuperLU).
 Internally every parameter is scaled by its prior sigma (AP coefficients span 12 orders of
 magnitude otherwise).
 
@@ -35,9 +35,9 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from swathflow.adjustment.adjust import Problem, RankDeficiencyError, Solution, solve
-from swathflow.calibration.control import (CalibrationError, CalibrationResult, build_unknowns,
-                          residual_table, summarize)
+from swathflow.adjustment import Problem, RankDeficiencyError, Solution, solve
+from swathflow.calibration.result import CalibrationResult, residual_table, summarize
+from swathflow.calibration.unknowns import CalibrationError, build_unknowns
 from swathflow.errors import FormatError
 
 TIE_COLUMNS = ("tie_id", "image_id", "line", "element")
@@ -453,7 +453,7 @@ def _gap(st: _Setup, z, free, obs_sigma, tie_sigma, alpha, sig=None):
 # --- results -----------------------------------------------------------------------------
 @dataclass
 class PushbroomCalibrationResult(CalibrationResult):
-    """A :class:`~swathflow.calibration.control.CalibrationResult` (same report and file) plus the
+    """A :class:`~swathflow.calibration.result.CalibrationResult` (same report and file) plus the
     push-broom extras: tie points, C0/C1 residuals, the method and the other solution."""
 
     method: str = "joint"

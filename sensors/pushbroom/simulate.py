@@ -16,7 +16,7 @@ image per CCD line and strip (``view`` = forward/nadir/backward), line tables, `
 measured in the images, ground unknown), ``[sensor.fixes]`` and the priors; plus
 ``truth/`` (calibration.json, pos.csv, gcp.csv, ties.csv, ortho.tif, truth.json).
 
-Images are rendered through the sensor plugin with :func:`swathflow.sensors.pendulum.simulate.render_image`
+Images are rendered through the sensor plugin with :func:`swathflow.simulation.bundle.render_image`
 (``render=False``: blank images, for geometry-only calibration tests).
 """
 from __future__ import annotations

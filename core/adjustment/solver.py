@@ -1,0 +1,375 @@
+"""The estimator: Gauss-Newton with Levenberg-Marquardt damping, variance component
+estimation, a robust reweighting phase and data snooping (see the package docstring)."""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy import stats
+
+from swathflow.adjustment.normal import _block_stat, _diag_jqjt, _Normal, _point_blocks, _points
+from swathflow.adjustment.problem import AdjustmentError, Problem, Solution
+
+
+def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = False,
+          alpha: float = 0.001, max_iter: int = 50, tol: float = 1e-4,
+          sparse: bool | None = None, max_dense_cov: int = 4000, min_redundancy: float = 2.0,
+          scale_covariance: bool | None = None, damping: bool = True,
+          rcond: float = 1e-12, jac_refresh: float = 0.5) -> Solution:
+    """Estimate the unknowns of ``problem``.
+
+    vce: estimate the variance components of all labels (True), of the given labels, or
+        none (False). A component whose redundancy is below ``min_redundancy`` keeps 1.
+    robust: data snooping removes the worst point while its chi-square test (the 2-D
+        or k-D statistic of the whole point) fails at ``alpha``; rejected points whose
+        prediction passes the test are re-admitted once.
+    tol: convergence when the step's length in sigma units (``sqrt(dx' N dx)``) is below.
+    jac_refresh: steps shorter than this (sigma units) keep the Jacobian (modified
+        Newton); the final statistics always use a Jacobian at the solution.
+    scale_covariance: multiply the covariance by sigma0^2 (default: when no component was
+        estimated).
+    """
+    s = _Solver(problem, vce, sparse, rcond, damping, tol, jac_refresh, max_dense_cov,
+                min_redundancy)
+    s.run(robust, alpha, max_iter)
+    return s.solution(alpha, scale_covariance)
+
+
+class _Solver:
+    """The state of one adjustment: unknowns, weights, variance components, rejected
+    points. Each method is one phase of :func:`solve`."""
+
+    def __init__(self, P: Problem, vce, sparse, rcond, damping, tol, jac_refresh,
+                 max_dense_cov, min_redundancy):
+        self.P = P
+        self.n = n = P.n
+        if n == 0:
+            raise AdjustmentError("no unknowns")
+        self.free = ~P.fixed
+        if not self.free.any():
+            raise AdjustmentError("every unknown is fixed: nothing to estimate")
+        sizes = [g.size for g in P.groups]
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self.m = m = int(self.offsets[-1])
+        if m == 0:
+            raise AdjustmentError("no observations")
+        self.sigma = np.concatenate([g.sigma for g in P.groups])
+        comp = np.concatenate([g.component for g in P.groups])
+        self.labels = list(dict.fromkeys(comp.tolist()))
+        self.comp_idx = np.array([self.labels.index(c) for c in comp], int)
+        self.counted = np.concatenate([np.full(g.size, g.counted) for g in P.groups])
+        uncounted = set(comp[~self.counted].tolist())
+        if vce is True:
+            self.est = set(self.labels) - uncounted
+        elif vce is False or vce is None:
+            self.est = set()
+        else:
+            self.est = set(vce) - uncounted
+        self.s2 = np.ones(len(self.labels))
+        self.pts = pts = _points(P, self.offsets)
+        self.point_ok = np.ones(len(pts.group), bool)       # not rejected
+        self.obs_point = -np.ones(m, int)
+        for p, row in enumerate(pts.obs):
+            self.obs_point[row[row >= 0]] = p
+        self.rho = np.ones(len(pts.group))                   # robust weights per point
+        self.rejected: dict[int, dict] = {}
+        self.names_free = [nm for nm, f in zip(P.names, self.free) if f]
+        self.cons = [(A, d) for A, d in P.constraints]
+        self.use_sparse = sparse
+        self.rcond, self.damping, self.tol = rcond, damping, tol
+        self.jac_refresh, self.max_dense_cov = jac_refresh, max_dense_cov
+        self.min_redundancy = min_redundancy
+        self.history: list[dict] = []
+        self.x = P.x0.copy()
+        self.evals = 0
+        self.iters = 0
+        self.remaining = None
+        self.converged = False
+        self.cur: tuple | None = None  # (r, J, fresh) at x
+
+    # --- weights and evaluation ----------------------------------------------------------
+    def obs_mask(self):
+        ok = np.ones(self.m, bool)
+        pts_bad = ~self.point_ok
+        if pts_bad.any():
+            rows = self.pts.obs[pts_bad]
+            ok[rows[rows >= 0]] = False
+        return ok
+
+    def weights(self, r, mask):
+        w = 1.0 / (self.sigma ** 2 * self.s2[self.comp_idx])
+        rw = np.ones(self.m)
+        has = self.obs_point >= 0
+        rw[has] = self.rho[self.obs_point[has]]
+        act = mask & np.isfinite(r)
+        return np.where(act, w * rw, 0.0), act
+
+    def evaluate(self, xx, jac=True):
+        self.evals += 1
+        r, J = self.P.evaluate(xx, jac)
+        if J is not None:           # rows of uncomputable observations carry no weight
+            if sp.issparse(J):
+                J = sp.csr_matrix(J, copy=True)
+                J.data[~np.isfinite(J.data)] = 0.0
+            elif not np.isfinite(J).all():
+                J = np.where(np.isfinite(J), J, 0.0)
+        return r, J
+
+    def cres(self, xx):
+        return np.concatenate([d - A @ xx for A, d in self.cons]) if self.cons else None
+
+    def normal(self, J, w, lam=0.0) -> _Normal:
+        return _Normal(J, w, self.free, self.cons, lam, bool(self.use_sparse),
+                       self.names_free, self.rcond)
+
+    def _free_columns(self, J):
+        return J[:, self.free] if not sp.issparse(J) else sp.csr_matrix(J)[:, self.free]
+
+    # --- Gauss-Newton / Levenberg-Marquardt ------------------------------------------------
+    def gauss_newton(self, max_it):
+        """Iterate from self.x (``self.cur`` = (r, J, fresh) already evaluated there, or
+        None). A step shorter than ``tol`` is not taken (x and r stay valid)."""
+        if self.cur is None:
+            r, J = self.evaluate(self.x)
+            fresh = True
+        else:
+            r, J, fresh = self.cur
+        if self.use_sparse is None:
+            self.use_sparse = sp.issparse(J)
+        lam = 0.0
+        conv = False
+        self.remaining = None
+        for _ in range(max_it):
+            mask = self.obs_mask()
+            w, act = self.weights(r, mask)
+            rr = np.where(act, r, 0.0)
+            cost = float(np.sum(w * rr ** 2))
+            g = np.asarray(self._free_columns(J).T @ (w * rr)).ravel()
+            conv, lam, xn, rn, step, cost_new = self._damped_step(r, J, w, act, mask, g, lam)
+            if conv:
+                break
+            self.x = xn
+            lam = lam / 10.0 if lam > 1e-6 else 0.0
+            self.history.append({"cost": cost, "cost_new": cost_new, "step_sigma": step,
+                                 "damping": lam, "active": int(act.sum())})
+            if step > self.jac_refresh:
+                r, J = self.evaluate(self.x)
+                fresh = True
+            else:                    # near the solution: keep the Jacobian (modified Newton)
+                r, fresh = rn, False
+        self.cur = (r, J, fresh)
+        self.converged = conv
+        return r, J
+
+    def _remaining(self, dxf):
+        self.remaining = np.zeros(self.n)
+        self.remaining[self.free] = dxf
+
+    def _damped_step(self, r, J, w, act, mask, g, lam):
+        """One accepted step (raising the damping until the cost falls), or convergence.
+        Returns (converged, damping, x_new, r_new, step, cost_new)."""
+        x = self.x
+        for tries in range(12):
+            ne = self.normal(J, w, lam)
+            dxf = ne.solve(g, self.cres(x))
+            step = float(np.sqrt(max(dxf @ (ne.N @ dxf), 0.0)))
+            if step < self.tol and lam == 0.0:
+                self._remaining(dxf)
+                return True, lam, x, r, step, float("nan")
+            self.iters += 1
+            dx = np.zeros(self.n)
+            dx[self.free] = dxf
+            xn = x + dx
+            rn, _ = self.evaluate(xn, False)
+            both = act & np.isfinite(rn)
+            wn, _ = self.weights(rn, mask)
+            cost_old = float(np.sum(np.where(both, w * r ** 2, 0.0)))
+            cost_new = float(np.sum(np.where(both, wn * rn ** 2, 0.0)))
+            lost = int(act.sum() - both.sum())
+            lower = cost_new <= cost_old * (1 + 1e-9) + 1e-12
+            if self.damping and step < self.tol and lost == 0 and not lower:
+                # a step below the tolerance that does not lower the cost: x is the
+                # solution within the tolerance (a rough, e.g. piecewise-linear, model
+                # would otherwise be walked uphill)
+                ne0 = ne if lam == 0.0 else self.normal(J, w, 0.0)
+                self._remaining(ne0.solve(g, self.cres(x)))
+                return True, lam, x, r, step, cost_new
+            if not self.damping or cost_old == 0 or (step < self.tol and lost == 0) or (
+                    lower and (lost == 0 or tries >= 4)):
+                return False, lam, xn, rn, step, cost_new
+            lam = max(lam * 10.0, 1e-4)
+        raise AdjustmentError("Levenberg-Marquardt found no step that lowers the "
+                              "cost; check the start values and the observations")
+
+    # --- variance components and statistics ---------------------------------------------------
+    def vce_linear(self, r, J):
+        """Variance components on the model linearised at the current solution (no new
+        evaluations); returns True when a component changed."""
+        changed_any = False
+        for _ in range(50):
+            w, act = self.weights(r, self.obs_mask())
+            ne = self.normal(J, w)
+            if ne.nf > self.max_dense_cov:
+                return changed_any
+            Q = ne.inverse()
+            Jf = self._free_columns(J)
+            rr = np.where(act, r, 0.0)
+            gv = np.asarray(Jf.T @ (w * rr)).ravel()
+            dxf = Q @ gv if not self.cons else ne.solve(gv, self.cres(self.x))
+            v = rr - np.asarray(Jf @ dxf).ravel()
+            red = np.where(act & self.counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+            changed = False
+            for k, lab in enumerate(self.labels):
+                sel = (self.comp_idx == k) & act
+                rk = float(red[sel].sum())
+                if lab not in self.est or rk < self.min_redundancy:
+                    continue
+                f = float(np.sum(w[sel] * v[sel] ** 2)) / rk
+                self.s2[k] *= f
+                changed |= abs(f - 1.0) > 1e-3
+            changed_any |= changed
+            if not changed:
+                break
+        return changed_any
+
+    def a_priori_variances(self):
+        w0 = 1.0 / (self.sigma ** 2 * self.s2[self.comp_idx])
+        return np.where(np.isfinite(w0), 1.0 / w0, np.inf)
+
+    def snoop_stats(self, Q, Jf, r):
+        """Per-point v' Qvv^-1 v with the current components, its dof, J Q J' blocks and
+        the a-priori variances per point."""
+        qll = self.a_priori_variances()
+        obs = self.pts.obs
+        blocks = _point_blocks(Jf, Q, obs)
+        valid = obs >= 0
+        qdiag = np.where(valid, qll[np.where(valid, obs, 0)], 0.0)
+        idx = np.arange(blocks.shape[1])
+        qvv = -blocks.copy()
+        qvv[:, idx, idx] += qdiag
+        rr = np.where(np.isfinite(r), r, 0.0)
+        T, k_p = _block_stat(rr, qvv, obs, qdiag)
+        return T, k_p, blocks, qdiag
+
+    def statistics(self, r, J):
+        w, act = self.weights(r, self.obs_mask())
+        ne = self.normal(J, w)
+        Jf = self._free_columns(J)
+        Q = None if ne.nf > self.max_dense_cov else ne.inverse()
+        return ne, Q, Jf, w, act
+
+    # --- the phases -----------------------------------------------------------------------
+    def converge(self, max_iter):
+        """Converge with fixed weights, re-estimating the variance components."""
+        for _ in range(30):
+            r, J = self.gauss_newton(max_iter)
+            if not self.est or not self.vce_linear(r, J):
+                break
+        return r, J
+
+    def snoop(self, r, J, alpha, readmit: bool) -> str:
+        """One round of data snooping: 'rejected' (the worst failing point), 'readmitted'
+        (rejected points whose prediction passes), or 'done'."""
+        _, Q, Jf, _, _ = self.statistics(r, J)
+        if Q is None:
+            return "done"
+        T, k_p, blocks, qdiag = self.snoop_stats(Q, Jf, r)
+        crit = stats.chi2.ppf(1 - alpha, np.maximum(k_p, 1))
+        cand = self.pts.robust & self.point_ok & (k_p > 0)
+        ratio = np.where(cand, T / crit, 0.0)
+        if cand.any() and ratio.max() > 1.0:
+            p = int(np.argmax(ratio))
+            self.rejected[p] = {"phase": "snooping", "statistic": float(T[p]),
+                                "dof": int(k_p[p])}
+            self.point_ok[p] = False
+            return "rejected"
+        if readmit and self.rejected:
+            idx = np.arange(blocks.shape[1])
+            qpl = blocks.copy()
+            qpl[:, idx, idx] += qdiag
+            rr = np.where(np.isfinite(r), r, 0.0)
+            Tp, kp = _block_stat(rr, qpl, self.pts.obs, qdiag)
+            crit_p = stats.chi2.ppf(1 - alpha, np.maximum(kp, 1))
+            back = [p for p in self.rejected if Tp[p] <= crit_p[p]]
+            for p in back:
+                self.rejected.pop(p)
+                self.point_ok[p] = True
+            return "readmitted" if back else "done"
+        return "done"
+
+    def run(self, robust: bool, alpha: float, max_iter: int) -> None:
+        r, J = self.converge(max_iter)
+        if not robust:
+            return
+        readmit = True
+        while True:
+            state = self.snoop(r, J, alpha, readmit)
+            if state == "done":
+                return
+            readmit = readmit and state != "readmitted"
+            r, J = self.converge(max_iter)
+
+    # --- the result -------------------------------------------------------------------------
+    def solution(self, alpha, scale_covariance) -> Solution:
+        """Final statistics, with the Jacobian at the solution."""
+        P, n, m, free = self.P, self.n, self.m, self.free
+        assert self.cur is not None, "run() first"
+        r, J, fresh = self.cur
+        if not fresh:
+            r, J = self.evaluate(self.x)
+        ne, Q, Jf, w, act = self.statistics(r, J)
+        cov = np.zeros((n, n))
+        red = np.full(m, np.nan)
+        used_counted = act & self.counted
+        if Q is not None:
+            red = np.where(used_counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+        redundancy = (float(used_counted.sum() - free.sum() + ne.nc) if Q is None
+                      else float(red.sum()))
+        vpv = float(np.sum(np.where(used_counted, w * r ** 2, 0.0)))
+        s0sq = vpv / redundancy if redundancy > 0 else float("nan")
+        if scale_covariance is None:
+            scale_covariance = not any(lab in self.est for lab in self.labels)
+        if Q is not None:
+            cov[np.ix_(free, free)] = Q * (s0sq if scale_covariance and np.isfinite(s0sq)
+                                           else 1.0)
+        components = self._components(r, w, act, red, Q is not None)
+        wtest = np.full(m, np.nan)
+        if Q is not None:            # per-observation w-tests
+            qv = np.where(act, 1.0 / np.where(w > 0, w, 1.0) - _diag_jqjt(Jf, Q), np.nan)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                wtest = np.where(act & (qv > 0), r / np.sqrt(np.abs(qv)), np.nan)
+        res, nrm, used = {}, {}, {}
+        for gi, g in enumerate(P.groups):
+            sl = slice(self.offsets[gi], self.offsets[gi + 1])
+            res[g.name], nrm[g.name], used[g.name] = r[sl].copy(), wtest[sl].copy(), act[sl].copy()
+        sigma0 = float(math.sqrt(s0sq)) if np.isfinite(s0sq) and s0sq >= 0 else float("nan")
+        return Solution(list(P.names), list(P.units), self.x, P.x0.copy(), P.fixed.copy(), cov,
+                        sigma0, redundancy, components, res, nrm, used,
+                        self._rejected_list(alpha), self.iters, self.evals,
+                        bool(self.converged), self.history,
+                        self.remaining if self.converged else None)
+
+    def _components(self, r, w, act, red, have_q) -> dict:
+        out = {}
+        for k, lab in enumerate(self.labels):
+            sel = (self.comp_idx == k) & act
+            rk = float(red[sel].sum()) if have_q else float("nan")
+            out[lab] = {"s2": float(self.s2[k]), "sigma_factor": float(math.sqrt(self.s2[k])),
+                        "redundancy": rk, "n": int(sel.sum()),
+                        "estimated": bool(lab in self.est and rk >= self.min_redundancy),
+                        "vpv": float(np.sum(w[sel] * r[sel] ** 2))}
+        return out
+
+    def _rejected_list(self, alpha) -> list[dict]:
+        out = []
+        for p, info in sorted(self.rejected.items()):
+            g = self.P.groups[int(self.pts.group[p])]
+            kp = info["dof"]
+            out.append({"group": g.name, "point": int(self.pts.point[p]),
+                        "name": str(g.point_names[int(self.pts.point[p])]),
+                        "statistic": info["statistic"],
+                        "critical": float(stats.chi2.ppf(1 - alpha, max(kp, 1))),
+                        "phase": info["phase"]})
+        return out

@@ -1,0 +1,180 @@
+"""A calibration's result: parameters with sigmas, residuals before/after/cross-applied,
+rejected points; written as calibration.json and report.html."""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+from swathflow.adjustment import Solution
+from swathflow.calibration.unknowns import Unknowns
+
+
+def _direction(model) -> str:
+    return str(model.image_attrs.get("direction", "")).upper()
+
+
+def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.DataFrame,
+                   stage: str) -> pd.DataFrame:
+    """Observed minus computed per observation: x (element), y (line), pixels."""
+    out = []
+    for iid, grp in obs.groupby("image_id", sort=False):
+        m = models[iid].with_vector(vectors[iid])
+        comp = m.ground_to_image(grp[["X", "Y", "Z"]].to_numpy(float), clip=False)
+        out.append(pd.DataFrame({
+            "row": grp.index.to_numpy(), "gcp_id": grp["gcp_id"].to_numpy(), "image_id": iid,
+            "direction": _direction(models[iid]), "role": grp["role"].to_numpy(),
+            "stage": stage, "x": grp["element"].to_numpy(float) - comp[:, 1],
+            "y": grp["line"].to_numpy(float) - comp[:, 0]}, index=grp.index))
+    if not out:
+        return pd.DataFrame(columns=["row", "gcp_id", "image_id", "direction", "role", "stage",
+                                     "x", "y"])
+    return pd.concat(out).sort_index()
+
+
+def summarize(res: pd.DataFrame, by=("stage", "image_id", "direction", "role")) -> pd.DataFrame:
+    """Mean, std (ddof 1), RMS of x and y and counts per group (NaN rows counted apart)."""
+    rows = []
+    for key, g in res.groupby(list(by), sort=False):
+        ok = g[["x", "y"]].notna().all(axis=1)
+        x, y = g.loc[ok, "x"].to_numpy(), g.loc[ok, "y"].to_numpy()
+        row = dict(zip(by, key if isinstance(key, tuple) else (key,)))
+        row.update(n=int(ok.sum()), n_unprojected=int((~ok).sum()),
+                   mean_x=float(x.mean()) if x.size else np.nan,
+                   std_x=float(x.std(ddof=1)) if x.size > 1 else np.nan,
+                   mean_y=float(y.mean()) if y.size else np.nan,
+                   std_y=float(y.std(ddof=1)) if y.size > 1 else np.nan,
+                   rms_x=float(np.sqrt(np.mean(x ** 2))) if x.size else np.nan,
+                   rms_y=float(np.sqrt(np.mean(y ** 2))) if y.size else np.nan)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+@dataclass
+class CalibrationResult:
+    """Everything a calibration produced (see :func:`calibrate`)."""
+
+    sensor: str
+    unknowns: Unknowns
+    solution: Solution
+    parameters: object                  # model-level ParameterSet (values, sigmas)
+    model_cov: np.ndarray               # covariance of the model-level flat vector at t_ref
+    residuals: pd.DataFrame             # per observation, stages before/after/cross
+    summary: pd.DataFrame
+    rejected: pd.DataFrame
+    image_vectors: dict[str, np.ndarray]
+    calibration_images: list[str]
+    options: dict
+    t_ref: float | None = None
+
+    # unknown-level views
+    @property
+    def names(self) -> list[str]:
+        return self.solution.names
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.solution.x
+
+    @property
+    def sigmas(self) -> np.ndarray:
+        return self.solution.sigma
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.solution.cov
+
+    @property
+    def correlation(self) -> np.ndarray:
+        return self.solution.corr
+
+    @property
+    def sigma0(self) -> float:
+        return self.solution.sigma0
+
+    @property
+    def components(self) -> dict:
+        return self.solution.components
+
+    @property
+    def iterations(self) -> int:
+        return self.solution.iterations
+
+    def parameter_table(self) -> pd.DataFrame:
+        s = self.solution
+        u = self.unknowns
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = 1.0 - (s.sigma / u.sigma) ** 2
+        return pd.DataFrame({"name": s.names, "units": s.units, "value": s.x,
+                             "sigma": s.sigma, "prior": u.value, "prior_sigma": u.sigma,
+                             "change": s.x - u.value, "fixed": u.fixed,
+                             "data_share": np.where(u.fixed, np.nan, share)})
+
+    def strong_correlations(self, threshold: float = 0.9) -> list[tuple[str, str, float]]:
+        c = self.correlation
+        i, j = np.triu_indices_from(c, k=1)
+        keep = np.abs(c[i, j]) >= threshold
+        return sorted(((self.names[a], self.names[b], float(c[a, b]))
+                       for a, b in zip(i[keep], j[keep])), key=lambda t: -abs(t[2]))
+
+    def calibration_document(self) -> dict:
+        """Keyword arguments for :func:`swathflow.formats.calibfile.write_calibration`."""
+        ps = self.parameters
+        params = {b.name: {"value": list(b.value), "sigma": list(b.sigma), "units": b.units}
+                  for b in ps.blocks}
+        summ = {}
+        for _, r in self.summary.iterrows():
+            key = f"{r['image_id']}/{r['role']}/{r['stage']}"
+            summ[key] = {k: (None if isinstance(r[k], float) and not math.isfinite(r[k])
+                             else r[k]) for k in ("n", "mean_x", "std_x", "mean_y", "std_y",
+                                                  "rms_x", "rms_y")}
+        extra = {"sigma0": self.sigma0, "residuals": summ,
+                 "model": self.options.get("model"),
+                 "calibration_images": self.calibration_images,
+                 "variance_components": {k: {"sigma_factor": v["sigma_factor"],
+                                             "redundancy": v["redundancy"],
+                                             "estimated": v["estimated"]}
+                                         for k, v in self.components.items()},
+                 "rejected": self.rejected.to_dict(orient="records"),
+                 "unknowns": {"names": self.names, "units": self.solution.units,
+                              "value": self.values, "sigma": self.sigmas,
+                              "correlation": self.correlation},
+                 "iterations": self.iterations, "converged": self.solution.converged}
+        if self.t_ref is not None:
+            rates = {n: {"value": [self.values[i] for i in idx],
+                         "sigma": [self.sigmas[i] for i in idx],
+                         "units": self.unknowns.block_units[n]}
+                     for n, idx in self.unknowns.blocks.items() if n.endswith("_rate")}
+            extra["drift"] = {"t_ref": self.t_ref, "rates": rates,
+                              "note": "value(t) = value + rate * (t - t_ref) / 3600"}
+        return {"sensor": self.sensor, "parameters": params, **extra}
+
+    def summary_lines(self) -> list[str]:
+        """What a person reads on the terminal after a calibration."""
+        s = self.summary
+        out = [f"calibrated {len(self.unknowns.names)} parameters from "
+               f"{int((self.residuals['stage'] == 'after').sum())} image points "
+               f"(sigma0 {self.sigma0:.3f}, {len(self.rejected)} rejected, "
+               f"{self.iterations} iterations)"]
+        for _, r in s[s["stage"] == "after"].iterrows():
+            out.append(f"  {r['image_id']:>8} {r['role']:<8} n={r['n']:4d}  mean x "
+                       f"{r['mean_x']:+8.3f} y {r['mean_y']:+8.3f}  std x {r['std_x']:7.3f} "
+                       f"y {r['std_y']:7.3f} px")
+        return out
+
+    def write(self, out_dir) -> dict[str, str]:
+        """Write ``calibration.json`` and ``report.html`` into ``out_dir`` (atomically)."""
+        from swathflow.formats.calibfile import write_calibration
+        from swathflow.calibration.report import write_report
+        os.makedirs(out_dir, exist_ok=True)
+        doc = self.calibration_document()
+        cal = os.path.join(out_dir, "calibration.json")
+        write_calibration(cal, doc.pop("sensor"), doc.pop("parameters"), **doc)
+        rep = os.path.join(out_dir, "report.html")
+        write_report(self, rep)
+        return {"calibration": cal, "report": rep}
+
