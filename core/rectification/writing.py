@@ -157,7 +157,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             parts.append((dst, part, final, o["path"]))
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
             _store_here(sources, targets, scheduler)
-        for dst, part, final, path in parts:
+        for dst, part, final, _ in parts:
             dst.close()
             pred = {"PREDICTOR": "YES"} if compress == "deflate" else {}
             with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
