@@ -84,6 +84,7 @@ def test_integer_cube_keeps_its_dtype_and_matches_truth(scene, kind, dtype, lo, 
     scale = (hi - lo) / (cmax - cmin)
     offset = lo - cmin * scale
     raw = np.floor(scene["cube"] * scale + offset + 0.5)
+    info = np.iinfo(dtype)
     out = R.rectify(scene["model"], _as(kind, raw.astype(dtype)), scene["grid"],
                     scene["terrain"], "bilinear", tile=256).compute()
     assert out.dtype == dtype
@@ -91,7 +92,8 @@ def test_integer_cube_keeps_its_dtype_and_matches_truth(scene, kind, dtype, lo, 
     ref = R.rectify(scene["model"], scene["cube"][:1], scene["grid"], scene["terrain"],
                     "bilinear", tile=256).compute()[0]
     valid = np.isfinite(ref)
-    assert (out[:, ~valid] == 0).all()
+    assert (out[:, ~valid] == info.min).all()          # nodata: the type's lowest value
+    assert (out[:, valid] != info.min).all()           # which no valid pixel holds
     vals = np.where(valid, (out.astype(float) - offset) / scale, np.nan)
     _check_bands(vals, scene["truth"], limit=0.1 if dtype != np.uint8 else 0.15)
 
@@ -105,7 +107,10 @@ def test_cubic_integer_output_is_clamped_not_wrapped(scene):
                   "cubic", tile=256).compute()
     ok = np.isfinite(f)
     assert np.nanmin(f) < -1 and np.nanmax(f) > 256             # the float result rings
-    assert np.array_equal(out[ok], np.clip(np.floor(f[ok] + 0.5), 0, 255).astype(np.uint8))
+    want = np.clip(np.floor(f[ok] + 0.5), 0, 255).astype(np.uint8)
+    want[want == 0] = 1                        # 0 is the nodata value: valid zeros move to 1
+    assert np.array_equal(out[ok], want)
+    assert (out[~ok] == 0).all()
 
 
 def test_envi_cube_to_cog_with_band_metadata_and_mask(scene, tmp_path):
@@ -123,7 +128,7 @@ def test_envi_cube_to_cog_with_band_metadata_and_mask(scene, tmp_path):
         "wavelength = {450.0, 550.0, 650.0}\nfwhm = {20.0, 20.0, 20.0}\n")
     out = tmp_path / "swing.tif"
     s = R.rectify_image(scene["model"], data, scene["terrain"], out, grid=scene["grid"],
-                        tile=256, bands="650nm,1")
+                        tile=256, bands="650nm,1", mask_band=True)
     assert s["dtype"] == "uint16" and s["bands"] == 2 and s["nodata"] == "mask band"
     with rasterio.open(out) as src:
         assert src.count == 2 and src.dtypes == ("uint16", "uint16")

@@ -221,7 +221,7 @@ def resample_bands(raw, coords, kernel, has_nodata, nodata, out, out_nodata, lo,
 
 
 @njit(cache=True, nogil=True)
-def bilinear_int_bands(raw, coords, out, out_nodata, lo, hi, is_int, valid):
+def bilinear_int_bands(raw, coords, out, out_nodata, lo, hi, is_int, avoid, valid):
     """:func:`resample_bands` for bilinear resampling of an integer raw window that has no
     nodata value (every tap valid): the same values, taps and weights computed once per
     pixel for all bands."""
@@ -263,7 +263,7 @@ def bilinear_int_bands(raw, coords, out, out_nodata, lo, hi, is_int, valid):
                 acc = ((1 - p) * ((1 - q) * raw[band, i0[k], j0[k]] + q * raw[band, i0[k], j1[k]])
                        + p * ((1 - q) * raw[band, i1[k], j0[k]] + q * raw[band, i1[k], j1[k]]))
                 if is_int:
-                    acc = _to_int(acc, lo, hi, False, out_nodata)
+                    acc = _to_int(acc, lo, hi, avoid, out_nodata)
                 out[band, r, c] = acc
     return out
 
@@ -295,10 +295,10 @@ def resample_window(raw, coords, kernel: str, nodata, out_dtype, out_nodata):
     else:
         ond = float(out_nodata)
         avoid = is_int
-    if kernel == "bilinear" and raw.dtype.kind in "ui" and not has_nodata and not avoid:
+    if kernel == "bilinear" and raw.dtype.kind in "ui" and not has_nodata:
         # integer cube without nodata (the usual hyperspectral case): taps and weights
         # once per pixel, then a plain gather per band
-        bilinear_int_bands(raw, coords, out, ond, lo, hi, is_int, valid)
+        bilinear_int_bands(raw, coords, out, ond, lo, hi, is_int, avoid, valid)
     else:
         resample_bands(raw, coords, KERNEL_CODES[kernel], has_nodata, nd, out, ond, lo, hi,
                        is_int, avoid, valid)

@@ -22,12 +22,13 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                     kernel: str = "bilinear", tol: float = TOLERANCE_PX, tile: int = 512,
                     products: Sequence[str] = (),
                     progress: Callable[[str], None] | None = None, bands=None,
-                    dtype: str | None = None) -> list[dict]:
+                    dtype: str | None = None, mask_band: bool = False) -> list[dict]:
     """Rectify the mission's images into ``out_dir/<id>.tif`` with ``calibration`` (a
     calibration.json; default: the mission's priors). Every band of each raw image is
     rectified (``bands``: a subset by 1-based index or wavelength, see
     :func:`~swathflow.rectification.rawimage.parse_bands`), in the raw dtype unless
-    ``dtype`` says otherwise. Returns one summary per image."""
+    ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``). Returns
+    one summary per image."""
     mission = load_mission(mission_path)
     params, cal_tag = mission.priors, "mission priors (mission.toml [calibration])"
     if calibration:
@@ -57,6 +58,7 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
         s = rectify_image(model, open_raw_image(mission.images[iid].file), mission.terrain,
                           out, grid=grid, method=method, kernel=kernel, tol=tol, tile=tile,
                           products=tuple(products), bands=bands, dtype=dtype,
+                          mask_band=mask_band,
                           tags={"image_id": iid, "calibration": cal_tag,
                                 "mission": mission.name,
                                 "parameters": json.dumps(model.parameters.values_dict())})

@@ -260,12 +260,13 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
                   crs="auto-utm", method: str = "exact", kernel: str = "bilinear",
                   tol: float = TOLERANCE_PX, tile: int = 512, products=(),
                   tags: Mapping | None = None, scheduler=None, bands=None,
-                  dtype=None) -> dict:
+                  dtype=None, mask_band: bool = False) -> dict:
     """Rectify one raw image to a COG at ``out_path`` (and ``<stem>.glt.tif`` /
     ``<stem>.igm.tif`` when asked in ``products``). The grid is ``grid`` or the image's
     footprint at ``gsd`` in ``crs``. Every band (or the ``bands`` selected) is written,
-    in the raw dtype (``dtype`` overrides, see :func:`output_plan`), with the bands'
-    descriptions, wavelengths and units. Returns a small summary dict."""
+    in the raw dtype (``dtype`` overrides; integer nodata, or a mask band with
+    ``mask_band``: see :func:`output_plan`), with the bands' descriptions, wavelengths and
+    units. Returns a small summary dict."""
     import time
     from swathflow._version import __version__
     if method not in METHODS:
@@ -292,7 +293,7 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
     if method == "exact":
         source = open_raw_image(image, bands=bands)
         check_inputs(model, source, kernel)
-        dt, out_nodata, use_mask = output_plan(source, dtype)
+        dt, out_nodata, use_mask = output_plan(source, dtype, mask_band)
         arr = rectify_blocks(model, source, grid, terrain, kernel, tol, tile, dtype=dtype,
                              mask_plane=use_mask)
         outs = [{"path": out_path, "array": arr, "grid": grid, "nodata": out_nodata, "tags": base,

@@ -24,14 +24,17 @@ MARGIN = {"nearest": 1, "bilinear": 2, "cubic": 3}
 DTYPES = ("uint8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 
 
-def output_plan(source: RawImage, dtype=None) -> tuple[np.dtype, float | None, bool]:
-    """(output dtype, output nodata, needs a mask band) for a raw image.
+def output_plan(source: RawImage, dtype=None,
+                mask_band: bool = False) -> tuple[np.dtype, float | None, bool]:
+    """(output dtype, output nodata, mask band) for a raw image.
 
     The raw dtype is kept (uint8, uint16, int16, int32, uint32, float32); float64 and
     other types become float32 unless ``dtype`` says otherwise. Float output: NaN marks
-    nodata. Integer output: the raw image's own nodata value when it has one that the
-    output type can hold (a valid value that lands on it moves one unit, as GDAL does),
-    otherwise value 0 and a mask band (nothing in the data range is given up)."""
+    nodata. Integer output: the raw image's own nodata value when the output type can
+    hold it, else the type's lowest value (0 unsigned, -32768 for int16...); a valid
+    value that lands on the nodata value moves one unit inwards (as GDAL's warper does),
+    so nodata cannot collide with data. With ``mask_band`` integer output carries no
+    nodata value but a mask band (every value of the type stays data)."""
     if dtype is not None:
         dt = np.dtype(dtype)
         if dt.name not in DTYPES:
@@ -44,12 +47,14 @@ def output_plan(source: RawImage, dtype=None) -> tuple[np.dtype, float | None, b
             dt = np.dtype(np.int16)
     if dt.kind == "f":
         return dt, float("nan"), False
+    if mask_band:
+        return dt, None, True
     nd = source.nodata
+    info = np.iinfo(dt)
     if nd is not None and not (isinstance(nd, float) and math.isnan(nd)):
-        info = np.iinfo(dt)
         if float(nd) == int(nd) and info.min <= nd <= info.max:
             return dt, int(nd), False
-    return dt, None, True
+    return dt, int(info.min), False
 
 
 def _window(lv, kernel, nl, ne):
@@ -84,13 +89,13 @@ def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_P
 
 def rectify_tile(model, source, grid, terrain, kernel: str = "bilinear",
                  tol: float = TOLERANCE_PX, step: int = 32, stats: dict | None = None,
-                 dtype=None):
+                 dtype=None, mask_band: bool = False):
     """Rectify one window of the output grid (``grid`` is the window's own grid).
 
     Returns ``(values (bands, h, w), valid (h, w) bool)`` in the output dtype of
     :func:`output_plan` (nodata pixels hold the output nodata, or 0 with a mask)."""
     source = open_raw_image(source)
-    dt, ond, _ = output_plan(source, dtype)
+    dt, ond, _ = output_plan(source, dtype, mask_band)
     co, win = tile_coords(model, source, grid, terrain, kernel, tol, step, stats)
     if win is None:
         h, w = grid.shape
@@ -131,13 +136,14 @@ def rectify_blocks(model, source: RawImage, grid, terrain, kernel="bilinear",
     the output dtype; the mask plane (255 valid, 0 not) only with ``mask_plane``."""
     import dask.array as da
     terrain = open_terrain(terrain)
-    dt, _, _ = output_plan(source, dtype)
+    dt, _, _ = output_plan(source, dtype, mask_plane)
     nb = source.count + (1 if mask_plane else 0)
 
     def block(block_info=None):
         (r0, r1), (c0, c1) = block_info[None]["array-location"][-2:]
         sub = grid.window(slice(r0, r1), slice(c0, c1))
-        v, ok = rectify_tile(model, source, sub, terrain, kernel, tol, step, dtype=dtype)
+        v, ok = rectify_tile(model, source, sub, terrain, kernel, tol, step, dtype=dtype,
+                             mask_band=mask_plane)
         if not mask_plane:
             return v
         return np.concatenate([v, np.where(ok, 255, 0).astype(dt)[None]])

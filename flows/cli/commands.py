@@ -93,7 +93,7 @@ def rectify(args) -> int:
                     images=_ids(args.images), method=args.method, kernel=args.kernel,
                     tol=args.tolerance, tile=args.tile, products=products,
                     progress=lambda line: print(line, flush=True),
-                    bands=args.bands or None, dtype=args.dtype)
+                    bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band)
     return 0
 
 

@@ -126,8 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dtype", choices=("uint8", "uint16", "int16", "uint32", "int32",
                                        "float32", "float64"),
                    help="output data type (default: the raw image's; float64 raw -> "
-                        "float32). Integer output keeps the raw nodata value, or writes a "
-                        "mask band; float output uses NaN")
+                        "float32). Integer nodata: the raw image's nodata value, else the "
+                        "type's lowest (0 unsigned); a valid value equal to it moves one "
+                        "unit. Float output: NaN")
+    s.add_argument("--mask-band", action="store_true",
+                   help="integer output: no nodata value, an internal mask band instead "
+                        "(every value of the type stays data)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:rectify"))
 
     s = sub.add_parser("mosaic", help="match strips and blend rectified swings into a mosaic")
