@@ -266,7 +266,8 @@ def _inspect(path) -> tuple[list[Problem], dict]:
     sensor = cfg.get("sensor")
     cls = None
     if not isinstance(sensor, dict):
-        c.add(toml, "[sensor]", "table missing", 'add [sensor] with model = "pendulum" etc.')
+        c.add(toml, "[sensor]", "table missing",
+              "add [sensor] with model = a name that 'swathflow sensors' lists")
         sensor = {}
     else:
         name = sensor.get("model")

@@ -22,7 +22,28 @@ def _sensors(args) -> int:
     for name, (cls, target) in reg.items():
         doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
         print(f"{name:<{width}}  {cls.kind or '-':<12} {target}\n{'':<{width}}  {doc}")
+        for label, text in _hooks(cls):
+            print(f"{'':<{width}}  {label:<12} {text}")
     return 0 if list_sensors() else 1
+
+
+def _hooks(cls) -> list[tuple[str, str]]:
+    """What a sensor plugin brings besides its geometry (a broken hook is reported, never
+    raised: the listing must show every plugin)."""
+    out = [("line table", "line, " + ", ".join(cls.line_columns))]
+    if cls.directions:
+        out.append(("directions", ", ".join(cls.directions)))
+    try:
+        strategy = cls.calibration_strategy()
+        doc = (type(strategy).__doc__ or "").strip().splitlines() if strategy else []
+        out.append(("calibration", (doc[0] if doc else type(strategy).__name__) if strategy
+                    else "control points (the generic adjustment)"))
+        sim = cls.simulator()
+        if sim is not None:
+            out.append(("presets", ", ".join(getattr(sim, "PRESETS", ())) or "-"))
+    except Exception as exc:  # noqa: BLE001 - a broken plugin must never break the listing
+        out.append(("broken hook", f"{type(exc).__name__}: {exc}"))
+    return out
 
 
 def _call(target: str):
@@ -52,8 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="write a simulated mission bundle with its truth")
     s.add_argument("out", help="output mission folder")
     s.add_argument("--preset", default="tiny",
-                   help="a preset of a sensor plugin's simulator: tiny, demo, paper, area "
-                        "(pendulum), pushbroom, pushbroom-demo, ... (default tiny)")
+                   help="a preset of a registered sensor's simulator (listed by "
+                        "'swathflow sensors'; default tiny)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--texture", help="orthophoto GeoTIFF/JPEG+world file for the ground truth")
     s.add_argument("--dem", help="DEM GeoTIFF for the terrain shape")
@@ -96,8 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sigma-px", type=float, default=1.0,
                    help="a-priori sigma of image coordinates in pixels (default 1)")
     s.add_argument("--method", choices=("joint", "two-step", "both"), default="joint",
-                   help="push-broom cameras: joint adjustment (default), the paper's "
-                        "iterative two-step scheme, or both (compared in the report)")
+                   help="for calibration strategies with tie points and orientation fixes: "
+                        "joint adjustment (default), the iterative two-step scheme, or "
+                        "both (compared in the report)")
     s.add_argument("--max-rounds", type=int, default=50,
                    help="two-step scheme: stop after this many rounds even when it is not "
                         "yet within 0.1 sigma of the joint optimum (default 50)")

@@ -247,8 +247,9 @@ class PendulumModel(SensorModel):
         # a chord point on an integer line: the linear interpolation between the ends
         t = line - x0
         lin = cam0 + t[:, None] * (cam2 - cam0)
-        cam = np.where(ok[:, None], L0[:, None] * cam0 + L1[:, None] * cam1
-                       + L2[:, None] * cam2, lin)
+        with np.errstate(invalid="ignore"):       # the non-finite weights are not selected
+            cam = np.where(ok[:, None], L0[:, None] * cam0 + L1[:, None] * cam1
+                           + L2[:, None] * cam2, lin)
         if rough.size:
             line[rough], cam[rough] = self._solve_exact(g[rough], j[rough], fj[rough],
                                                         fj1[rough], tol=1e-9)

@@ -750,7 +750,8 @@ def calibrate_pushbroom(models: Mapping[str, object], gcps: pd.DataFrame | None,
 
 # --- the plugin's calibration strategy ---------------------------------------------------
 class PushbroomCalibration:
-    """Control points, tie points (ground unknown), orientation fixes and C0/C1 constraints;
+    """Control and tie points, orientation fixes, C0/C1 constraints (--method, --max-rounds).
+
     ``options.extra``: ``method`` (joint, two-step, both) and ``max_rounds``."""
 
     def calibrate(self, mission, options):
