@@ -241,14 +241,19 @@ import dask
 nl, ne, out_dir, gsd = {nl}, {ne}, {out!r}, {gsd}
 model = scene_model(n_lines=nl, n_elements=ne, swing={swing}, pixel_pitch=15e-6)
 terrain = ConstantHeight(5.0)
+nb = {bands}
 raw = np.lib.format.open_memmap(os.path.join(out_dir, "raw.npy"), mode="w+",
-                                dtype=np.uint16, shape=(nl, ne))
+                                dtype=np.uint16, shape=(nb, nl, ne))
 for l0 in range(0, nl, 1024):
     l = np.arange(l0, min(l0 + 1024, nl))[:, None]
     e = np.arange(ne)[None, :]
-    raw[l0:l0 + 1024] = (1000 + 500 * np.sin(l / 37.0) * np.cos(e / 23.0)).astype(np.uint16)
+    base = 1000 + 500 * np.sin(l / 37.0) * np.cos(e / 23.0)
+    for b in range(nb):
+        raw[b, l0:l0 + 1024] = (base + 3 * b).astype(np.uint16)
 raw.flush(); del raw
 raw = np.load(os.path.join(out_dir, "raw.npy"), mmap_mode="r")
+if nb == 1:
+    raw = raw[0]
 grid = footprint_grid(model, terrain, gsd)
 t0 = time.perf_counter()
 with dask.config.set(scheduler="threads", num_workers={threads}):
@@ -256,17 +261,17 @@ with dask.config.set(scheduler="threads", num_workers={threads}):
                         kernel="bilinear", tile=512)
 dt = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(json.dumps(dict(lines=nl, elements=ne, grid=list(grid.shape), seconds=round(dt, 1),
+print(json.dumps(dict(lines=nl, elements=ne, bands=nb, grid=list(grid.shape), seconds=round(dt, 1),
                       peak_rss_mb=round(peak, 1), out_mpx=grid.shape[0] * grid.shape[1] / 1e6)))
 """
 
 
-def memory_run(nl=20000, ne=2048, gsd=0.5, swing=54.0, threads=2, keep=None) -> dict:
+def memory_run(nl=20000, ne=2048, gsd=0.5, swing=54.0, threads=2, keep=None, bands=1) -> dict:
     """Rectify a synthetic nl x ne swing (raw uint16 memmap on disk) in a fresh process;
     returns its peak RSS (MB), time and grid."""
     with tempfile.TemporaryDirectory(dir=keep) as td:
         code = MEMORY_SCRIPT.format(tests=str(ROOT / "tests"), nl=nl, ne=ne, out=td, gsd=gsd,
-                                    swing=swing, threads=threads)
+                                    swing=swing, threads=threads, bands=bands)
         p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
         if p.returncode:
             raise RuntimeError(p.stderr[-3000:])
@@ -276,6 +281,8 @@ def memory_run(nl=20000, ne=2048, gsd=0.5, swing=54.0, threads=2, keep=None) -> 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--memory", action="store_true", help="the 2048 x 20000 peak-memory run")
+    ap.add_argument("--memory-lines", type=int, default=20000)
+    ap.add_argument("--memory-bands", type=int, default=1)
     ap.add_argument("--startup", action="store_true", help="command and engine start-up")
     ap.add_argument("--command", metavar="MISSION",
                     help="the whole swathflow rectify command vs GDAL on a mission folder "
@@ -301,9 +308,10 @@ def main():
     import rectify_extra as X
     reproduce = ".venv/bin/python benchmarks/bench_rectify.py " + " ".join(sys.argv[1:])
     if args.memory:
-        r = memory_run(threads=args.threads)
+        r = memory_run(nl=args.memory_lines, threads=args.threads, bands=args.memory_bands)
         print(json.dumps(r))
-        print(f"2048 x 20000 swing: peak RSS {r['peak_rss_mb']:.0f} MB "
+        print(f"2048 x {args.memory_lines} x {args.memory_bands}-band uint16 swing: "
+              f"peak RSS {r['peak_rss_mb']:.0f} MB "
               f"(bound 2048 MB), {r['seconds']:.0f} s, output grid {r['grid'][0]} x "
               f"{r['grid'][1]} ({r['out_mpx']:.0f} Mpx)")
     elif args.startup:

@@ -17,6 +17,8 @@ from swathflow.io import atomic_path
 
 #: GDAL block cache while writing (MB): GDAL's default is 5 % of the machine's memory
 GDAL_CACHE_MB = 256
+#: bound on the finished blocks held before they are written (bytes)
+BATCH_BYTES = 256 * 2 ** 20
 
 
 class _WindowWriter:
@@ -68,6 +70,10 @@ def _store_here(sources, targets, scheduler=None, batch: int | None = None) -> N
         except (ImportError, ValueError):
             client = None
     n = batch or (4 * max(1, sum(client.nthreads().values())) if client else 16)
+    # multi-band tiles are large: at most about BATCH_BYTES of finished blocks at a time
+    biggest = max((int(np.prod([max(c) for c in a.chunks])) * a.dtype.itemsize
+                   for a in sources), default=1)
+    n = max(2, min(n, BATCH_BYTES // max(biggest, 1)))
     for i in range(0, len(items), n):
         chunk = items[i:i + n]
         if client is not None:
