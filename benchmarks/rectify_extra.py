@@ -257,8 +257,15 @@ def igm(points=200_000) -> dict:
             warnings.simplefilter("ignore")
             model.image_to_ground(img, dem)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        # before: the same rays through the numpy marching (intersect(compiled=False))
+        from swathflow.geometry.intersect import intersect
+        c1 = time.process_time()
+        o, d = model.ray(img)
+        intersect(o, d, dem, compiled=False)
+        cpu_before = time.process_time() - c1
     return {"points": points, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
-            "points_per_cpu_s": round(points / cpu)}
+            "points_per_cpu_s": round(points / cpu),
+            "numpy_marching_points_per_cpu_s": round(points / cpu_before)}
 
 
 def main(what: str, **kw) -> None:
