@@ -16,8 +16,9 @@ def atomic_path(path, suffix: str | None = None):
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     base = os.path.basename(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=suffix or ".tmp" + os.path.splitext(base)[1],
-                               dir=folder)
+    _clear_stale(folder, base)
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.{os.getpid()}.",
+                               suffix=suffix or ".tmp" + os.path.splitext(base)[1], dir=folder)
     os.close(fd)
     try:
         yield tmp
@@ -28,6 +29,33 @@ def atomic_path(path, suffix: str | None = None):
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+def _clear_stale(folder: str, base: str) -> None:
+    """Remove temporaries of ``base`` left by a process that no longer runs (a run killed
+    by SIGKILL or a power cut): their names carry the writer's process id."""
+    prefix = f".{base}."
+    try:
+        names = [n for n in os.listdir(folder) if n.startswith(prefix)]
+    except OSError:
+        return
+    for n in names:
+        pid = n[len(prefix):].split(".", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            with contextlib.suppress(OSError):
+                os.remove(os.path.join(folder, n))
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:         # exists, owned by someone else
+        return True
+    return True
 
 
 def _read_umask() -> int:

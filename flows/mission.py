@@ -69,13 +69,16 @@ class Progress:
 
 @flow(name="swathflow-mission", log_prints=False)
 def mission_flow(mission: str, out: str, calibration: str | None = None,
-                 dask_address: str | None = None) -> dict:
+                 dask_address: str | None = None, cluster: str = "local",
+                 jobs: int | None = None) -> dict:
     """Process one mission folder into ``out``; returns the paths of every product and the
-    stage timings. Finished outputs whose inputs are unchanged are reused."""
+    stage timings. Finished outputs whose inputs are unchanged are reused. The Dask work
+    runs on ``dask_address``, or on ``jobs`` SLURM worker jobs (``cluster="slurm"``), or on
+    a local cluster."""
     mission = str(Path(mission).resolve())
     out = str(Path(out).resolve())
     prog = Progress()
-    with dask_client(dask_address):
+    with dask_client(dask_address, cluster=cluster, jobs=jobs):
         prog.start("ingest")
         info = stages.ingest(mission)
         prog.finish("ingest")
@@ -102,7 +105,7 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             "rectified": rectified, "mosaic": mos, "timings": prog.timings}
 
 
-def run(mission, out, calibration=None, dask_address=None) -> dict:
+def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs=None) -> dict:
     """Run the flow without the heartbeat overhead (DESIGN.md) and return its result."""
     from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
     try:
@@ -110,4 +113,4 @@ def run(mission, out, calibration=None, dask_address=None) -> dict:
     except Exception:  # older settings objects reject None: keep the default
         ctx = contextlib.nullcontext()
     with ctx:
-        return mission_flow(str(mission), str(out), calibration, dask_address)
+        return mission_flow(str(mission), str(out), calibration, dask_address, cluster, jobs)

@@ -163,6 +163,9 @@ class SensorModel(ABC):
     kind: ClassVar[str] = ""
     #: keys a mission's ``[sensor]`` table must carry for this model
     required_keys: ClassVar[tuple[str, ...]] = ()
+    #: further keys it reads; when given, validation warns on any other key (and names
+    #: the nearest known one for a typo)
+    optional_keys: ClassVar[tuple[str, ...]] = ()
     #: finite-difference steps per parameter unit (deg, m) for the default partials
     fd_steps: ClassVar[Mapping[str, float]] = {"deg": 1e-4, "m": 1e-4, "": 1e-6}
     #: columns the per-line table (``<id>.lines.csv``) must carry besides ``line``
@@ -174,7 +177,7 @@ class SensorModel(ABC):
     @classmethod
     def check_lines(cls, lines: Mapping[str, np.ndarray]) -> list[str]:
         """Problems with one image's per-line table (column -> array), each a sentence
-        naming the column and the fix. The framework has checked already that the
+        naming the column and the fix, or a (sentence, fix) pair. The framework has checked already that the
         :attr:`line_columns` are present, numeric and finite, and that ``time`` increases."""
         return []
 

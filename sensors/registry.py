@@ -46,20 +46,36 @@ def _registry() -> dict[str, tuple[type[SensorModel], str]]:
                     f"sensor plugin {ep.name!r} from {ep.value} clashes with "
                     f"{found[ep.name][1]}; skipped"), stacklevel=3)
             continue
-        try:
-            cls = ep.load()
-        except Exception as exc:  # a broken plugin must never break the host
-            warnings.warn(SensorPluginWarning(
-                f"sensor plugin {ep.name!r} ({ep.value}) failed to load: "
-                f"{type(exc).__name__}: {exc}"), stacklevel=3)
-            continue
-        if not (isinstance(cls, type) and issubclass(cls, SensorModel)):
-            warnings.warn(SensorPluginWarning(
-                f"sensor plugin {ep.name!r} ({ep.value}) is not a SensorModel subclass; "
-                f"skipped"), stacklevel=3)
-            continue
-        found[ep.name] = (cls, ep.value)
+        cls = _load_plugin(ep)
+        if cls is not None:
+            found[ep.name] = (cls, ep.value)
     return found
+
+
+def _load_plugin(ep):
+    """The plugin's class, or None after a warning: a broken plugin never breaks the host,
+    whatever it raises at import (SystemExit and KeyboardInterrupt included)."""
+    try:
+        cls = ep.load()
+    except BaseException as exc:
+        if isinstance(exc, KeyboardInterrupt):   # the user's Ctrl-C
+            raise
+        warnings.warn(SensorPluginWarning(
+            f"sensor plugin {ep.name!r} ({ep.value}) failed to load: "
+            f"{type(exc).__name__}: {exc}; skipped"), stacklevel=4)
+        return None
+    if not (isinstance(cls, type) and issubclass(cls, SensorModel)):
+        warnings.warn(SensorPluginWarning(
+            f"sensor plugin {ep.name!r} ({ep.value}) is not a SensorModel subclass; "
+            f"skipped"), stacklevel=4)
+        return None
+    missing = sorted(getattr(cls, "__abstractmethods__", ()) or ())
+    if missing:
+        warnings.warn(SensorPluginWarning(
+            f"sensor plugin {ep.name!r} ({ep.value}) is incomplete: the SensorModel "
+            f"subclass does not implement {', '.join(missing)}; skipped"), stacklevel=4)
+        return None
+    return cls
 
 
 def list_sensors() -> dict[str, type[SensorModel]]:

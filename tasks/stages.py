@@ -89,7 +89,8 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
 @task(name="calibrate", cache_policy=NO_CACHE)
 def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -> str:
     """Per-swing-direction calibration from the mission's control points, or the given
-    calibration file (checked), or, without control points, the mission's priors."""
+    calibration file (checked), or, without control points, from the mission's
+    ``[reference]`` orthophoto (automatic control), or else the mission's priors."""
     from swathflow.formats.calibfile import read_calibration, write_calibration
     m = _load(mission_path)
     out = Path(out_dir) / "calibration" / "calibration.json"
@@ -99,14 +100,17 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
             raise SwathflowError(f"{calibration}: calibration is for sensor {doc['sensor']!r}, "
                                  f"the mission uses {m.sensor.get('model')!r}")
         return str(Path(calibration).resolve())
+    from swathflow.calibration.autocontrol import reference_paths
     gcp_file = m.config.get("gcp", {}).get("file")
     ties_file = m.config.get("ties", {}).get("file")
+    ref = reference_paths(m)
     key = stage_key("calibrate", _mission_files(m) + [m.path / gcp_file if gcp_file else None]
                     + [m.path / ties_file if ties_file else None]
+                    + ([Path(p) for p in ref if p] if ref else [])
                     + [f for iid in m.images for f in _image_files(m, iid)[1:]])
     if is_fresh(out, key):
         return str(out)
-    if m.gcps is None or len(m.gcps) == 0:
+    if (m.gcps is None or len(m.gcps) == 0) and not ref:
         write_calibration(out, m.sensor.get("model", ""), m.priors.to_dict(),
                           note="no control points: the mission's prior values, uncalibrated")
     else:

@@ -244,6 +244,17 @@ def _residual_function(models, mats, unk, spans, n_obs):
     return fn
 
 
+def _observation_sigmas(cal_obs: pd.DataFrame, obs_sigma_px: float) -> np.ndarray:
+    """A-priori sigmas (line, element per point): the optional columns ``sigma_line`` and
+    ``sigma_element`` (automatic control points carry their own), else ``obs_sigma_px``."""
+    n = len(cal_obs)
+    if {"sigma_line", "sigma_element"} <= set(cal_obs.columns):
+        sig = cal_obs[["sigma_line", "sigma_element"]].to_numpy(float)
+        sig = np.where(np.isfinite(sig) & (sig > 0), sig, float(obs_sigma_px))
+        return sig.ravel()
+    return np.full(2 * n, float(obs_sigma_px))
+
+
 def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, alpha):
     """The adjustment: one group of image observations, rows (line, element) per point,
     and the priors as pseudo-observations."""
@@ -259,7 +270,7 @@ def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, a
     P = Problem(unk.names, unk.value, unk.units)
     P.fix(unk.fixed)
     P.add_observations("image", _residual_function(models, mats, unk, spans, n_obs),
-                       np.full(2 * n_obs, float(obs_sigma_px)),
+                       _observation_sigmas(cal_obs, obs_sigma_px),
                        component=np.tile(np.array(["y", "x"], dtype=object), n_obs),
                        point=np.repeat(np.arange(n_obs), 2), point_names=point_names,
                        robust=True)

@@ -29,6 +29,9 @@ class CalibrationOptions:
     sigma_px: float = 1.0
     shared_boresight: bool = False             # one boresight for every swing direction
     drift: bool = False
+    reference: str | None = None               # reference orthophoto: automatic control
+    reference_dem: str | None = None           # heights of the reference's points
+    max_rounds: int = 4                        # match / adjust rounds with a reference
     extra: Mapping[str, Any] = field(default_factory=dict)
 
 
@@ -62,6 +65,41 @@ def strategy_for(mission) -> CalibrationStrategy:
     return mission.sensor_class.calibration_strategy() or CONTROL_POINTS
 
 
-def calibrate_mission(mission, options: CalibrationOptions | None = None):
-    """Calibrate a loaded mission with its sensor plugin's strategy."""
-    return strategy_for(mission).calibrate(mission, options or CalibrationOptions())
+class ReferenceCalibration:
+    """Automatic control points from a reference orthophoto and DEM
+    (:mod:`swathflow.calibration.autocontrol`), in the generic control-point adjustment;
+    for every sensor plugin (it uses only the sensor-model interface)."""
+
+    def __init__(self, ortho: str, dem: str | None = None):
+        self.ortho, self.dem = ortho, dem
+
+    def calibrate(self, mission, options: CalibrationOptions, progress=None):
+        from swathflow.calibration.autocontrol import calibrate_mission_from_reference
+        return calibrate_mission_from_reference(
+            mission, self.ortho, self.dem, max_rounds=options.max_rounds, progress=progress,
+            shared_boresight=options.shared_boresight, fixed=list(options.fixed),
+            drift=options.drift, robust=options.robust, vce=options.vce,
+            vce_priors=options.vce_priors)
+
+
+def reference_strategy(mission, options: CalibrationOptions) -> ReferenceCalibration | None:
+    """The reference calibration when one is asked for (``options.reference``), or when the
+    mission has no control points and a ``[reference]`` table."""
+    from swathflow.calibration.autocontrol import reference_paths
+    if options.reference:
+        return ReferenceCalibration(options.reference, options.reference_dem)
+    if mission.gcps is not None and len(mission.gcps):
+        return None
+    paths = reference_paths(mission)
+    return ReferenceCalibration(*paths) if paths else None
+
+
+def calibrate_mission(mission, options: CalibrationOptions | None = None, progress=None):
+    """Calibrate a loaded mission: from a reference orthophoto when one is given (or the
+    mission has no control points and a ``[reference]``), else with its sensor plugin's
+    strategy."""
+    options = options or CalibrationOptions()
+    ref = reference_strategy(mission, options)
+    if ref is not None:
+        return ref.calibrate(mission, options, progress)
+    return strategy_for(mission).calibrate(mission, options)

@@ -50,17 +50,35 @@ def read_calibration(path) -> dict:
     try:
         with open(path, encoding="utf-8") as f:
             doc = json.load(f)
-    except json.JSONDecodeError as exc:
-        raise FormatError(f"{path}: not valid JSON: {exc}") from None
-    if doc.get("format") != FORMAT:
-        raise FormatError(f"{path}: format must be {FORMAT!r}, found {doc.get('format')!r}")
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise FormatError(f"{path}: not valid JSON: {str(exc)[:200]}") from None
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read the calibration file: {exc.strerror}") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise FormatError(f"{path}: format must be {FORMAT!r}, found {found!r}")
     params = doc.get("parameters")
     if not isinstance(params, dict) or not params:
         raise FormatError(f"{path}: 'parameters' must be a non-empty table")
     for name, p in params.items():
         if not isinstance(p, dict) or "value" not in p:
             raise FormatError(f"{path}: parameter {name!r} needs a 'value'")
+        _check_numbers(path, name, p)
     return doc
+
+
+def _check_numbers(path, name, p) -> None:
+    """value: a list of finite numbers; sigma (optional): numbers or null, same length."""
+    v, s = p["value"], p.get("sigma")
+    num = (int, float)
+    if not (isinstance(v, list) and v and all(isinstance(x, num) and not isinstance(x, bool)
+                                               and math.isfinite(x) for x in v)):
+        raise FormatError(f"{path}: parameter {name!r}: value must be a list of numbers, "
+                          f"got {str(v)[:60]}")
+    if s is not None and not (isinstance(s, list) and len(s) == len(v) and all(
+            x is None or (isinstance(x, num) and not isinstance(x, bool)) for x in s)):
+        raise FormatError(f"{path}: parameter {name!r}: sigma must be a list of "
+                          f"{len(v)} numbers (or null), got {str(s)[:60]}")
 
 
 def calibration_priors(doc: Mapping) -> dict:

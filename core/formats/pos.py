@@ -64,6 +64,8 @@ def read_sbet(path) -> xr.Dataset:
     true_heading = platform_heading - wander_angle").
     """
     path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FormatError(f"{path}: not a file; name the SBET file")
     size = os.path.getsize(path)
     if size == 0 or size % SBET_DTYPE.itemsize:
         raise FormatError(
@@ -97,8 +99,10 @@ def read_pos_csv(path) -> xr.Dataset:
     path = os.fspath(path)
     try:
         df = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise FormatError(f"{path}: cannot be read as CSV: {exc}") from None
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
+            ValueError, OSError) as exc:
+        raise FormatError(f"{path}: cannot be read as CSV: "
+                          f"{str(exc).splitlines()[0][:200] if str(exc) else exc!r}") from None
     df.columns = [str(c).strip() for c in df.columns]
     missing = [c for c in ("time",) + POS_VARIABLES if c not in df.columns]
     if missing:

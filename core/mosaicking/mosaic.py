@@ -483,6 +483,12 @@ def _corrected(handles, sw: Swing, t, r0, c0, r1, c1):
         return val[p:p + h, p:p + w], ok[p:p + h, p:p + w]
     val = _fill_nearest(val, ok)
     sv = ndimage.shift(val, -f, order=3, mode="nearest")
+    # a cubic spline rings at steps (the outer edge of a swing, saturated targets): keep
+    # the result within the values it interpolates (issue 13: -548..14,412 from 887..13,207)
+    # (bounds of each pixel's 4 x 4 spline support, so the result does not depend on tiling)
+    lo = ndimage.minimum_filter(val, size=4, origin=-1, mode="nearest")
+    hi = ndimage.maximum_filter(val, size=4, origin=-1, mode="nearest")
+    sv = np.clip(sv, lo, hi)
     # out[i] reads val[i + p + f]: valid where the pixels on both sides were valid
     m = ok[p:p + h + 1, p:p + w + 1]
     if f[0] >= 1e-6:

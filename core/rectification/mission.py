@@ -30,7 +30,7 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``). Returns
     one summary per image."""
     mission = load_mission(mission_path)
-    params, cal_tag = mission.priors, "mission priors (mission.toml [calibration])"
+    params, cal_tag = mission.priors, "none: mission priors (mission.toml [calibration])"
     if calibration:
         doc = read_calibration(calibration)
         if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):

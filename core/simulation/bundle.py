@@ -78,7 +78,11 @@ def make_trajectory(cfg, plan: Plan, terrain_mean: float, rng):
         sgn = 1.0 if k % 2 == 0 else -1.0                  # alternate flight directions
         off = (k - (cfg.n_strips - 1) / 2) * plan.spacing
         tc = t_start + plan.strip_duration / 2
-        on = (t >= t_start - lead - 1e-9) & (t <= t_start + plan.strip_duration + lead + 1e-9)
+        # half a POS interval of tolerance: t comes from a rounded sample count, so the
+        # last epoch can lie a rounding error past the strip's end (it was left at the
+        # origin, lat 0, before)
+        tol = 0.5 / cfg.pos_rate
+        on = (t >= t_start - lead - tol) & (t <= t_start + plan.strip_duration + lead + tol)
         along = sgn * cfg.speed * (t[on] - tc)
         en[on] = (np.asarray(plan.centre)[None] + along[:, None] * fwd[None]
                   + (off + sway[on])[:, None] * right[None])

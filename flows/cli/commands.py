@@ -27,12 +27,16 @@ def validate(args) -> int:
     """``swathflow validate MISSION``: every problem with its fix; exit 2 if any."""
     from swathflow.ingest.mission import format_problems, inspect_mission
     problems, p = inspect_mission(args.mission)
-    if problems:
+    errors = [pr for pr in problems if pr.level != "warning"]
+    if errors:
         print(format_problems(args.mission, problems))
         return 2
+    for pr in problems:                 # warnings only: the mission is usable
+        print(f"  - {pr}")
     n = 0 if p["gcps"] is None else len(p["gcps"])
     print(f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
-          f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m)")
+          f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m"
+          + (f", {len(problems)} warning(s)" if problems else "") + ")")
     return 0
 
 
@@ -52,9 +56,24 @@ def simulation_options(args) -> dict:
     return out
 
 
+def _check_out_free(out, force: bool) -> None:
+    """Refuse to write a simulation over an existing mission or a non-empty folder."""
+    from pathlib import Path
+
+    from swathflow.errors import SwathflowError
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise SwathflowError(f"{out}: exists and is not a folder; give a new folder name")
+    if p.is_dir() and any(p.iterdir()) and not force:
+        what = "a mission" if (p / "mission.toml").exists() else "files"
+        raise SwathflowError(f"{out}: already holds {what}; simulating into it would replace "
+                             f"its POS and images: give a new folder, or add --force")
+
+
 def simulate(args) -> int:
     """``swathflow simulate OUT --preset NAME --seed N``."""
     from swathflow.simulation import simulate as run
+    _check_out_free(args.out, getattr(args, "force", False))
     t0 = time.perf_counter()
     truth = run(args.out, args.preset, args.seed, progress=_say(args),
                 **simulation_options(args))
@@ -76,12 +95,13 @@ def calibrate(args) -> int:
         fixed=tuple(args.fix or ()), images=_ids(args.images), robust=not args.no_robust,
         vce=not args.no_vce, vce_priors=args.vce_priors, sigma_px=args.sigma_px,
         shared_boresight=(args.model == "12"), drift=args.drift,
+        reference=args.reference, reference_dem=args.reference_dem, max_rounds=args.rounds,
         extra={"method": args.method, "max_rounds": args.max_rounds})
-    result = calibrate_mission(mission, options)
+    result = calibrate_mission(mission, options, progress=lambda line: print(line, flush=True))
     paths = result.write(args.out)
     for line in result.summary_lines():
         print(line)
-    print(f"wrote {paths['calibration']} and {paths['report']}")
+    print(f"wrote {', '.join(paths[k] for k in paths if k != 'report')} and {paths['report']}")
     return 0
 
 
@@ -89,6 +109,11 @@ def rectify(args) -> int:
     """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image."""
     from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
+    if not args.calibration:
+        print("swathflow rectify: warning: no --calibration given: rectifying with the "
+              "mission's prior parameters (uncalibrated; metres off where the priors are "
+              "wrong); run 'swathflow calibrate' and pass its calibration.json",
+              file=sys.stderr)
     rectify_mission(args.mission, args.out, calibration=args.calibration,
                     images=_ids(args.images), method=args.method, kernel=args.kernel,
                     tol=args.tolerance, tile=args.tile, products=products,
@@ -144,8 +169,11 @@ def _print_summary(result: dict) -> None:
 
 def run(args) -> int:
     """``swathflow run MISSION --out DIR``: the whole flow."""
+    from swathflow.ingest.mission import load_mission
+    load_mission(args.mission)      # bad input reported before Prefect and Dask start
     from swathflow.flows.mission import run as run_flow
-    _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address))
+    _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
+                            args.cluster, args.jobs))
     return 0
 
 

@@ -27,6 +27,29 @@ def _sensors(args) -> int:
     return 0 if list_sensors() else 1
 
 
+def _positive_int(text: str) -> int:
+    """argparse type: a whole number above zero."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, got {v}")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    """argparse type: a finite number above zero."""
+    import math
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a number above 0, got {text}")
+    return v
+
+
 def _hooks(cls) -> list[tuple[str, str]]:
     """What a sensor plugin brings besides its geometry (a broken hook is reported, never
     raised: the listing must show every plugin)."""
@@ -93,9 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of GCP measurements with a 10-40 px gross error")
     s.add_argument("--image-format", choices=("tif", "envi"), help="raw image format")
     s.add_argument("--pos-format", choices=("sbet", "csv"), help="POS file format")
+    s.add_argument("--force", action="store_true",
+                   help="write into OUT even when it already holds a mission or files")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:simulate"))
 
-    s = sub.add_parser("calibrate", help="estimate calibration parameters from control points")
+    s = sub.add_parser("calibrate", help="estimate calibration parameters from control points "
+                                         "or a reference orthophoto")
     s.add_argument("mission")
     s.add_argument("--out", required=True, help="output folder (calibration.json, report.html)")
     s.add_argument("--model", choices=["15", "12"], default="15",
@@ -114,15 +140,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep the a-priori weights (no variance component estimation)")
     s.add_argument("--vce-priors", action="store_true",
                    help="also estimate one variance component for the priors")
-    s.add_argument("--sigma-px", type=float, default=1.0,
+    s.add_argument("--sigma-px", type=_positive_float, default=1.0,
                    help="a-priori sigma of image coordinates in pixels (default 1)")
     s.add_argument("--method", choices=("joint", "two-step", "both"), default="joint",
                    help="for calibration strategies with tie points and orientation fixes: "
                         "joint adjustment (default), the iterative two-step scheme, or "
                         "both (compared in the report)")
-    s.add_argument("--max-rounds", type=int, default=50,
+    s.add_argument("--max-rounds", type=_positive_int, default=50,
                    help="two-step scheme: stop after this many rounds even when it is not "
                         "yet within 0.1 sigma of the joint optimum (default 50)")
+    s.add_argument("--reference", metavar="ORTHO",
+                   help="reference orthophoto (north-up raster with a CRS): automatic control "
+                        "points matched against it replace gcp.csv (default: the mission's "
+                        "[reference] when it has no gcp.csv)")
+    s.add_argument("--reference-dem", metavar="DEM",
+                   help="heights of the reference's points (default: the mission's terrain)")
+    s.add_argument("--rounds", type=int, default=4,
+                   help="with a reference: at most this many match / adjust rounds (default 4)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:calibrate"))
 
     s = sub.add_parser("rectify", help="orthorectify every swing to a COG")
@@ -138,9 +172,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="extra products, comma separated: glt (output->raw lookup), "
                         "igm (ground coordinates of every raw pixel)")
     s.add_argument("--images", help="only these image ids, comma separated")
-    s.add_argument("--tolerance", type=float, default=0.05,
+    s.add_argument("--tolerance", type=_positive_float, default=0.05,
                    help="bound on the interpolated raw coordinates' error, pixels (default 0.05)")
-    s.add_argument("--tile", type=int, default=512, help="output tile size (default 512)")
+    s.add_argument("--tile", type=_positive_int, default=512, help="output tile size (default 512)")
     s.add_argument("--bands", default="",
                    help="bands to rectify (default all), comma separated: 1-based indices "
                         "and ranges (1,4-6) or wavelengths with a unit (550nm,0.67um: the "
@@ -165,15 +199,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "offset of each connected group is zero)")
     s.add_argument("--per-image", action="store_true",
                    help="one offset per image instead of one per strip")
-    s.add_argument("--feather", type=int, default=64,
+    s.add_argument("--feather", type=_positive_int, default=64,
                    help="feathering distance cap in pixels (default 64)")
     s.add_argument("--no-feather", action="store_true", help="hard seams (nearest footprint)")
     s.add_argument("--no-balance", action="store_true", help="no radiometric balancing")
     s.add_argument("--no-match", action="store_true", help="no offset estimation")
-    s.add_argument("--max-shift", type=int, default=12,
+    s.add_argument("--max-shift", type=_positive_int, default=12,
                    help="largest offset searched, pixels (default 12)")
-    s.add_argument("--tile", type=int, default=1024, help="tile size in pixels (default 1024)")
-    s.add_argument("--workers", type=int,
+    s.add_argument("--tile", type=_positive_int, default=1024, help="tile size in pixels (default 1024)")
+    s.add_argument("--workers", type=_positive_int,
                    help="render threads and local Dask worker processes for the overlap "
                         "matching (default: all cores, at most 4 processes; 1: everything "
                         "in this process)")
@@ -188,6 +222,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output folder")
     s.add_argument("--calibration", help="use this calibration.json instead of calibrating")
     s.add_argument("--dask-address", help="an existing Dask scheduler (default: local cluster)")
+    s.add_argument("--cluster", choices=("local", "slurm"), default="local",
+                   help="where the Dask workers run without --dask-address: local processes "
+                        "(default) or SLURM jobs through dask-jobqueue (settings: Dask's "
+                        "jobqueue.slurm config, see deploy/dask/jobqueue.yaml)")
+    s.add_argument("--jobs", type=int, default=2,
+                   help="--cluster slurm: number of worker jobs to submit (default 2)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:run"))
 
     s = sub.add_parser("demo", help="simulate the demo mission and run the whole flow on it")
@@ -209,15 +249,52 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from swathflow.flows.guard import (
+        Terminated,
+        check_outputs,
+        explain_os_error,
+        on_sigterm,
+        output_lock,
+    )
+    _show_warnings(args.command)
     try:
-        return args.func(args)
+        with on_sigterm():
+            check_outputs(args)
+            with output_lock(args):
+                return args.func(args)
     except SwathflowError as exc:
         print(f"swathflow {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"swathflow {args.command}: terminated (SIGTERM); finished outputs are kept, "
+              f"re-run to complete", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"swathflow {args.command}: interrupted; finished outputs are kept, "
               f"re-run to complete", file=sys.stderr)
         return 130
+    except Exception as exc:
+        msg = explain_os_error(exc, getattr(args, "out", None))
+        if msg is None:
+            raise
+        print(f"swathflow {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+
+
+def _show_warnings(command: str) -> None:
+    """swathflow's own warnings (mission, sensor plugins) as one plain line each."""
+    import warnings
+
+    from swathflow.ingest.mission import MissionWarning
+    from swathflow.sensors.registry import SensorPluginWarning
+    previous = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, (MissionWarning, SensorPluginWarning)):
+            print(f"swathflow {command}: warning: {message}", file=sys.stderr)
+        else:
+            previous(message, category, filename, lineno, file, line)
+    warnings.showwarning = show
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ class PendulumModel(SensorModel):
     name = "pendulum"
     kind = "whisk-broom"
     required_keys = ("pixel_pitch", "focal_length", "n_elements", "k0")
+    optional_keys = ("y0",)
     line_columns = ("time", "swing", "pitch_comp")
     directions = ("L", "R")
 
@@ -44,6 +45,30 @@ class PendulumModel(SensorModel):
         if "n_elements" in sensor and not int(sensor["n_elements"]) > 0:
             problems.append(f"n_elements must be positive, got {sensor['n_elements']!r}")
         return problems
+
+    @classmethod
+    def check_lines(cls, lines: Mapping[str, Any]) -> list:
+        """The swing column in degrees, sweeping one way at a steady rate."""
+        sw = np.asarray(lines.get("swing", ()), float)
+        if sw.size < 3 or not np.isfinite(sw).all():
+            return []
+        span = float(np.ptp(sw))
+        if np.abs(sw).max() < 1.6 and span > 0.02:
+            return [(f"column swing: the angles look like radians ({sw.min():.3g} to "
+                     f"{sw.max():.3g}; a swing of {np.degrees(span):.1f} deg in degrees)",
+                     "write swing (and pitch_comp) in degrees: multiply by 57.2958")]
+        d = np.diff(sw)
+        step = float(np.median(np.abs(d)))
+        back = np.sign(d) != np.sign(sw[-1] - sw[0])
+        if step > 0 and (np.abs(d) > 20 * step + 0.05).any():
+            i = int(np.argmax(np.abs(d)))
+            return [(f"column swing jumps by {d[i]:.3g} deg between lines {i} and {i + 1} "
+                     f"(typical step {step:.3g} deg): not one swing of the gimbal",
+                     "one image per swing, the swing angle of every line in degrees")]
+        if (back & (np.abs(d) > 5 * step + 1e-9)).any():
+            return [("column swing reverses direction inside the image: not one swing",
+                     "one image per swing (split the file at the turn-around)")]
+        return []
 
     @classmethod
     def default_parameters(cls, sensor: Mapping[str, Any]) -> ParameterSet:

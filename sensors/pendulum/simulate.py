@@ -26,13 +26,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from swathflow.simulation.bundle import (Plan, make_trajectory, plain, square_grid, toml_value,
-                                        write_csv, write_mission_toml, write_swing)
+from swathflow.simulation.bundle import (Plan, make_trajectory, plain, toml_value,
+                                        write_mission_toml, write_swing)
 from swathflow.errors import SwathflowError
 from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
 from swathflow.geometry.intersect import intersect
 from swathflow.io import write_text
-from swathflow.formats.pos import Trajectory, write_pos_csv, write_sbet
+from swathflow.formats.pos import Trajectory
+from swathflow.sensors.pendulum.simwrite import (texture_with_targets, write_gcps, write_ortho,
+                                                 write_pos, write_terrain)
 
 #: papers.md section 1, Table 4 (Hai'an 2018): the true parameters of preset ``paper``
 TABLE4 = {
@@ -105,6 +107,9 @@ class SimConfig:
     gcp_plan: dict = field(default_factory=dict)  # image_id -> (control, check)
     gcp_other: tuple = ()           # (lo, hi): check points on images not in gcp_plan
     exclusive_gcps: bool = False    # points seen by one image only (exact counts)
+    #: > 0: the first 3 control points of a swing lie where its recorded swing angle is
+    #: above this (deg), the next 3 where it is below minus this (calibration needs both)
+    gcp_swing_side: float = 0.0
     gcp_noise: float = 1.0          # px, per axis
     gross_fraction: float = 0.0
     gross_range: tuple = (10.0, 40.0)   # px
@@ -130,7 +135,7 @@ class SimConfig:
 
 PRESETS: dict[str, dict] = {
     # seconds: 1 strip, one L and one R swing, small images, a handful of GCPs
-    "tiny": dict(preset="tiny"),
+    "tiny": dict(preset="tiny", swing_max=15.0, gcp_swing_side=6.0),
     # the README demo: 2 strips x 4 swings
     "demo": dict(preset="demo", n_strips=2, swings_per_strip=4, n_elements=192,
                  focal_length=0.03, swing_max=15.0, agl=600.0, speed=45.0, gsd=0.3,
@@ -158,7 +163,13 @@ def preset_config(name: str, **overrides) -> SimConfig:
     unknown = set(overrides) - set(SimConfig.__dataclass_fields__)
     if unknown:
         raise SwathflowError(f"unknown simulation option(s) {', '.join(sorted(unknown))}")
-    return replace(cfg, **overrides)
+    cfg = replace(cfg, **overrides)
+    if not 0.0 <= cfg.gross_fraction <= 1.0:
+        raise SwathflowError(f"--gross-errors {cfg.gross_fraction}: a fraction of the GCP "
+                             f"measurements, between 0 and 1 (e.g. 0.05)")
+    if not (math.isfinite(cfg.gcp_noise) and cfg.gcp_noise >= 0):
+        raise SwathflowError(f"--gcp-noise {cfg.gcp_noise}: a noise in pixels, 0 or more")
+    return cfg
 
 
 # ------------------------------------------------------------------------------------------
@@ -229,17 +240,54 @@ def true_parameters(cfg: SimConfig, rng) -> dict:
 # ------------------------------------------------------------------------------------------
 # GCPs
 
+def _candidates(m, rng, k: int, band, margin: float, terrain, to_map) -> np.ndarray:
+    """``k`` random ground points (E, N) seen by model ``m`` away from its edges, on the
+    lines of ``band`` when given."""
+    lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
+    lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
+    li = rng.uniform(*(band or (lo_l, m.n_lines - 1 - lo_l)), k)
+    el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
+    o, d = m.ray(np.stack([li, el], -1))
+    g = intersect(o, d, terrain)
+    e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
+    cand = np.round(np.stack([e, n], -1), 3)
+    return cand[np.isfinite(cand).all(-1)]
+
+
+def _seen_elsewhere(c, iid, ids, models, terrain, to_map) -> bool:
+    xyz = _ground_xyz(c[None], terrain, to_map)
+    return any(np.isfinite(models[o].ground_to_image(xyz)).all() for o in ids if o != iid)
+
+
+def _side_bands(cfg, m, nc: int, margin: float) -> list:
+    """Line ranges for the first control points: 3 where the swing angle is above
+    ``cfg.gcp_swing_side``, 3 where it is below minus it (empty when not asked for)."""
+    sw = m.lines.get("swing")
+    if cfg.gcp_swing_side <= 0 or sw is None or nc < 6:
+        return []
+    idx = np.arange(sw.size)
+    ok = (idx > margin + 1) & (idx < sw.size - 2 - margin)
+    bands = []
+    for sel in (ok & (sw > cfg.gcp_swing_side), ok & (sw < -cfg.gcp_swing_side)):
+        if sel.sum() < 2:
+            return []
+        bands += [(float(idx[sel].min()), float(idx[sel].max()))] * 3
+    return bands
+
+
+def _gcp_counts(cfg, iid: str, rng) -> tuple[int, int]:
+    """(control, check) points to place on image ``iid``."""
+    if iid in cfg.gcp_plan:
+        return tuple(cfg.gcp_plan[iid])
+    if cfg.gcp_other:
+        return (0, int(rng.integers(cfg.gcp_other[0], cfg.gcp_other[1] + 1)))
+    return (cfg.gcp_control, cfg.gcp_check)
+
+
 def choose_gcps(cfg, models, terrain, to_map, rng):
     """Ground points and their true image coordinates in every image that sees them."""
     ids = list(models)
-    plan = {}
-    for k, iid in enumerate(ids):
-        if iid in cfg.gcp_plan:
-            plan[iid] = tuple(cfg.gcp_plan[iid])
-        elif cfg.gcp_other:
-            plan[iid] = (0, int(rng.integers(cfg.gcp_other[0], cfg.gcp_other[1] + 1)))
-        else:
-            plan[iid] = (cfg.gcp_control, cfg.gcp_check)
+    plan = {iid: _gcp_counts(cfg, iid, rng) for iid in ids}
     nadir_gsd = cfg.ifov * cfg.agl
     min_sep = 6 * cfg.target_radius_px * nadir_gsd
     # a target cut by the image edge cannot be measured: keep a margin (disk + ring + noise)
@@ -253,27 +301,19 @@ def choose_gcps(cfg, models, terrain, to_map, rng):
             continue
         m = models[iid]
         got = []
+        side = _side_bands(cfg, m, nc, margin)
         for _ in range(20):
-            k = 4 * need
-            lo_l = max(0.06 * (m.n_lines - 1), margin + 1)
-            lo_e = max(0.12 * (m.n_elements - 1), margin + 1)
-            li = rng.uniform(lo_l, m.n_lines - 1 - lo_l, k)
-            el = rng.uniform(lo_e, m.n_elements - 1 - lo_e, k)
-            o, d = m.ray(np.stack([li, el], -1))
-            g = intersect(o, d, terrain)
-            e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-            cand = np.round(np.stack([e, n], -1), 3)
-            cand = cand[np.isfinite(cand).all(-1)]
+            band = side[len(got)] if len(got) < len(side) else None
+            cand = _candidates(m, rng, 4 * need, band, margin, terrain, to_map)
             for c in cand:
+                if len(got) < len(side) and side[len(got)] != band:
+                    break                  # side-banded slots: one band per draw
                 allp = np.concatenate([taken, np.array(got).reshape(-1, 2)])
                 if len(allp) and np.min(np.hypot(*(allp - c).T)) < min_sep:
                     continue
-                if cfg.exclusive_gcps:
-                    xyz = _ground_xyz(c[None], terrain, to_map)
-                    seen = [o2 for o2 in ids if o2 != iid
-                            and np.isfinite(models[o2].ground_to_image(xyz)).all()]
-                    if seen:
-                        continue
+                if cfg.exclusive_gcps and _seen_elsewhere(c, iid, ids, models, terrain,
+                                                          to_map):
+                    continue
                 got.append(c)
                 if len(got) == need:
                     break
@@ -315,22 +355,11 @@ def _ground_xyz(en, terrain, to_map):
 # ------------------------------------------------------------------------------------------
 # the simulation
 
-def _dem_grid(plan: Plan, cfg: SimConfig):
-    """A north-up DEM grid (transform, shape) that covers the flight with a wide margin."""
-    half_w = (cfg.n_strips - 1) / 2 * plan.spacing + plan.swath * 0.9 + 0.3 * cfg.agl
-    half_l = plan.strip_length / 2 + 0.5 * cfg.agl + 50
-    return square_grid(plan.centre, math.hypot(half_w, half_l), cfg.dem_cell)
-
-
 def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = None,
              dem: str | None = None, progress=None, **overrides) -> dict:
     """Write a simulated mission to ``out``; returns the truth summary (truth.json)."""
     from swathflow.sensors import get_sensor
     from swathflow.formats.calibfile import write_calibration
-    from swathflow.formats.raster import write_geotiff
-    from swathflow.geometry.terrain import DEM
-    from swathflow.simulation.texture import (ImageTexture, ProceduralTerrain, ProceduralTexture,
-                                              RasterTerrain, area_average)
     say = progress or (lambda msg: None)
     clock = time.perf_counter()
     timings = {}
@@ -345,26 +374,7 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     to_map = transformer("EPSG:4978", plan.crs)
 
     # terrain -> dem.tif (the very DEM the mission uses is the truth terrain)
-    dem_tr, dem_shape = _dem_grid(plan, cfg)
-    if dem:
-        shape_src = RasterTerrain(dem, plan.centre, cell=1.0, base=cfg.terrain_base,
-                                  relief=cfg.terrain_relief)
-        rows_src, cols_src = shape_src.data.shape
-        shape_src.cell = dem_shape[0] * cfg.dem_cell / min(rows_src, cols_src)
-        hfun = shape_src
-        dem_info = {"source": str(dem), "source_range": shape_src.source_range,
-                    "vscale": shape_src.vscale, "cell_m": shape_src.cell}
-    else:
-        hfun = ProceduralTerrain(seed, cfg.terrain_base, cfg.terrain_relief,
-                                 cfg.terrain_wavelength, plan.centre)
-        dem_info = {"source": "procedural"}
-    rr, cc = np.indices(dem_shape)
-    a, _, c0, _, e, f0 = dem_tr
-    hgrid = hfun(c0 + (cc + 0.5) * a, f0 + (rr + 0.5) * e).astype(np.float32)
-    write_geotiff(out / "dem.tif", hgrid, plan.crs, dem_tr, nodata=-9999.0,
-                  tags={"vertical": "ellipsoidal", "source": dem_info["source"]})
-    terrain = DEM.open(out / "dem.tif")
-    terrain_mean = float(np.mean(hgrid))
+    terrain, terrain_mean, dem_info = write_terrain(out, cfg, plan, seed, dem)
     timings["terrain"] = time.perf_counter() - clock
 
     # trajectory, line tables, models
@@ -384,15 +394,8 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     # GCPs and the texture (with survey targets at the GCPs)
     pts, obs = choose_gcps(cfg, models, terrain, to_map, rng)
     nadir_gsd = cfg.ifov * cfg.agl
-    if texture:
-        tex0 = ImageTexture(texture, plan.centre,
-                            rotation_deg=float(rng.uniform(0, 360)))
-        tex_info = {"source": str(texture), "pixel_size_m": tex0.pixel_size}
-    else:
-        tex0 = ProceduralTexture(seed, nadir_gsd, plan.centre)
-        tex_info = {"source": "procedural", "scale_m": nadir_gsd}
+    tex, tex_info = texture_with_targets(cfg, plan, seed, texture, rng, pts, nadir_gsd)
     radius = cfg.target_radius_px * nadir_gsd
-    tex = tex0.with_targets(pts[["E", "N"]].to_numpy(), radius)
     timings["gcps"] = time.perf_counter() - clock - sum(timings.values())
 
     # images
@@ -408,83 +411,11 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     timings["images"] = time.perf_counter() - clock - sum(timings.values())
 
     # footprint -> output grid, truth ortho
-    gsd = cfg.gsd
-    border = []
-    from swathflow.ingest.mission import image_border
-    for m in models.values():
-        pb = image_border(m.shape, 40)
-        o, dvec = m.ray(pb)
-        g = intersect(o, dvec, terrain)
-        ee, nn, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-        border.append(np.stack([ee, nn], -1))
-    border = np.concatenate(border)
-    xmin = math.floor(np.nanmin(border[:, 0]) / gsd) * gsd
-    xmax = math.ceil(np.nanmax(border[:, 0]) / gsd) * gsd
-    ymin = math.floor(np.nanmin(border[:, 1]) / gsd) * gsd
-    ymax = math.ceil(np.nanmax(border[:, 1]) / gsd) * gsd
-    ortho_tr = (gsd, 0.0, xmin, 0.0, -gsd, ymax)
-    ortho_shape = (int(round((ymax - ymin) / gsd)), int(round((xmax - xmin) / gsd)))
-    ortho_written = bool(cfg.write_ortho)
-    if ortho_written:
-        say(f"truth ortho {ortho_shape[1]} x {ortho_shape[0]} at {gsd} m")
-        o = area_average(tex, ortho_tr, ortho_shape, cfg.ortho_supersample)
-        write_geotiff(out / "truth" / "ortho.tif", (cfg.offset + cfg.gain * o).astype(np.float32),
-                      plan.crs, ortho_tr, tags={"units": "expected DN (offset + gain * T)",
-                                                "gain": cfg.gain, "offset": cfg.offset})
+    ortho = write_ortho(out, cfg, plan, models, terrain, tex, to_map, say)
     timings["ortho"] = time.perf_counter() - clock - sum(timings.values())
 
-    # GCP observations: noise and gross errors
-    grng = np.random.default_rng([int(seed), 3])
-    meas = obs.copy()
-    meas["line"] = obs["line"] + grng.normal(0, cfg.gcp_noise, len(obs))
-    meas["element"] = obs["element"] + grng.normal(0, cfg.gcp_noise, len(obs))
-    gross = []
-    if cfg.gross_fraction > 0 and len(obs):
-        k = max(1, int(round(cfg.gross_fraction * len(obs))))
-        idx = np.sort(grng.choice(len(obs), k, replace=False))
-        size = grng.uniform(*cfg.gross_range, k)
-        ang = grng.uniform(0, 2 * np.pi, k)
-        meas.loc[idx, "line"] += size * np.sin(ang)
-        meas.loc[idx, "element"] += size * np.cos(ang)
-        gross = [{"gcp_id": obs.gcp_id[i], "image_id": obs.image_id[i], "size_px": float(s)}
-                 for i, s in zip(idx, size)]
-    for col, n in (("line", "n_lines"), ("element", "n_elements")):
-        size = meas.image_id.map({k: getattr(v, n) for k, v in models.items()})
-        meas[col] = np.clip(meas[col], -0.49, size - 0.51)
-    if cfg.ground_noise > 0:
-        de, dn = grng.normal(0, cfg.ground_noise, (2, len(pts)))
-        dh = grng.normal(0, cfg.ground_noise, len(pts))
-        lon2, lat2 = transformer(plan.crs, "EPSG:4326").transform(pts.E + de, pts.N + dn)
-        gmap = dict(zip(pts.gcp_id, zip(lon2, lat2, pts.h + dh)))
-        meas["x"] = [gmap[g][0] for g in meas.gcp_id]
-        meas["y"] = [gmap[g][1] for g in meas.gcp_id]
-        meas["z"] = [gmap[g][2] for g in meas.gcp_id]
-    cols = ["gcp_id", "image_id", "line", "element", "x", "y", "z", "role"]
-    fmt = {"line": "%.3f", "element": "%.3f", "x": "%.9f", "y": "%.9f", "z": "%.4f"}
-    write_csv(out / "gcp.csv", meas[cols], fmt)
-    write_csv(out / "truth" / "gcp.csv", obs, {**fmt, "line": "%.6f", "element": "%.6f",
-                                                 "E": "%.4f", "N": "%.4f"})
-
-    # POS with noise
-    prng = np.random.default_rng([int(seed), 4])
-    nt = truth_ds.sizes["time"]
-    lat = truth_ds["lat"].values
-    m_per_deg_lat = 111_132.0
-    m_per_deg_lon = 111_320.0 * np.cos(np.radians(lat))
-    noisy = truth_ds.copy(deep=True)
-    noisy["lat"] = ("time", lat + prng.normal(0, cfg.gps_noise, nt) / m_per_deg_lat)
-    noisy["lon"] = ("time", truth_ds["lon"].values + prng.normal(0, cfg.gps_noise, nt)
-                    / m_per_deg_lon)
-    noisy["h"] = ("time", truth_ds["h"].values + prng.normal(0, cfg.gps_noise, nt))
-    for kk in ("roll", "pitch", "heading"):
-        noisy[kk] = ("time", truth_ds[kk].values + prng.normal(0, cfg.att_noise, nt))
-    noisy["heading"] = (noisy["heading"] + 180.0) % 360.0 - 180.0
-    pos_name = "pos.sbet" if cfg.pos_format == "sbet" else "pos.csv"
-    if cfg.pos_format == "sbet":
-        write_sbet(noisy, out / pos_name)
-    else:
-        write_pos_csv(noisy, out / pos_name)
-    write_pos_csv(truth_ds, out / "truth" / "pos.csv")
+    meas, gross = write_gcps(out, cfg, plan, models, pts, obs, seed)
+    pos_name = write_pos(out, cfg, truth_ds, seed)
 
     # truth calibration and truth.json
     write_calibration(out / "truth" / "calibration.json", "pendulum",
@@ -501,7 +432,7 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
         "format": "swathflow-simulation-truth/1",
         "preset": cfg.preset, "seed": int(seed),
         "config": plain(asdict(cfg)),
-        "crs": plan.crs, "gsd": gsd, "centre_en": list(plan.centre),
+        "crs": plan.crs, "gsd": cfg.gsd, "centre_en": list(plan.centre),
         "plan": plain(asdict(plan)),
         "strips": strips,
         "images": [{"id": iid, "direction": d, "strip": s, "lines": models[iid].n_lines,
@@ -520,17 +451,17 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
         "gcp_target_radius_m": radius,
         "radiometry": {"gain": cfg.gain, "offset": cfg.offset,
                        "dn": "offset + gain * T(E, N) averaged over the pixel, + noise"},
-        "ortho": ({"file": "truth/ortho.tif", "transform": list(ortho_tr),
-                   "shape": list(ortho_shape), "supersample": cfg.ortho_supersample}
-                  if ortho_written else None),
-        "footprint_bounds": [xmin, ymin, xmax, ymax],
+        "ortho": ({"file": "truth/ortho.tif", "transform": list(ortho["transform"]),
+                   "shape": list(ortho["shape"]), "supersample": cfg.ortho_supersample}
+                  if ortho["written"] else None),
+        "footprint_bounds": ortho["bounds"],
         "texture": tex_info, "terrain": {**dem_info, "mean_h": terrain_mean,
                                          "dem_cell": cfg.dem_cell},
         "nadir_gsd_m": nadir_gsd,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
     }
     write_text(out / "truth" / "truth.json", json.dumps(truth, indent=2) + "\n")
-    _write_toml(out, cfg, plan, gsd, pos_name, image_entries, sensor)
+    _write_toml(out, cfg, plan, cfg.gsd, pos_name, image_entries, sensor)
     return truth
 
 

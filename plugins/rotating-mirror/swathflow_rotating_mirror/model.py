@@ -4,11 +4,17 @@ fast-rectification paper).
 One detector looks at a mirror that turns about the aircraft's forward axis. Each image row
 is one sweep of the mirror across track; the pixel index gives the scan angle and the time:
 
-    theta(element) = (element - center) * ifov + scan_offset          (positive: to the left)
+    theta(line, element) = scan_start[line] + element * ifov + scan_offset   (positive: left)
     t(line, element) = time[line] + element * dwell
 
-``time[line]`` is the time of the row's first pixel (per-line table column ``time``,
-interpolated linearly in the line), ``dwell`` the time per pixel. Frames follow
+``time[line]`` is the time of the row's first pixel (per-line table column ``time``) and
+``scan_start[line]`` the mirror angle of that pixel read from the shaft encoder (the
+plugin's own per-line column ``scan_start``, degrees from nadir; the sampling clock starts a
+row at an index pulse, so the start angle wanders a little as the mirror's speed is
+regulated); both
+are interpolated linearly in the line. ``dwell`` is the time per pixel. Without a
+``scan_start`` column (a model built in code) every row starts at the nominal
+``-center * ifov``. Frames follow
 spec/geometry.md: B is the IMU body frame (x forward, y right, z down), M the scanner's own
 frame (nominally B; the mounting boresight ``opk_mount`` rotates B into M). At scan angle
 theta the line of sight in M is ``d = (0, -sin theta, cos theta)`` and the ray is
@@ -18,9 +24,11 @@ theta the line of sight in M is ``d = (0, -sin theta, cos theta)`` and the ray i
 Ground to image: a ground point G is seen when it lies in the scan plane (the plane through
 the mirror centre normal to M's x axis), at the time t* when ``w_x(t*) = 0`` with
 ``w(t) = R_BM^T (R_NB^T R_EN^T (G - X_ant(t)) - u_gps)``. That time fixes both image
-coordinates at once: the element from the scan angle ``atan2(-w_y, w_z)`` at t*, then the
-line from ``time[line] = t* - element * dwell``. Solving for t* is one scalar crossing
-problem, so the shared line solver (bracket over row start times, secant refinement) does it.
+coordinates at once: the scan angle ``atan2(-w_y, w_z)`` at t*, then line and element from
+``time[line] + element * dwell = t*`` and ``scan_start[line] + element * ifov + scan_offset =
+theta`` (a fixed-point iteration: the start angle changes little between rows). Solving for
+t* is one scalar crossing problem, so the shared line solver (bracket over row start times,
+secant refinement) does it.
 The POS must cover the last pixel of the last row.
 """
 from __future__ import annotations
@@ -41,8 +49,32 @@ class RotatingMirrorModel(SensorModel):
     name = "rotating-mirror"
     kind = "whisk-broom"
     required_keys = ("n_elements", "ifov_deg", "dwell")
-    #: columns the per-line table (images/<id>.lines.csv) must have besides ``line``
-    line_columns = ("time",)
+    #: columns the per-line table (images/<id>.lines.csv) must have besides ``line``:
+    #: the row's first-pixel time and its own column, the encoder's scan-start angle (deg)
+    line_columns = ("time", "scan_start")
+    #: the largest believable |scan_start| (deg from nadir): beyond it the row would start
+    #: looking at the horizon
+    max_scan_start_deg: float = 80.0
+
+    # --- plugin hooks ---------------------------------------------------------------------
+    @classmethod
+    def check_lines(cls, lines: Mapping[str, np.ndarray]) -> list[str]:
+        """The scan-start angles must be physical: within +-80 degrees of nadir (a row that
+        starts beyond that looks at the horizon; degrees, not radians or encoder counts)."""
+        a = np.asarray(lines.get("scan_start", []), float)
+        bad = np.flatnonzero(np.abs(a) > cls.max_scan_start_deg)
+        if not bad.size:
+            return []
+        rows = ", ".join(str(int(i) + 2) for i in bad[:5]) + (", ..." if bad.size > 5 else "")
+        return [f"column scan_start, file row(s) {rows}: {bad.size} scan-start angle(s) "
+                f"beyond +-{cls.max_scan_start_deg:g} deg from nadir (e.g. {a[bad[0]]:g}); "
+                f"give the mirror angle of each row's first pixel in degrees"]
+
+    @classmethod
+    def simulator(cls):
+        """The plugin's mission simulator (preset ``rotating-mirror``)."""
+        from swathflow_rotating_mirror import simulate
+        return simulate
 
     # --- configuration and parameters -----------------------------------------------------
     @classmethod
@@ -78,6 +110,10 @@ class RotatingMirrorModel(SensorModel):
         self._dwell = float(s["dwell"])
         self._center = float(s.get("center", (self.n_elements - 1) / 2.0))
         self._offset = np.radians(float(p["scan_offset"][0]))
+        if "scan_start" in self._lines:
+            self._start = np.radians(np.asarray(self._lines["scan_start"], float))
+        else:
+            self._start = np.full(self.n_lines, -self._center * self._ifov)
         self._u_gps = p["u_gps"]
         self._R_bm = r_opk(*np.radians(p["opk_mount"]))
         self._rows = np.arange(self.n_lines, dtype=float)
@@ -103,9 +139,13 @@ class RotatingMirrorModel(SensorModel):
     def _row_time(self, line) -> np.ndarray:
         return np.interp(line, self._rows, self._lines["time"])
 
-    def scan_angle(self, element) -> np.ndarray:
-        """Scan angle (radians, positive to the left) of (continuous) elements."""
-        return (np.asarray(element, float) - self._center) * self._ifov + self._offset
+    def _row_start(self, line) -> np.ndarray:
+        return np.interp(line, self._rows, self._start)
+
+    def scan_angle(self, image) -> np.ndarray:
+        """Scan angle (radians, positive to the left) of (continuous) image points."""
+        image = np.asarray(image, float)
+        return self._row_start(image[..., 0]) + image[..., 1] * self._ifov + self._offset
 
     # --- the SensorModel interface ---------------------------------------------------------------
     def image_time(self, image) -> np.ndarray:
@@ -115,7 +155,7 @@ class RotatingMirrorModel(SensorModel):
     def ray(self, image):
         image = np.asarray(image, float)
         c, r = self._state(self.image_time(image))
-        th = self.scan_angle(image[..., 1])
+        th = self.scan_angle(image)
         d = np.stack([np.zeros_like(th), -np.sin(th), np.cos(th)], axis=-1)
         return c, apply(r, d)
 
@@ -153,14 +193,10 @@ class RotatingMirrorModel(SensorModel):
 
         u = secant_lines(f_exact, j[k], fj[k], fj1[k], tol=1e-10)
         t_star = knot_time(u)
-        # 2. the element from the scan angle at that time, 3. the line from the pixel time
+        # 2. the scan angle at that time, 3. line and element from the pixel time and angle
         c, r = self._state(t_star)
         w = apply_t(r, gk - c)
-        theta = np.arctan2(-w[:, 1], w[:, 2])
-        elem = self._center + (theta - self._offset) / self._ifov
-        t_row = t_star - elem * self._dwell
-        lt = self._lines["time"]
-        line = np.interp(t_row, lt, self._rows, left=np.nan, right=np.nan)
+        line, elem = self._line_element(t_star, np.arctan2(-w[:, 1], w[:, 2]))
         ok = (w[:, 2] > 0) & np.isfinite(line)
         if clip:
             ok &= (elem >= -0.5) & (elem <= self.n_elements - 0.5)
@@ -168,17 +204,42 @@ class RotatingMirrorModel(SensorModel):
         out[k, 1] = np.where(ok, elem, np.nan)
         return out.reshape(shape + (2,))
 
+    def _line_element(self, t_star, theta, max_iter: int = 20):
+        """Line and element with ``time[line] + element * dwell = t_star`` and
+        ``scan_start[line] + element * ifov + scan_offset = theta``, by fixed-point iteration
+        from the row seen at ``t_star`` (exact in one step with a constant start angle or
+        zero dwell; each step shrinks the error by dwell * d(start)/d(line) / (ifov *
+        d(time)/d(line)), about 1e-6 for a real scanner). NaN outside the image."""
+        lt = self._lines["time"]
+        line = np.interp(t_star, lt, self._rows, left=np.nan, right=np.nan)
+        line = np.where(np.isfinite(line), line, np.clip(
+            np.interp(t_star, lt, self._rows), 0, self.n_lines - 1))
+        for _ in range(max_iter):
+            elem = (theta - self._offset - self._row_start(line)) / self._ifov
+            new = np.interp(t_star - elem * self._dwell, lt, self._rows, left=np.nan,
+                            right=np.nan)
+            done = np.nanmax(np.abs(new - line), initial=0.0) < 1e-10
+            line = new
+            if done:
+                break
+        elem = (theta - self._offset - self._row_start(np.nan_to_num(line))) / self._ifov
+        return line, np.where(np.isfinite(line), elem, np.nan)
+
     # --- an instance for the contract suite and the docs ---------------------------------------
     @classmethod
     def example_model(cls) -> "RotatingMirrorModel":
         """The scanner of the fast-rectification paper, roughly: 30 degree field of view in
         600 pixels of 0.05 degree, 650 m above the ground at 60 m/s, one mirror turn per row
-        (the sweep uses 30 of 360 degrees, so each pixel dwells 1/12 of a row's time / 600)."""
+        (the sweep uses 30 of 360 degrees, so each pixel dwells 1/12 of a row's time / 600),
+        with wandering encoder start angles."""
         from swathflow.testing import straight_trajectory
         rows_per_s = 105.0
         traj, lines = straight_trajectory(n_lines=400, line_rate=rows_per_s, height=700.0)
         sensor = {"n_elements": 600, "ifov_deg": 0.05,
                   "dwell": (1.0 / rows_per_s) * (0.05 / 360.0)}
+        # encoder start angles: nominal plus a slow wander of 0.04 deg (0.8 pixel)
+        rows = np.arange(400)
+        lines = {**lines, "scan_start": -299.5 * 0.05 + 0.04 * np.sin(rows / 37.0)}
         return cls.build(sensor, lines, traj,
                          {"u_gps": [0.3, -0.1, 0.8], "opk_mount": [0.2, -0.4, 0.3],
                           "scan_offset": [0.05]}, image_id="example", strip=1)

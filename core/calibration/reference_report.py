@@ -1,0 +1,117 @@
+"""The report section of a calibration from a reference: a map of the automatic control
+points over the reference (an SVG over a grey PNG of the reference, each point a circle
+coloured by its residual after the adjustment, rejected points as red crosses, residual
+vectors magnified) and the matching statistics per swing."""
+from __future__ import annotations
+
+import base64
+import struct
+import zlib
+
+import numpy as np
+import pandas as pd
+
+from swathflow.calibration.report import _e, _table
+
+MAP_PX = 640
+
+
+def png_grey(a: np.ndarray) -> bytes:
+    """An 8-bit grey PNG of ``a`` (stretched between its 1st and 99th percentiles; NaN
+    black)."""
+    ok = np.isfinite(a)
+    lo, hi = (np.percentile(a[ok], [1, 99]) if ok.any() else (0.0, 1.0))
+    g = np.where(ok, np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1) * 255, 0).astype(np.uint8)
+    raw = b"".join(b"\x00" + row.tobytes() for row in g)
+
+    def chunk(tag, data):
+        c = tag + data
+        return struct.pack(">I", len(data)) + c + struct.pack(">I", zlib.crc32(c) & 0xFFFFFFFF)
+
+    head = struct.pack(">IIBBBBB", g.shape[1], g.shape[0], 8, 0, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head) + chunk(b"IDAT", zlib.compress(raw, 6))
+            + chunk(b"IEND", b""))
+
+
+def points_map(reference, points: pd.DataFrame, magnify: float = 20.0) -> str:
+    """SVG text of the automatic points over the reference."""
+    if not len(points):
+        return "<p>No automatic point.</p>"
+    g = reference.grid
+    r, c = g.rowcol(points["E"].to_numpy(), points["N"].to_numpy(), op=None)
+    pad = 40
+    r0, r1 = max(int(r.min()) - pad, 0), min(int(r.max()) + pad, g.height)
+    c0, c1 = max(int(c.min()) - pad, 0), min(int(c.max()) + pad, g.width)
+    sub = reference.image[r0:r1, c0:c1]
+    step = max(1, int(np.ceil(max(sub.shape) / MAP_PX)))
+    thumb = sub[::step, ::step]
+    h, w = thumb.shape
+    img = base64.b64encode(png_grey(thumb)).decode()
+    zoom = max(1.0, MAP_PX / max(h, w))            # small maps are drawn larger
+    x = (c - c0) / step * zoom
+    y = (r - r0) / step * zoom
+    h, w = int(round(h * zoom)), int(round(w * zoom))
+    res = np.hypot(points["x"].to_numpy(float), points["y"].to_numpy(float))
+    rej = points["rejected"].to_numpy(bool)
+    out = [f"<svg xmlns='http://www.w3.org/2000/svg' width='{w}' height='{h}' "
+           f"viewBox='0 0 {w} {h}'><image href='data:image/png;base64,{img}' width='{w}' "
+           f"height='{h}' preserveAspectRatio='none'/>"]
+    for xi, yi, ri, rj, dx, dy, name in zip(x, y, res, rej, points["x"], points["y"],
+                                            points["gcp_id"]):
+        if rj:
+            out.append(f"<g stroke='#e00' stroke-width='2'><title>{_e(name)} rejected"
+                       f"</title><line x1='{xi - 4:.1f}' y1='{yi - 4:.1f}' x2='{xi + 4:.1f}' "
+                       f"y2='{yi + 4:.1f}'/><line x1='{xi - 4:.1f}' y1='{yi + 4:.1f}' "
+                       f"x2='{xi + 4:.1f}' y2='{yi - 4:.1f}'/></g>")
+            continue
+        col = "#2a2" if ri < 0.5 else "#fb0" if ri < 1.0 else "#f60"
+        out.append(f"<circle cx='{xi:.1f}' cy='{yi:.1f}' r='3' fill='{col}'><title>"
+                   f"{_e(name)}: x {dx:+.2f} y {dy:+.2f} px</title></circle>")
+        if np.isfinite(ri):
+            out.append(f"<line x1='{xi:.1f}' y1='{yi:.1f}' x2='{xi + magnify * dx:.1f}' "
+                       f"y2='{yi + magnify * dy:.1f}' stroke='{col}'/>")
+    out.append("</svg>")
+    return "".join(out)
+
+
+def reference_section(rc) -> str:
+    """HTML of the section for a ReferenceCalibrationResult ``rc``."""
+    p = rc.points
+    ref = rc.reference
+    out = ["<h2>Automatic control from the reference</h2>",
+           f"<p>Reference {_e(ref.path)} ({ref.res:.3f} m pixels), heights from "
+           f"{_e(getattr(ref.dem, 'path', None) or 'the mission terrain')}; {len(p)} points "
+           f"in the last round, {int(p['rejected'].sum()) if len(p) else 0} rejected by data "
+           f"snooping; {len(rc.rounds)} rounds.</p>",
+           "<p class='note'>Circles: accepted points, green below 0.5 px residual, orange "
+           "below 1 px, red above (lines: residual x 20, element right, line down); red "
+           "crosses: rejected (false matches: changed areas, repetitive texture, water)."
+           "</p>", points_map(ref, p)]
+    out.append("<h3>Rounds</h3>")
+    rounds = pd.DataFrame(rc.rounds)
+    if "design_warning" in rounds:
+        rounds["design_warning"] = rounds["design_warning"].map(
+            lambda t: "points on one side of the track" if t else "")
+    out.append(_table(rounds, 3))
+    out.append("<p class='note'>max_change_sigma: the largest change of a parameter since "
+               "the previous round, in its sigmas. design_warning: the surveyed-point design "
+               "check (points on both sides of the track per direction) failed; the priors "
+               "kept the adjustment determined, and the sigmas show what the points fixed."
+               "</p>")
+    m = pd.DataFrame([{"image": s["image_id"], "status": s.get("status"),
+                       "blocks": s["blocks"], "matched": s["matched"],
+                       "dropped": ", ".join(f"{k} {v}" for k, v in s["reasons"].items()),
+                       "coarse_shift": str(s.get("coarse_shift")),
+                       "seconds": s.get("seconds")} for s in rc.matching])
+    out.append("<h3>Matching per swing (last round)</h3>")
+    out.append(_table(m, 3, left=("image", "status", "dropped", "coarse_shift")))
+    if len(p):
+        out.append("<h3>Residuals of the automatic points</h3>")
+        summ = (p.assign(abs_x=p["x"].abs(), abs_y=p["y"].abs())
+                .groupby(["image_id", "rejected"])
+                .agg(n=("x", "size"), rms_x=("x", lambda v: float(np.sqrt(np.mean(v ** 2)))),
+                     rms_y=("y", lambda v: float(np.sqrt(np.mean(v ** 2)))),
+                     median_sigma_line=("sigma_line", "median"),
+                     median_sigma_element=("sigma_element", "median")).reset_index())
+        out.append(_table(summ, 3, left=("image_id",)))
+    return "\n".join(out)

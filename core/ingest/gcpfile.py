@@ -1,0 +1,181 @@
+"""The mission's ``gcp.csv``: read, check every row, convert to geodetic and ECEF."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from swathflow.ingest.validate import Collector, check_crs, check_keys, first_rows, rel
+
+GCP_COLUMNS = ("gcp_id", "image_id", "line", "element", "x", "y", "z", "role")
+GCP_ROLES = ("control", "check")
+
+
+def check_gcps(cfg, root, toml, parts, c: Collector):
+    """The GCP table with lat, lon, h and X, Y, Z added, or None (absent or bad)."""
+    from swathflow.ingest.validate import KNOWN_KEYS
+    gc = cfg.get("gcp")
+    if gc is None:
+        if not (root / "gcp.csv").exists():
+            return None
+        gc = {"file": "gcp.csv", "crs": "EPSG:4979"}
+    if not isinstance(gc, dict) or "file" not in gc:
+        c.add(toml, "[gcp]", "needs file = \"gcp.csv\"", 'file = "gcp.csv", crs = "EPSG:4979"')
+        return None
+    check_keys(gc, KNOWN_KEYS["gcp"], toml, "[gcp]", c)
+    gp = rel(root, gc["file"])
+    crs = gc.get("crs", "EPSG:4979")
+    err = check_crs(crs)
+    if err:
+        c.add(toml, "[gcp].crs", f"pyproj rejects CRS {crs!r}: {err}",
+              'use "EPSG:4979" (lon, lat, ellipsoidal h) or a projected EPSG code')
+    if not gp.exists():
+        c.add(gp, "", "GCP file not found", "check [gcp].file in mission.toml")
+        return None
+    df = _read(gp, c)
+    if df is None:
+        return None
+    n0 = len(c.problems)
+    _values(df, gp, c)
+    _ids(df, gp, parts["images"], c)
+    _inside(df, gp, parts["image_shapes"], c)
+    if len(c.problems) > n0 or err:
+        return None
+    out = gcp_geodetic(df, crs)
+    if not _located(out, df, gp, crs, parts.get("trajectory"), c):
+        return None
+    return out
+
+
+def _read(gp, c):
+    try:
+        df = pd.read_csv(gp, dtype={"gcp_id": str, "image_id": str, "role": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
+            ValueError, OSError) as exc:
+        c.add(gp, "", f"cannot be read as CSV: {str(exc).splitlines()[0][:200]}",
+              f"write a header row {','.join(GCP_COLUMNS)} and one row per observation")
+        return None
+    df.columns = [str(col).strip() for col in df.columns]
+    miss = [col for col in GCP_COLUMNS if col not in df.columns]
+    if miss:
+        c.add(gp, "header", f"missing column(s) {', '.join(miss)}",
+              f"the header must contain {','.join(GCP_COLUMNS)}")
+        return None
+    return df
+
+
+def _values(df, gp, c) -> None:
+    for col in ("line", "element", "x", "y", "z"):
+        v = pd.to_numeric(df[col], errors="coerce")
+        bad = ~np.isfinite(v.to_numpy(float))
+        if bad.any():
+            c.add(gp, f"column {col}, file row(s) {first_rows(bad)}",
+                  f"{int(bad.sum())} missing, NaN or non-numeric value(s)",
+                  "every GCP row needs finite numbers (delete unmeasured rows)")
+        df[col] = v.astype(float)
+    role = df["role"].astype(str).str.strip().str.lower()
+    bad = ~role.isin(GCP_ROLES).to_numpy()
+    if bad.any():
+        c.add(gp, f"column role, file row(s) {first_rows(bad)}",
+              f"role must be control or check, found {sorted(set(map(str, df['role'][bad])))}",
+              "set role to control or check")
+    df["role"] = role
+
+
+def _ids(df, gp, images, c) -> None:
+    for col in ("gcp_id", "image_id"):
+        bad = df[col].isna().to_numpy()
+        if bad.any():
+            c.add(gp, f"column {col}, file row(s) {first_rows(bad)}", "empty value",
+                  f"give every row its {col}")
+    df["gcp_id"] = df["gcp_id"].astype(str)
+    df["image_id"] = df["image_id"].astype(str)
+    unknown = ~df["image_id"].isin(list(images)).to_numpy()
+    if unknown.any():
+        c.add(gp, f"column image_id, file row(s) {first_rows(unknown)}",
+              f"unknown image id(s) {sorted(set(map(str, df['image_id'][unknown])))}",
+              f"use one of the [[images]] ids: {', '.join(images)}")
+    dup = df.duplicated(["gcp_id", "image_id"]).to_numpy()
+    if dup.any():
+        c.add(gp, f"file row(s) {first_rows(dup)}", "the same gcp_id appears twice for one "
+              "image", "one row per GCP and image")
+
+
+def _inside(df, gp, shapes, c) -> None:
+    li = df["line"].to_numpy(float)
+    el = df["element"].to_numpy(float)
+    for iid, (rows, cols) in shapes.items():
+        sel = (df["image_id"] == iid).to_numpy()
+        with np.errstate(invalid="ignore"):
+            out = sel & ((li < -0.5) | (li > rows - 0.5) | (el < -0.5) | (el > cols - 0.5))
+        if out.any():
+            c.add(gp, f"file row(s) {first_rows(out)}",
+                  f"{int(out.sum())} GCP(s) outside image {iid!r} ({rows} lines x {cols} "
+                  f"elements; valid line -0.5..{rows - 0.5}, element -0.5..{cols - 0.5})",
+                  "check the image_id and the (line, element) order of these rows")
+
+
+def _axis_names(crs) -> tuple[str, str]:
+    import pyproj
+    src = pyproj.CRS.from_user_input(crs)
+    return ("longitude", "latitude") if src.is_geographic else ("easting", "northing")
+
+
+def _located(out, df, gp, crs, traj, c) -> bool:
+    """GCPs must be real places near the flight; x/y swapped is named as such."""
+    xn, yn = _axis_names(crs)
+    with np.errstate(all="ignore"):
+        bad = ~np.isfinite(out[["lat", "lon", "h"]].to_numpy()).all(-1)
+        near = _far_from(out, traj)
+        if not bad.any() and (near is None or not near.any()):
+            return True
+        swapped = df.rename(columns={"x": "y", "y": "x"})
+        try:
+            alt = gcp_geodetic(swapped, crs)
+            alt_ok = np.isfinite(alt[["lat", "lon", "h"]].to_numpy()).all(-1)
+            alt_near = _far_from(alt, traj)
+            fixes = alt_ok.all() and (alt_near is None or not alt_near.any())
+        except Exception:  # noqa: BLE001 - only a hint
+            fixes = False
+    rows = bad | (near if near is not None else False)
+    what = "not valid coordinates" if bad.any() else "far (> 50 km) from the flight"
+    fix = (f"x and y look swapped: with [gcp].crs {crs}, x is the {xn} and y the {yn}; "
+           f"swap the x and y columns" if fixes else
+           f"check x ({xn}), y ({yn}), z and [gcp].crs ({crs})")
+    c.add(gp, f"columns x, y, file row(s) {first_rows(rows)}",
+          f"{int(rows.sum())} GCP(s) are {what} in {crs}", fix)
+    return False
+
+
+def _far_from(g, traj):
+    """Rows farther than 50 km from every sampled trajectory point (None: no trajectory)."""
+    if traj is None:
+        return None
+    idx = np.linspace(0, traj.lat.size - 1, 50).astype(int)
+    lat0 = np.radians(traj.lat[idx])[None]
+    lon0 = np.radians(traj.lon[idx])[None]
+    lat = np.radians(g["lat"].to_numpy(float))[:, None]
+    lon = np.radians(g["lon"].to_numpy(float))[:, None]
+    a = (np.sin((lat - lat0) / 2) ** 2
+         + np.cos(lat) * np.cos(lat0) * np.sin((lon - lon0) / 2) ** 2)
+    d = 2 * 6371000.0 * np.arcsin(np.sqrt(np.clip(a, 0, 1)))
+    return ~(np.nanmin(d, axis=1) < 50000.0)
+
+
+def gcp_geodetic(df: pd.DataFrame, crs: str) -> pd.DataFrame:
+    """Add lat, lon, h (EPSG:4979) and X, Y, Z (ECEF) to a GCP table."""
+    import pyproj
+
+    from swathflow.geometry.geodesy import geodetic_to_ecef, transformer
+    src = pyproj.CRS.from_user_input(crs)
+    x, y, z = (df[k].to_numpy(float) for k in ("x", "y", "z"))
+    if src.to_epsg() == 4979 or (src.is_geographic and len(src.axis_info) == 3):
+        lon, lat, h = transformer(src, "EPSG:4979").transform(x, y, z)
+    else:   # geographic 2-D or projected, with ellipsoidal heights (spec)
+        lon, lat = transformer(src, "EPSG:4326").transform(x, y)
+        h = z
+    out = df.copy()
+    out["lat"], out["lon"], out["h"] = np.asarray(lat), np.asarray(lon), np.asarray(h)
+    with np.errstate(all="ignore"):
+        xyz = geodetic_to_ecef(np.stack([out["lat"], out["lon"], out["h"]], axis=-1))
+    out["X"], out["Y"], out["Z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    return out.reset_index(drop=True)

@@ -1,0 +1,451 @@
+"""Mission validation: one small check per concern, each collecting :class:`Problem` s.
+
+:func:`inspect` runs them all in order and returns the problems with the parsed parts
+(``load_mission`` builds a :class:`~swathflow.mission.Mission` from them). Problems have a
+level: ``"error"`` makes the mission unusable, ``"warning"`` is reported and the mission
+still loads. Plausibility checks (angles in radians, impossible motion, output size...) are
+in :mod:`swathflow.plausible`, GCP tables in :mod:`swathflow.gcpfile`.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from swathflow.errors import SwathflowError
+from swathflow.ingest.mission import (
+    BASE_LINE_COLUMNS,
+    IMAGE_KEYS,
+    ImageEntry,
+    Problem,
+)
+from swathflow.formats.pos import Trajectory, read_pos
+from swathflow.geometry.terrain import DEM, ConstantHeight
+
+#: the keys of each mission.toml table that swathflow reads (spec/mission-format.md)
+KNOWN_KEYS = {
+    "": ("mission", "sensor", "pos", "terrain", "gcp", "images", "calibration", "ties"),
+    "mission": ("name", "crs", "gsd", "max_pixels", "description"),
+    "pos": ("file", "format", "max_gap"),
+    "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
+    "gcp": ("file", "crs"),
+    "images": IMAGE_KEYS + ("view",),
+}
+
+
+class Collector:
+    """Problems found so far."""
+
+    def __init__(self):
+        self.problems: list[Problem] = []
+
+    def add(self, file, where, message, fix="", level="error"):
+        self.problems.append(Problem(str(file), where, message, fix, level))
+
+    def warn(self, file, where, message, fix=""):
+        self.add(file, where, message, fix, "warning")
+
+
+def rel(root: Path, p) -> Path:
+    p = Path(str(p))
+    return p if p.is_absolute() else root / p
+
+
+def check_crs(crs) -> str | None:
+    import pyproj
+    try:
+        pyproj.CRS.from_user_input(crs)
+        return None
+    except (pyproj.exceptions.CRSError, TypeError, ValueError) as exc:
+        return str(exc).splitlines()[0][:200]
+
+
+def first_rows(mask, limit=5) -> str:
+    idx = np.flatnonzero(mask)
+    s = ", ".join(str(i + 2) for i in idx[:limit])
+    return s + (f" (and {idx.size - limit} more)" if idx.size > limit else "")
+
+
+# ------------------------------------------------------------------------------------------
+# mission.toml
+
+def read_toml(root: Path, c: Collector) -> dict | None:
+    toml = root / "mission.toml"
+    if not root.is_dir():
+        c.add(root, "", "mission folder not found", "give the folder that holds mission.toml")
+        return None
+    if not toml.exists():
+        c.add(toml, "", "mission.toml not found",
+              "create mission.toml (see spec/mission-format.md)")
+        return None
+    try:
+        with open(toml, "rb") as f:
+            return tomllib.load(f)
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        c.add(toml, "", f"not valid TOML: {exc}", "correct the syntax at the position shown")
+    except OSError as exc:
+        c.add(toml, "", f"cannot be read: {exc.strerror or exc}", "check the file's permissions")
+    return None
+
+
+def check_keys(table, known, file, where: str, c: Collector, strict: bool = True) -> None:
+    """Unknown keys of a table: a near miss of a known key is an error naming it (a typo
+    silently changes the result), any other unknown key a warning (``strict``) or nothing."""
+    if not isinstance(table, dict):
+        return
+    for key in table:
+        if key in known:
+            continue
+        near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.75)
+        loc = f"{where}.{key}" if where else str(key)
+        if near:
+            c.add(file, loc, f"unknown key {key!r}", f"did you mean {near[0]!r}? rename it")
+        elif strict:
+            c.warn(file, loc, f"unknown key {key!r}, ignored",
+                   f"known keys here: {', '.join(known)}")
+
+
+def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
+    m = cfg.get("mission")
+    if not isinstance(m, dict):
+        c.add(toml, "[mission]", "table missing", 'add [mission] with name, crs and gsd')
+        m = {}
+    check_keys(cfg, KNOWN_KEYS[""], toml, "", c)
+    check_keys(m, KNOWN_KEYS["mission"], toml, "[mission]", c)
+    parts["name"] = str(m.get("name", root.name))
+    crs = m.get("crs", "auto-utm")
+    n0 = len(c.problems)
+    if not isinstance(crs, str):
+        c.add(toml, "[mission].crs", f"must be a string, got {crs!r}",
+              'crs = "EPSG:32651" or "auto-utm"')
+    elif crs.lower() != "auto-utm":
+        err = check_crs(crs)
+        if err:
+            c.add(toml, "[mission].crs", f"pyproj rejects CRS {crs!r}: {err}",
+                  'use an EPSG code such as "EPSG:32651", or "auto-utm"')
+        else:
+            import pyproj
+            if not pyproj.CRS.from_user_input(crs).is_projected:
+                c.add(toml, "[mission].crs", f"{crs!r} is not a projected CRS",
+                      "the output grid needs metres: use a projected CRS or auto-utm")
+    parts["crs"] = crs
+    parts["crs_ok"] = len(c.problems) == n0
+    gsd = m.get("gsd")
+    if not _positive(gsd):
+        c.add(toml, "[mission].gsd", f"must be a positive number of metres, got {gsd!r}",
+              "gsd = 0.5")
+        gsd = None
+    parts["gsd"] = gsd
+    mp = m.get("max_pixels", 2e9)
+    if not _positive(mp):
+        c.add(toml, "[mission].max_pixels", f"must be a positive number, got {mp!r}",
+              "max_pixels = 2e9")
+        mp = 2e9
+    parts["max_pixels"] = float(mp)
+
+
+def _positive(v) -> bool:
+    return (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            and v > 0)
+
+
+def check_sensor(cfg: dict, toml: Path, c: Collector, parts: dict) -> None:
+    from swathflow.sensors.registry import _registry
+    sensor = cfg.get("sensor")
+    cls = None
+    if not isinstance(sensor, dict):
+        c.add(toml, "[sensor]", "table missing",
+              "add [sensor] with model = a name that 'swathflow sensors' lists")
+        sensor = {}
+    else:
+        name = sensor.get("model")
+        reg = _registry()
+        if name not in reg:
+            c.add(toml, "[sensor].model", f"unknown sensor plugin {name!r}",
+                  f"use one of: {', '.join(sorted(reg)) or 'none'} (see 'swathflow sensors'),"
+                  f" or install the plugin")
+        else:
+            cls = reg[name][0]
+            known = ("model",) + tuple(cls.required_keys) + tuple(
+                getattr(cls, "optional_keys", ()) or ())
+            check_keys(sensor, known, toml, "[sensor]",
+                       c, strict=bool(getattr(cls, "optional_keys", None)))
+            try:
+                bad = cls.check_config(sensor)
+            except (TypeError, ValueError, KeyError, AttributeError) as exc:
+                bad = [f"invalid value: {exc}"]
+            for b in bad:
+                c.add(toml, "[sensor]", b, f"see the {name} plugin's documentation")
+            if bad:
+                cls = None
+    n_el = sensor.get("n_elements")
+    if n_el is not None and (isinstance(n_el, bool) or not isinstance(n_el, (int, float))
+                             or (isinstance(n_el, float) and not n_el.is_integer())):
+        c.add(toml, "[sensor].n_elements", f"must be a whole number of detector elements, "
+              f"got {n_el!r}", "n_elements = the number of image columns, e.g. 1024")
+        cls = None
+    parts["sensor"] = sensor
+    parts["cls"] = cls
+    parts["n_elements"] = int(n_el) if cls is not None and n_el is not None else None
+
+
+def check_pos(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
+    from swathflow.ingest.plausible import check_pos_plausible
+    posc = cfg.get("pos", {}) if isinstance(cfg.get("pos", {}), dict) else {}
+    check_keys(posc, KNOWN_KEYS["pos"], toml, "[pos]", c)
+    pos_file = posc.get("file")
+    if pos_file is None:
+        pos_file = next((n for n in ("pos.sbet", "pos.csv") if (root / n).exists()), None)
+    parts["trajectory"] = None
+    if pos_file is None:
+        c.add(toml, "[pos].file", "no POS file named and neither pos.sbet nor pos.csv found",
+              'add [pos] file = "pos.sbet", format = "sbet"')
+        return
+    pp = rel(root, pos_file)
+    if not pp.exists():
+        c.add(pp, "", "POS file not found", "check [pos].file in mission.toml")
+        return
+    max_gap = posc.get("max_gap", 1.0)
+    if not _positive(max_gap):
+        c.add(toml, "[pos].max_gap", f"must be a positive number of seconds, got "
+              f"{max_gap!r}", "max_gap = 1.0")
+        max_gap = 1.0
+    try:
+        ds = read_pos(pp, posc.get("format"))
+    except SwathflowError as exc:
+        msg = str(exc).replace(str(pp) + ": ", "")
+        c.add(pp, "[pos]" if "format" in msg else "", msg,
+              'set [pos] format = "sbet" or "csv"' if "unknown POS format" in msg
+              else "re-export the POS (times strictly increasing, finite values)")
+        return
+    parts["pos"] = ds
+    fmt = (posc.get("format") or pp.suffix.lstrip(".")).lower()
+    if not check_pos_plausible(ds, pp, fmt, c):
+        return
+    parts["trajectory"] = Trajectory.from_dataset(ds, max_gap=float(max_gap))
+
+
+def check_terrain(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
+    ter = cfg.get("terrain")
+    terrain = None
+    if not isinstance(ter, dict):
+        c.add(toml, "[terrain]", "table missing",
+              'add [terrain] dem = "dem.tif" or height = <ellipsoidal metres>')
+    else:
+        check_keys(ter, KNOWN_KEYS["terrain"], toml, "[terrain]", c)
+        if ter.get("vertical", "ellipsoidal") not in ("ellipsoidal", "orthometric"):
+            c.add(toml, "[terrain].vertical", f"must be 'ellipsoidal' or 'orthometric', "
+                  f"got {ter.get('vertical')!r}", 'vertical = "ellipsoidal"')
+        elif "dem" in ter:
+            terrain = _open_dem(ter, root, c)
+        elif "height" in ter:
+            terrain = _constant_height(ter, toml, c)
+        else:
+            c.add(toml, "[terrain]", "needs dem = \"...\" or height = <metres>",
+                  'add dem = "dem.tif" or height = 12.0')
+    parts["terrain"] = terrain
+
+
+def _open_dem(ter: dict, root: Path, c: Collector):
+    dp = rel(root, ter["dem"])
+    if not dp.exists():
+        c.add(dp, "", "DEM file not found", "check [terrain].dem in mission.toml")
+        return None
+    try:
+        terrain = DEM.open(dp, ter.get("vertical", "ellipsoidal"), ter.get("geoid"),
+                           ter.get("undulation"))
+    except SwathflowError as exc:
+        c.add(dp, "[terrain]", str(exc).replace(str(dp) + ": ", ""),
+              "fix the DEM or its [terrain] keys")
+        return None
+    if not np.isfinite(terrain.data).any():
+        c.add(dp, "", "the DEM holds no valid heights", "use a DEM with data")
+        return None
+    return terrain
+
+
+def _constant_height(ter: dict, toml: Path, c: Collector):
+    try:
+        h = float(ter["height"])
+        if not math.isfinite(h):
+            raise ValueError("not finite")
+        if ter.get("vertical", "ellipsoidal") == "orthometric":
+            if "undulation" not in ter:
+                raise SwathflowError("an orthometric constant height needs undulation")
+            h += float(ter["undulation"])
+        return ConstantHeight(h)
+    except (TypeError, ValueError, SwathflowError) as exc:
+        c.add(toml, "[terrain].height", f"not a usable height: {ter['height']!r} {exc}",
+              "height = <ellipsoidal metres> (or vertical = 'orthometric' + undulation)")
+        return None
+
+
+# ------------------------------------------------------------------------------------------
+# [[images]] and their line tables
+
+def check_images(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
+    from swathflow.ingest.linetable import line_table
+    from swathflow.ingest.plausible import check_lines_plausible
+    images: dict[str, ImageEntry] = {}
+    parts.update(images=images, lines={}, shapes={}, image_shapes={})
+    entries = cfg.get("images")
+    if not isinstance(entries, list) or not entries:
+        c.add(toml, "[[images]]", "no images listed", "add one [[images]] table per swing")
+        entries = []
+    cls = parts["cls"]
+    need = BASE_LINE_COLUMNS
+    if cls is not None:
+        need = tuple(dict.fromkeys(BASE_LINE_COLUMNS + tuple(cls.line_columns)))
+    files: dict[tuple, str] = {}
+    for k, e in enumerate(entries):
+        entry = _image_entry(e, k, root, toml, images, c, cls)
+        if entry is None:
+            continue
+        images[entry.id] = entry
+        for key, p in (("file", entry.file), ("lines", entry.lines_file)):
+            other = files.setdefault((key, os.path.realpath(p)), entry.id)
+            if other != entry.id:
+                c.add(toml, f"[[images]] id={entry.id!r}.{key}", f"{p.name} is also the "
+                      f"{key} of image {other!r}", "give every image its own file")
+        shape = _image_shape(entry, parts, c)
+        cols = line_table(entry, need, shape, parts.get("trajectory"), c)
+        if cols is None:
+            continue
+        if cls is not None:
+            check_lines_plausible(cls, entry, cols, c)
+        parts["lines"][entry.id] = {col: cols[col] for col in need if col != "line"}
+        if shape is not None:
+            parts["shapes"][entry.id] = shape
+
+
+def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
+    where = f"[[images]] #{k + 1}"
+    if not isinstance(e, dict):
+        c.add(toml, where, "must be a table", "")
+        return None
+    check_keys(e, KNOWN_KEYS["images"], toml, where, c, strict=False)
+    missing = [key for key in ("id", "file", "lines") if key not in e]
+    if missing:
+        c.add(toml, where, f"missing key(s) {', '.join(missing)}",
+              'each image needs id, file, lines (and direction, strip)')
+        return None
+    iid = str(e["id"])
+    where = f"[[images]] id={iid!r}"
+    if iid in images:
+        c.add(toml, where, "duplicate image id", "give every image a unique id")
+        return None
+    direction = str(e.get("direction", ""))
+    allowed = cls.directions if cls is not None else None
+    if allowed and direction.upper() not in allowed:
+        c.add(toml, where + ".direction", f"must be one of {', '.join(allowed)} for sensor "
+              f"{cls.name!r}, got {direction!r}",
+              f"direction = {allowed[0]!r} (see 'swathflow sensors' for the model)")
+    strip = e.get("strip", 0)
+    try:
+        if isinstance(strip, bool) or (isinstance(strip, float) and not strip.is_integer()):
+            raise ValueError
+        strip = int(strip)
+    except (TypeError, ValueError):
+        c.add(toml, where + ".strip", f"must be an integer, got {strip!r}", "strip = 1")
+        strip = 0
+    attrs = {k2: v for k2, v in e.items() if k2 not in IMAGE_KEYS}
+    return ImageEntry(iid, rel(root, e["file"]), rel(root, e["lines"]), direction.upper(),
+                      strip, attrs)
+
+
+def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
+    from swathflow.ingest.mission import raster_check
+    where = f"[[images]] id={entry.id!r}"
+    ip = entry.file
+    if not ip.exists():
+        c.add(ip, where, "image file not found", "check the file key of this image")
+        return None
+    try:
+        rows, cols, _, note = raster_check(ip)
+    except SwathflowError as exc:
+        c.add(ip, where, str(exc).replace(str(ip) + ": ", ""),
+              "write the image as GeoTIFF or ENVI")
+        return None
+    if note:
+        c.warn(ip, where, note, "write one band per image file")
+    parts["image_shapes"][entry.id] = (rows, cols)
+    n_el = parts.get("n_elements")
+    if n_el is not None and cols != n_el:
+        c.add(ip, where, f"image has {cols} columns but [sensor].n_elements is "
+              f"{n_el}", "columns must be detector elements; fix n_elements or the image")
+    return rows, cols
+
+
+# ------------------------------------------------------------------------------------------
+# the whole mission
+
+def inspect(path) -> tuple[list[Problem], dict]:
+    from swathflow.ingest.gcpfile import check_gcps
+    from swathflow.ingest.plausible import check_models
+    c = Collector()
+    root = Path(os.fspath(path))
+    toml = root / "mission.toml"
+    parts: dict[str, Any] = {"root": root}
+    cfg = read_toml(root, c)
+    if cfg is None:
+        return c.problems, parts
+    parts["config"] = cfg
+    check_mission_table(cfg, root, toml, c, parts)
+    check_sensor(cfg, toml, c, parts)
+    check_pos(cfg, root, toml, c, parts)
+    check_terrain(cfg, root, toml, c, parts)
+    check_images(cfg, root, toml, c, parts)
+    traj = parts["trajectory"]
+    crs = parts["crs"]
+    if isinstance(crs, str) and crs.lower() == "auto-utm" and traj is not None:
+        from swathflow.geometry.geodesy import utm_crs_for
+        parts["crs"] = utm_crs_for(float(np.mean(traj.lat)),
+                                   float((np.mean(traj.lon) + 180) % 360 - 180)).to_string()
+    cls = parts["cls"]
+    parts["priors"] = None
+    if cls is not None:
+        parts["priors"] = priors(cls, parts["sensor"], cfg.get("calibration"), root, toml, c)
+    parts["gcps"] = check_gcps(cfg, root, toml, parts, c)
+    if cls is not None and traj is not None and parts["priors"] is not None:
+        check_models(parts, toml, c)
+    return c.problems, parts
+
+
+def priors(cls, sensor, cal, root, toml, c: Collector):
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
+    try:
+        base = cls.default_parameters(sensor)
+    except (KeyError, TypeError, ValueError) as exc:
+        c.add(toml, "[sensor]", f"default parameters fail: {exc}", "")
+        return None
+    if cal is None:
+        return base
+    if not isinstance(cal, dict):
+        c.add(toml, "[calibration]", "must be a table", "")
+        return None
+    cal = dict(cal)
+    if "file" in cal:
+        fp = rel(root, cal.pop("file"))
+        try:
+            doc = read_calibration(fp)
+            if doc.get("sensor") not in (None, cls.name):
+                c.add(fp, "sensor", f"calibration is for sensor {doc.get('sensor')!r}, the "
+                      f"mission uses {cls.name!r}", "use a calibration of this sensor")
+            base = base.updated(calibration_priors(doc))
+        except SwathflowError as exc:
+            c.add(fp, "[calibration].file", str(exc).replace(str(fp) + ": ", ""),
+                  "name a valid calibration.json")
+            return None
+    check_keys(cal, base.names, toml, "[calibration]", c, strict=False)
+    try:
+        return base.updated(cal)
+    except (SwathflowError, TypeError, ValueError) as exc:
+        c.add(toml, "[calibration]", str(exc),
+              f"parameters of {cls.name}: {', '.join(base.names)}; each "
+              "{ value = [...], sigma = [...] }")
+        return None

@@ -1,0 +1,176 @@
+"""Command-line safeguards: outputs checked before any work, SIGTERM handled like Ctrl-C,
+operating-system failures (disk full, permissions) told in one line.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import signal
+import tempfile
+
+from swathflow.errors import SwathflowError
+
+#: commands whose --out is a folder / a file
+OUT_FOLDER = ("calibrate", "rectify", "run", "demo")
+OUT_FILE = ("mosaic",)
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived: unwind like KeyboardInterrupt (outputs are atomic, temporaries
+    removed, the ephemeral Prefect server and Dask cluster shut down on the way out)."""
+
+
+@contextlib.contextmanager
+def on_sigterm():
+    def handler(signum, frame):
+        raise Terminated()
+    try:
+        old = signal.signal(signal.SIGTERM, handler)
+    except ValueError:          # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _writable_folder(folder: str, what: str) -> None:
+    folder = os.path.abspath(folder)
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise SwathflowError(f"{folder}: {what} exists and is not a folder; give a folder "
+                             f"name (or remove the file)")
+    probe = folder
+    while not os.path.exists(probe):
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe):
+        raise SwathflowError(f"{folder}: cannot create {what}: {probe} is a file")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise SwathflowError(f"{folder}: cannot write {what} there ({exc.strerror}); give "
+                             f"a folder you can write to") from None
+
+
+def check_outputs(args) -> None:
+    """The --out of a command must be writable, of the right kind, and not an input."""
+    out = getattr(args, "out", None)
+    if out is None:
+        return
+    if args.command in OUT_FOLDER:
+        _writable_folder(out, "the output folder")
+        _not_inside_inputs(args, out)
+    elif args.command in OUT_FILE:
+        if os.path.isdir(out):
+            raise SwathflowError(f"{out}: --out is a folder; give a file name such as "
+                                 f"{os.path.join(out, 'mosaic.tif')}")
+        _writable_folder(os.path.dirname(os.path.abspath(out)), "the output folder")
+        _not_an_input(args, out)
+
+
+def _not_an_input(args, out: str) -> None:
+    """mosaic --out must not name one of the swings it reads."""
+    from swathflow.mosaicking.mosaic import find_inputs as _find_inputs
+    target = os.path.realpath(out)
+    try:
+        inputs = _find_inputs(args.source)
+    except SwathflowError:
+        return              # the command itself reports a bad source
+    for p in inputs:
+        if os.path.realpath(p) == target and _is_swing(p):
+            raise SwathflowError(f"{out}: --out is one of the input swings; writing the "
+                                 f"mosaic there would destroy it: give another file name")
+
+
+def _is_swing(path: str) -> bool:
+    """A rectified swing (tagged with its image id), not an earlier mosaic."""
+    import rasterio
+    try:
+        with rasterio.open(path) as src:
+            return "image_id" in src.tags()
+    except rasterio.errors.RasterioError:
+        return True         # unreadable: never write over it
+
+
+def _not_inside_inputs(args, out: str) -> None:
+    mission = getattr(args, "mission", None)
+    if mission and os.path.realpath(out) == os.path.realpath(mission):
+        raise SwathflowError(f"{out}: --out is the mission folder itself; give a separate "
+                             f"output folder")
+
+
+@contextlib.contextmanager
+def output_lock(args):
+    """Hold a lock on the command's output (folder, or mosaic file) for the whole run; a
+    second run on the same --out stops at once and names the process holding it. The
+    lock (flock) goes with its process, even one killed by SIGKILL."""
+    import fcntl
+    out = getattr(args, "out", None)
+    if out is None or args.command not in OUT_FOLDER + OUT_FILE:
+        yield
+        return
+    if args.command in OUT_FILE:
+        folder, name = os.path.split(os.path.abspath(out))
+        lock = os.path.join(folder, f".{name}.lock")
+    else:
+        folder = os.path.abspath(out)
+        lock = os.path.join(folder, ".swathflow.lock")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            raise SwathflowError(f"{out}: another swathflow run (process {pid}) is writing "
+                                 f"there; wait for it to finish, or give another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _chain(exc: BaseException):
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
+def _free_bytes(path) -> float:
+    import shutil
+    p = os.path.abspath(path)
+    while p and not os.path.exists(p):
+        p = os.path.dirname(p)
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return float("inf")
+
+
+def explain_os_error(exc: BaseException, out=None) -> str | None:
+    """One line for a disk-full, permission or write failure (None: not such a failure).
+    ``out``: the command's output path, whose free space tells a full disk apart."""
+    try:
+        from rasterio.errors import RasterioError
+    except ImportError:         # pragma: no cover
+        RasterioError = ()  # noqa: N806
+    chain = list(_chain(exc))
+    texts = " | ".join(str(e) for e in chain)
+    full = any(isinstance(e, OSError) and e.errno == errno.ENOSPC for e in chain) or (
+        "No space left on device" in texts or "Free disk space" in texts)
+    raster_write = isinstance(exc, RasterioError) and "write" in texts.lower()
+    if full or (raster_write and out is not None and _free_bytes(out) < 2**20):
+        where = getattr(exc, "filename", None) or out or ""
+        return (f"the disk is full{' writing ' + str(where) if where else ''}: free some "
+                f"space and re-run (finished outputs are kept, temporaries removed)")
+    if isinstance(exc, PermissionError):
+        return f"permission denied: {exc.filename or exc}: choose a path you can write to"
+    if raster_write:
+        return (f"cannot write a raster: {texts.splitlines()[0][:200]}: check the output "
+                f"folder (space, permissions) and re-run")
+    return None

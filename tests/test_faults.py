@@ -1,0 +1,440 @@
+"""The fault suite of issue 13: each bad input or fault ends as one clear line naming the
+file or key and the fix (exit code 2, no traceback), or as correct behaviour.
+
+Every case starts from a simulated ``tiny`` mission (geometry only) whose truth is known,
+breaks one thing the way a user would, and runs the real command line.
+"""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import rasterio
+from swathflow.flows.cli import main
+from swathflow.formats.pos import read_pos
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("faults") / "tiny"
+    assert main(["simulate", str(out), "--preset", "tiny", "--seed", "1",
+                 "--geometry-only"]) == 0
+    return out
+
+
+@pytest.fixture
+def m(base, tmp_path) -> Path:
+    dst = tmp_path / "m"
+    shutil.copytree(base, dst)
+    return dst
+
+
+def _run(capsys, *argv) -> tuple[int, str]:
+    code = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    text = cap.out + cap.err
+    assert "Traceback" not in text
+    return code, text
+
+
+def _bad(capsys, m, *words) -> str:
+    """validate exits 2 and one problem line holds every word."""
+    code, text = _run(capsys, "validate", m)
+    assert code == 2, text
+    lines = [ln for ln in text.splitlines() if all(w.lower() in ln.lower() for w in words)]
+    assert lines, f"no line with {words}:\n{text}"
+    assert "fix:" in lines[0]
+    return lines[0]
+
+
+def _toml(m, old, new):
+    p = m / "mission.toml"
+    s = p.read_text()
+    assert old in s
+    p.write_text(s.replace(old, new, 1))
+
+
+def _pos_csv(m, change) -> None:
+    ds = read_pos(m / "pos.sbet")
+    df = pd.DataFrame({"time": ds.time.values, **{k: ds[k].values for k in ds.data_vars}})
+    df = change(df)
+    df.to_csv(m / "pos.csv", index=False, float_format="%.10f")
+    (m / "pos.sbet").unlink()
+    _toml(m, 'file = "pos.sbet"\nformat = "sbet"', 'file = "pos.csv"\nformat = "csv"')
+
+
+# ------------------------------------------------------------------------------------------
+# silently wrong results
+
+def test_pos_angles_in_radians(m, capsys):
+    _pos_csv(m, lambda d: d.assign(**{k: np.radians(d[k]) for k in ("roll", "pitch",
+                                                                      "heading")}))
+    _bad(capsys, m, "pos.csv", "radians", "degrees")
+
+
+def test_swing_column_in_radians(m, capsys):
+    p = m / "images" / "L1.lines.csv"
+    d = pd.read_csv(p)
+    d.assign(swing=np.radians(d.swing)).to_csv(p, index=False)
+    _bad(capsys, m, "L1.lines.csv", "swing", "radians")
+
+
+def test_truncated_envi_refused(tmp_path, capsys):
+    mm = tmp_path / "e"
+    assert main(["simulate", str(mm), "--preset", "tiny", "--geometry-only",
+                 "--image-format", "envi"]) == 0
+    capsys.readouterr()
+    img = next((mm / "images").glob("L1*.img"))
+    data = img.read_bytes()
+    img.write_bytes(data[: len(data) // 2])
+    _bad(capsys, mm, "L1", "truncated")
+
+
+def test_multiband_image_warned(m, capsys):
+    p = m / "images" / "L1.tif"
+    with rasterio.open(p) as src:
+        a, prof = src.read(1), src.profile
+    prof.update(count=3)
+    with rasterio.open(p, "w", **prof) as dst:
+        for b in (1, 2, 3):
+            dst.write(a, b)
+    code, text = _run(capsys, "validate", m)
+    assert code == 0 and "warning" in text and "band 1 is used" in text
+
+
+def test_simulated_pos_is_continuous(base):
+    """The simulator's POS: no epoch left at the origin (was lat 0, lon 118.5)."""
+    ds = read_pos(base / "pos.sbet")
+    lat = ds.lat.values
+    assert np.ptp(lat) < 0.01 and np.abs(np.diff(ds["roll"].values)).max() < 1.0
+
+
+def test_pos_position_jump(m, capsys):
+    _pos_csv(m, lambda d: d.assign(lat=np.r_[d.lat.values[:-1], 0.0]))
+    _bad(capsys, m, "pos.csv", "jump")
+
+
+def test_pos_gap_inside_image_warned(m, capsys):
+    t = pd.read_csv(m / "images" / "L1.lines.csv").time.values
+    mid = 0.5 * (t[0] + t[-1])
+    _pos_csv(m, lambda d: d[(d.time < mid) | (d.time > mid + 0.3)])
+    code, text = _run(capsys, "validate", m)
+    assert code == 0 and "warning" in text and "POS gap" in text and "L1.lines.csv" in text
+
+
+def test_misspelt_terrain_key(m, capsys):
+    _toml(m, 'vertical = "ellipsoidal"', 'vertcal = "orthometric"')
+    _bad(capsys, m, "vertcal", "vertical")
+
+
+def test_misspelt_sensor_key(m, capsys):
+    _toml(m, "focal_length =", "focal_lenght =")
+    _bad(capsys, m, "focal_lenght", "focal_length")
+
+
+def test_fractional_n_elements(m, capsys):
+    _toml(m, "n_elements = 64", "n_elements = 64.5")
+    _bad(capsys, m, "n_elements", "whole number")
+
+
+def test_two_images_on_one_file(m, capsys):
+    _toml(m, 'file = "images/R1.tif"', 'file = "images/L1.tif"')
+    _bad(capsys, m, "R1", "also the file")
+
+
+# ------------------------------------------------------------------------------------------
+# runaways
+
+@pytest.mark.parametrize("gsd, words", [("1e-6", ("gsd", "max_pixels")),
+                                        ("0.002", ("gsd", "max_pixels")),
+                                        ("1e6", ("gsd", "footprint"))])
+def test_gsd_out_of_proportion(m, capsys, gsd, words):
+    _toml(m, "gsd = 0.4", f"gsd = {gsd}")
+    _bad(capsys, m, *words)
+
+
+def test_max_pixels_lifts_the_limit(m, capsys):
+    _toml(m, "gsd = 0.4", "gsd = 0.002\nmax_pixels = 1e12")
+    code, text = _run(capsys, "validate", m)
+    assert code == 0, text
+
+
+def test_run_validates_before_starting_prefect(m, tmp_path, capsys):
+    _toml(m, "gsd = 0.4", "gsd = -1")
+    t0 = time.perf_counter()
+    code, text = _run(capsys, "run", m, "--out", tmp_path / "o")
+    assert code == 2 and "[mission].gsd" in text
+    assert time.perf_counter() - t0 < 8.0      # no Prefect server or Dask cluster started
+
+
+# ------------------------------------------------------------------------------------------
+# data lost or half-written
+
+def test_mosaic_never_writes_over_an_input(tmp_path, capsys):
+    from swathflow.formats.raster import write_geotiff
+    d = tmp_path / "r"
+    a = np.arange(64, dtype=np.float32).reshape(8, 8)
+    write_geotiff(d / "L1.tif", a, "EPSG:32651", (1, 0, 0, 0, -1, 8), nodata=-9999.0,
+                  tags={"image_id": "L1"})
+    before = (d / "L1.tif").read_bytes()
+    code, text = _run(capsys, "mosaic", d, "--out", d / "L1.tif", "--workers", "1")
+    assert code == 2 and "input" in text
+    assert (d / "L1.tif").read_bytes() == before
+
+
+def test_simulate_into_existing_mission_needs_force(m, capsys):
+    before = (m / "pos.sbet").read_bytes()
+    code, text = _run(capsys, "simulate", m, "--preset", "tiny", "--seed", "5",
+                      "--geometry-only")
+    assert code == 2 and "--force" in text
+    assert (m / "pos.sbet").read_bytes() == before
+
+
+def test_simulate_gross_errors_out_of_range(tmp_path, capsys):
+    code, text = _run(capsys, "simulate", tmp_path / "g", "--gross-errors", "2.0")
+    assert code == 2 and "--gross-errors" in text
+    assert not (tmp_path / "g").exists()
+
+
+def test_stale_temporaries_of_a_killed_writer_are_cleared(tmp_path):
+    from swathflow.io import write_text
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()                                   # a process id that no longer runs
+    stale = tmp_path / f".out.txt.{p.pid}.abc.tmp.txt"
+    stale.write_text("half")
+    write_text(tmp_path / "out.txt", "whole")
+    assert not stale.exists() and (tmp_path / "out.txt").read_text() == "whole"
+
+
+def test_sigterm_exits_143_with_a_message(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "simulate",
+                             str(tmp_path / "d"), "--preset", "demo"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(6)
+    proc.terminate()
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert "terminated" in err and "Traceback" not in err
+
+
+# ------------------------------------------------------------------------------------------
+# tracebacks
+
+@pytest.mark.parametrize("argv", [["mosaic", "SRC", "--tile", "0", "--out", "x.tif"],
+                                  ["rectify", "SRC", "--tile", "-5", "--out", "o"],
+                                  ["mosaic", "SRC", "--feather", "0", "--out", "x.tif"],
+                                  ["mosaic", "SRC", "--workers", "0", "--out", "x.tif"],
+                                  ["mosaic", "SRC", "--max-shift", "-1", "--out", "x.tif"]])
+def test_non_positive_arguments(base, argv, capsys):
+    argv = [str(base) if a == "SRC" else a for a in argv]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "must be 1 or more" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "rectify", "run"])
+@pytest.mark.parametrize("where", ["file", "proc"])
+def test_out_unusable(base, tmp_path, capsys, cmd, where):
+    out = tmp_path / "f" if where == "file" else Path("/proc/swathflow-out")
+    if where == "file":
+        out.write_text("x")
+    code, text = _run(capsys, cmd, base, "--out", out)
+    assert code == 2 and str(out) in text
+
+
+def test_mosaic_out_under_proc(base, capsys):
+    code, text = _run(capsys, "mosaic", base, "--out", "/proc/x/m.tif")
+    assert code == 2 and "/proc/x" in text
+
+
+# ------------------------------------------------------------------------------------------
+# misleading messages
+
+def test_swapped_lat_lon(m, capsys):
+    _pos_csv(m, lambda d: d.rename(columns={"lat": "lon", "lon": "lat"}))
+    _bad(capsys, m, "pos.csv", "swap")
+
+
+def test_latitude_out_of_range(m, capsys):
+    _pos_csv(m, lambda d: d.assign(lat=d.lat + 100.0))
+    line = _bad(capsys, m, "pos.csv", "lat", "outside")
+    assert "DEM" not in line
+
+
+def test_sbet_holding_degrees(m, capsys):
+    from swathflow.formats.pos import write_sbet
+    ds = read_pos(m / "pos.sbet")
+    deg = ds.copy()
+    for k in ("lat", "lon", "roll", "pitch", "heading"):
+        deg[k] = np.degrees(ds[k])              # the file then stores degrees
+    write_sbet(deg, m / "pos.sbet")
+    line = _bad(capsys, m, "pos.sbet", "degrees")
+    assert "DEM" not in line
+
+
+def test_dem_above_the_aircraft(m, capsys):
+    p = m / "dem.tif"
+    with rasterio.open(p) as src:
+        a, prof = src.read(1), src.profile
+    with rasterio.open(p, "w", **prof) as dst:
+        dst.write(a + 5000.0, 1)
+    _bad(capsys, m, "dem.tif", "above the aircraft")
+
+
+def test_gcp_x_y_swapped(m, capsys):
+    p = m / "gcp.csv"
+    d = pd.read_csv(p)
+    d.rename(columns={"x": "y", "y": "x"}).to_csv(p, index=False)
+    _bad(capsys, m, "gcp.csv", "swap the x and y")
+
+
+def test_readme_path_simulate_then_calibrate(base, tmp_path, capsys):
+    code, text = _run(capsys, "calibrate", base, "--out", tmp_path / "cal")
+    assert code == 0, text
+    assert (tmp_path / "cal" / "calibration.json").exists()
+
+
+def test_rectify_without_calibration_says_so(base, tmp_path, capsys):
+    code, text = _run(capsys, "rectify", base, "--out", tmp_path / "r", "--images", "L1")
+    assert code == 0 and "no --calibration" in text
+    with rasterio.open(tmp_path / "r" / "L1.tif") as src:
+        assert src.tags()["calibration"].startswith("none")
+
+
+def _plugin(tmp_path, monkeypatch, body: str):
+    from importlib.metadata import EntryPoint
+
+    from swathflow.sensors import registry
+    mod = tmp_path / "badplugin_mod.py"
+    mod.write_text(body)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    eps = [EntryPoint("broken", "badplugin_mod:Model", registry.GROUP)]
+    monkeypatch.setattr(registry, "entry_points", lambda group: eps)
+    registry.refresh()
+    return registry
+
+
+@pytest.mark.parametrize("body", [
+    "import sys\nsys.exit('no licence')\n",
+    "class Stop(BaseException):\n    pass\nraise Stop('bye')\n",
+    "from swathflow.sensors import SensorModel\nclass Model(SensorModel):\n    pass\n",
+])
+def test_broken_plugin_warns_and_is_skipped(tmp_path, monkeypatch, capsys, body):
+    sys.modules.pop("badplugin_mod", None)
+    reg = _plugin(tmp_path, monkeypatch, body)
+    try:
+        code, text = _run(capsys, "sensors")
+        assert code == 0 and "pendulum" in text and "broken" in text and "skipped" in text
+        assert "broken" not in reg.list_sensors()
+    finally:
+        monkeypatch.undo()
+        reg.refresh()
+        sys.modules.pop("badplugin_mod", None)
+
+
+def test_mosaic_shift_stays_within_the_input_range():
+    """A sub-pixel shift of a step (cubic spline) must not overshoot the inputs."""
+    from swathflow.mosaicking import mosaic as mos
+    step = np.where(np.arange(40)[None] < 20, 887.0, 13207.0) * np.ones((40, 1))
+    ok = np.ones_like(step, bool)
+
+    class H:
+        pass
+    orig = mos.read_window
+    try:
+        mos.read_window = lambda handles, sw, r0, c0, r1, c1: (
+            np.pad(step, 10, mode="edge")[r0 + 10:r1 + 10, c0 + 10:c1 + 10],
+            np.pad(ok, 10, mode="edge")[r0 + 10:r1 + 10, c0 + 10:c1 + 10])
+        val, _m = mos._corrected(H(), None, np.array([0.4, 0.45]), 5, 5, 35, 35)
+    finally:
+        mos.read_window = orig
+    assert val.min() >= 887.0 and val.max() <= 13207.0
+
+
+# ------------------------------------------------------------------------------------------
+# resources: locks, full disks
+
+def test_second_run_on_one_out_names_the_lock_holder(base, tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import argparse, sys, time\n"
+         "from swathflow.flows.guard import output_lock\n"
+         "a = argparse.Namespace(command='rectify', out=sys.argv[1])\n"
+         "with output_lock(a):\n"
+         "    print('locked', flush=True)\n"
+         "    time.sleep(60)\n", str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        code, text = _run(capsys, "rectify", base, "--out", out)
+        assert code == 2 and f"process {holder.pid}" in text
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not list(out.glob("*.tif"))      # the refused run did no work
+
+
+def test_disk_full_is_one_clear_line(tmp_path):
+    full = tmp_path / "full"
+    full.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=300k", "tmpfs", str(full)],
+                       capture_output=True)
+    if r.returncode:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        p = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "simulate",
+                            str(full / "m"), "--preset", "tiny", "--geometry-only"],
+                           capture_output=True, text=True, timeout=120)
+    finally:
+        subprocess.run(["umount", str(full)], check=False)
+    assert p.returncode == 2, p.stderr
+    assert "disk is full" in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.slow
+def test_readme_path_simulate_then_run(tmp_path):
+    """The README's own example: simulate --preset tiny, then run (calibration included)."""
+    m = tmp_path / "tiny"
+    assert main(["simulate", str(m), "--preset", "tiny"]) == 0
+    assert main(["run", str(m), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "mosaic.tif").exists()
+
+
+@pytest.mark.slow
+def test_sigterm_during_run_stops_the_prefect_server(base, tmp_path):
+    """SIGTERM while the flow runs: exit 143, and no server process of ours is left."""
+    import os
+    import signal
+    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(base),
+                             "--out", str(tmp_path / "o")], stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    children = []
+    for _ in range(60):
+        time.sleep(1)
+        children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                                  text=True).stdout.split()
+        if children:
+            break
+    assert children, "the run started no server or worker process"
+    time.sleep(3)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143 and "terminated" in err
+    time.sleep(5)
+    alive = []
+    for pid in children:
+        try:
+            os.kill(int(pid), 0)
+            alive.append(pid)
+        except ProcessLookupError:
+            pass
+    assert not alive, f"left running: {alive}"
