@@ -282,9 +282,34 @@ def _open_rasterio(path: str, nodata=None) -> RawImage:
     return img
 
 
+class RawSource:
+    """The former single-band reader, kept for its callers: band 1 (the first selected
+    band) of any raw image :func:`open_raw_image` accepts, read as float64 ``(lines,
+    elements)`` with NaN for nodata. The engine itself reads :attr:`image`."""
+
+    def __init__(self, data, nodata=None):
+        self.image = open_raw_image(data, nodata=nodata)
+        self.shape = self.image.shape
+        self.dtype = self.image.dtype
+        self.nodata = self.image.nodata
+
+    def read(self, l0: int, l1: int, e0: int, e1: int) -> np.ndarray:
+        a = self.image.read(l0, l1, e0, e1)[0].astype(np.float64)
+        nd = self.nodata
+        if nd is not None and not (isinstance(nd, float) and math.isnan(nd)):
+            a[a == nd] = np.nan
+        return a
+
+    def token(self):
+        return self.image.token()
+
+
 def open_raw_image(image, nodata=None, bands=None) -> RawImage:
     """A :class:`RawImage` from a path (ENVI or any raster), an array (2-D or 3-D),
-    an xarray object or a :class:`RawImage`; ``bands`` selects a subset."""
+    an xarray object, a :class:`RawImage` or a :class:`RawSource`; ``bands`` selects a
+    subset."""
+    if isinstance(image, RawSource):
+        image = image.image
     if isinstance(image, RawImage):
         img = image
     elif isinstance(image, (str, os.PathLike)):

@@ -37,7 +37,7 @@ from swathflow.errors import FormatError, SwathflowError
 from swathflow.geometry.grid import Grid, ecef_to_map, footprint_grid
 from swathflow.geometry.terrain import open_terrain
 from swathflow.rectification.lattice import TOLERANCE_PX, exact_raw, inverse_map
-from swathflow.rectification.rawimage import RawImage, open_raw_image
+from swathflow.rectification.rawimage import RawImage, RawSource, open_raw_image
 from swathflow.rectification.tiles import (
     KERNELS,
     check_inputs,
@@ -58,7 +58,6 @@ METHODS = ("exact", "polynomial")
 # ----------------------------------------------------------------------------------------
 # raw image access and the inverse map (rectification/ holds the engine)
 # ----------------------------------------------------------------------------------------
-RawSource = RawImage        # the raw-image reader's former name
 _exact_raw = exact_raw
 
 

@@ -89,7 +89,27 @@ def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_P
 
 def rectify_tile(model, source, grid, terrain, kernel: str = "bilinear",
                  tol: float = TOLERANCE_PX, step: int = 32, stats: dict | None = None,
-                 dtype=None, mask_band: bool = False):
+                 return_coords: bool = False):
+    """One window of the output grid (``grid`` is the window's own grid) as float32
+    ``(rows, cols)`` of the first (selected) band, NaN = nodata; with ``return_coords``
+    also the raw (line, element) ``(rows, cols, 2)`` (NaN off the image). The multi-band,
+    native-dtype form is :func:`tile_values`."""
+    src = open_raw_image(source)
+    src = src.select([src.selected[0] + 1]) if src.count > 1 else src
+    v, ok = tile_values(model, src, grid, terrain, kernel, tol, step, stats,
+                        dtype=np.float32)
+    out = np.where(ok, v[0], np.float32(np.nan))
+    if not return_coords:
+        return out
+    co, win = tile_coords(model, src, grid, terrain, kernel, tol, step)
+    if win is None:
+        return out, np.full(grid.shape + (2,), np.nan)
+    return out, np.stack([co[0] + win[0], co[1] + win[2]], axis=-1).astype(np.float64)
+
+
+def tile_values(model, source, grid, terrain, kernel: str = "bilinear",
+                tol: float = TOLERANCE_PX, step: int = 32, stats: dict | None = None,
+                dtype=None, mask_band: bool = False):
     """Rectify one window of the output grid (``grid`` is the window's own grid).
 
     Returns ``(values (bands, h, w), valid (h, w) bool)`` in the output dtype of
@@ -142,8 +162,8 @@ def rectify_blocks(model, source: RawImage, grid, terrain, kernel="bilinear",
     def block(block_info=None):
         (r0, r1), (c0, c1) = block_info[None]["array-location"][-2:]
         sub = grid.window(slice(r0, r1), slice(c0, c1))
-        v, ok = rectify_tile(model, source, sub, terrain, kernel, tol, step, dtype=dtype,
-                             mask_band=mask_plane)
+        v, ok = tile_values(model, source, sub, terrain, kernel, tol, step, dtype=dtype,
+                            mask_band=mask_plane)
         if not mask_plane:
             return v
         return np.concatenate([v, np.where(ok, 255, 0).astype(dt)[None]])
