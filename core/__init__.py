@@ -6,9 +6,23 @@ in :mod:`swathflow.sensors`, Prefect tasks in :mod:`swathflow.tasks`, flows in
 """
 from swathflow.errors import FormatError, OutOfRangeError, SwathflowError
 from swathflow.ingest.mission import Mission, load_mission, validate_mission
+from swathflow.formats.navigation import PosFormat
 from swathflow.formats.pos import Trajectory, interpolate_pos, read_pos
 
 from swathflow._version import __version__
 
-__all__ = ["FormatError", "Mission", "OutOfRangeError", "SwathflowError", "Trajectory",
-           "interpolate_pos", "load_mission", "read_pos", "validate_mission", "__version__"]
+__all__ = ["FormatError", "Mission", "OutOfRangeError", "PosFormat", "SwathflowError",
+           "Trajectory", "interpolate_pos", "load_mission", "mosaic", "open_mission",
+           "read_pos", "rectify", "validate_mission", "__version__"]
+
+# the xarray API (README "Python API"), imported on first use: rioxarray and the engines
+# stay out of ``import swathflow``
+_LAZY = {"open_mission": "swathflow.ingest.api", "rectify": "swathflow.rectification.api",
+         "mosaic": "swathflow.mosaicking.api"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        from importlib import import_module
+        return getattr(import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'swathflow' has no attribute {name!r}")

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import sys
-import time
 from pathlib import Path
 
 QUIET_PREFECT = {
@@ -20,6 +18,7 @@ QUIET_PREFECT = {
     "PREFECT_LOGGING_LEVEL": "CRITICAL",  # failures are reported once, by the CLI
     "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "60",
     "DASK_LOGGING__DISTRIBUTED": "warning",
+    "DO_NOT_TRACK": "1",   # Prefect's client telemetry and its first-run notice: off
 }
 for _k, _v in QUIET_PREFECT.items():
     os.environ.setdefault(_k, _v)
@@ -30,41 +29,8 @@ warnings.filterwarnings("ignore", message="Dataset has no geotransform")
 from prefect import flow  # noqa: E402
 
 from swathflow.cluster import dask_client  # noqa: E402
+from swathflow.flows.progress import Progress  # noqa: E402
 from swathflow.tasks import stages  # noqa: E402
-
-
-class Progress:
-    """One progress bar per stage on the terminal (plain lines when not a terminal)."""
-
-    def __init__(self, stream=None):
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
-        self.timings: dict[str, float] = {}
-        self._t0: dict[str, float] = {}
-        self._shown: dict[str, int] = {}
-
-    def start(self, stage: str, total: int = 1) -> None:
-        self._t0[stage] = time.perf_counter()
-        self.update(stage, 0, total)
-
-    def update(self, stage: str, done: int, total: int) -> None:
-        width = 24
-        fill = int(width * done / max(total, 1))
-        bar = "#" * fill + "." * (width - fill)
-        text = f"{stage:<16} [{bar}] {done}/{total}"
-        if self.tty:
-            self.stream.write("\r" + text)
-        elif done in (0, total) and self._shown.get(stage) != done:
-            self.stream.write(text + "\n")
-        self._shown[stage] = done
-        self.stream.flush()
-
-    def finish(self, stage: str, total: int = 1) -> None:
-        self.timings[stage] = time.perf_counter() - self._t0.get(stage, time.perf_counter())
-        self.update(stage, total, total)
-        if self.tty:
-            self.stream.write(f"  {self.timings[stage]:.1f} s\n")
-            self.stream.flush()
 
 
 @flow(name="swathflow-mission", log_prints=False)
@@ -77,8 +43,7 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     a local cluster."""
     mission = str(Path(mission).resolve())
     out = str(Path(out).resolve())
-    prog = Progress()
-    with dask_client(dask_address, cluster=cluster, jobs=jobs):
+    with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs):
         prog.start("ingest")
         info = stages.ingest(mission)
         prog.finish("ingest")
@@ -99,10 +64,13 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         prog.start("mosaic")
         mos = stages.mosaic(rectified, out)
         prog.finish("mosaic")
+        prog.start("catalog")
+        stac = stages.catalog(mission, rectified, mos, cal, out)
+        prog.finish("catalog")
     report = str(Path(cal).parent / "report.html")
     return {"mission": info["name"], "eo": eo, "calibration": cal,
             "report": report if os.path.exists(report) else None,
-            "rectified": rectified, "mosaic": mos, "timings": prog.timings}
+            "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
 
 
 def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs=None) -> dict:

@@ -156,3 +156,37 @@ def mosaic(rectified: list[str], out_dir: str) -> str:
     run(list(rectified), out)
     mark_done(out, key)
     return str(out)
+
+
+@task(name="catalog", cache_policy=NO_CACHE)
+def catalog(mission_path: str, rectified: list[str], mosaic_path: str | None, calibration: str,
+            out_dir: str) -> str:
+    """The STAC catalogue of the run's products: ``OUT/stac/catalog.json``."""
+    import datetime as dt
+
+    from swathflow.formats.stac import write_catalog
+    m = _load(mission_path)
+    out = Path(out_dir) / "stac" / "catalog.json"
+    cal = Path(calibration)
+    report = cal.parent / "report.html"
+    mos = Path(mosaic_path) if mosaic_path else None
+    side = [p for p in ([mos.with_suffix(".json"), mos.with_suffix(".html"),
+                         mos.with_suffix(".png")] if mos else []) if p.exists()]
+    key = stage_key("catalog", list(rectified) + [mos, cal, report if report.exists() else None]
+                    + side + [m.path / "mission.toml"])
+    if is_fresh(out, key):
+        return str(out)
+    date = m.config.get("mission", {}).get("date")
+    acquired = None
+    if date:
+        acquired = dt.datetime.fromisoformat(str(date))
+        if acquired.tzinfo is None:
+            acquired = acquired.replace(tzinfo=dt.UTC)
+    html = mos.with_suffix(".html") if mos else None
+    path = write_catalog(
+        rectified, mos, out.parent, calibration=cal, report=report if report.exists() else None,
+        mosaic_report=html if html and html.exists() else (mos.with_suffix(".json") if mos else None),
+        quicklook=mos.with_suffix(".png") if mos else None, title=f"swathflow run of {m.name}",
+        catalog_id=f"swathflow-{m.name}", acquired=acquired)
+    mark_done(out, key)
+    return path

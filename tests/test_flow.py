@@ -52,12 +52,34 @@ def _check_against_truth(mission: Path, result: dict, tol_px: float = 0.25):
         assert mos.crs == t_crs and mos.width > 0
 
 
+def _check_catalog(result: dict):
+    """The run's STAC catalogue: an item per swing and the mosaic, STAC core valid, each
+    footprint's area the area of the file's valid pixels (counted, not traced)."""
+    import pystac
+    from pyproj import Transformer
+    from pystac.validation import validate_dict
+    from shapely.geometry import shape
+    from shapely.ops import transform
+    cat = pystac.Catalog.from_file(result["catalog"])
+    items = {i.id: i for i in cat.get_items()}
+    products = {Path(p).stem: p for p in result["rectified"]} | {"mosaic": result["mosaic"]}
+    assert set(items) == set(products)
+    for iid, path in products.items():
+        validate_dict(items[iid].to_dict(), extensions=[])
+        with rasterio.open(path) as src:
+            valid = float((src.dataset_mask() > 0).sum()) * abs(src.transform.a * src.transform.e)
+            to = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
+        area = transform(to.transform, shape(items[iid].geometry)).area
+        assert abs(area - valid) < 0.03 * valid, (iid, area, valid)
+
+
 def test_flow_end_to_end_and_rerun_reuses_outputs(tiny_mission, tmp_path):
     from swathflow.flows.mission import run
     out = tmp_path / "out"
     cal = str(tiny_mission / "truth" / "calibration.json")
     result = run(tiny_mission, out, calibration=cal)
     _check_against_truth(tiny_mission, result)
+    _check_catalog(result)
     eo = result["eo"][0]
     assert Path(eo).exists() and sum(1 for _ in open(eo)) > 10
     before = _outputs(out)

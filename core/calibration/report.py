@@ -1,8 +1,11 @@
-"""The calibration report: one self-contained HTML file (inline CSS and SVG, no assets).
+"""The calibration report: one self-contained HTML file (inline CSS, figures drawn with
+matplotlib and inlined as SVG; no external assets).
 
 Layout follows the paper's tables (papers.md section 1): parameters, correlations,
 residual statistics before / after per image, direction and role (Tables 5-7), residual
-line charts per image (Figures 3-7), the cross-application table and the rejected points.
+figures (the paper's Figures 3-7 as vectors over each image and over the control points, and
+residuals against time and the per-line quantities such as the swing angle, per direction,
+before and after), the cross-application table and the rejected points.
 """
 from __future__ import annotations
 
@@ -21,7 +24,8 @@ table{border-collapse:collapse;margin:.5em 0;font-size:.85em}
 td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
 th{background:#f2f2f2}td.l,th.l{text-align:left}
 .hi{background:#fbb}.mid{background:#fde2b8}.note{color:#666;font-size:.85em}
-.charts{display:flex;flex-wrap:wrap;gap:1em}
+figure{margin:1em 0}figure svg{max-width:100%;height:auto}
+figcaption{color:#555;font-size:.85em}
 """
 
 
@@ -53,51 +57,6 @@ def _table(df: pd.DataFrame, nd=3, left=()) -> str:
             f"<td class='l'>{_e(r[c])}</td>" if c in left else f"<td>{_f(r[c], nd)}</td>"
             for c in df.columns) + "</tr>")
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>"
-
-
-def line_chart(series: dict[str, np.ndarray], title: str, width=520, height=180,
-               ylabel="px") -> str:
-    """A small inline SVG line chart: name -> values over the point index."""
-    colors = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"]
-    vals = [np.asarray(v, float) for v in series.values()]
-    allv = np.concatenate([v[np.isfinite(v)] for v in vals]) if vals else np.zeros(0)
-    if allv.size == 0:
-        return f"<svg width='{width}' height='40'><text x='5' y='20'>{_e(title)}: no data</text></svg>"
-    lo, hi = float(min(allv.min(), 0.0)), float(max(allv.max(), 0.0))
-    if hi - lo < 1e-9:
-        lo, hi = lo - 1, hi + 1
-    pad = 0.05 * (hi - lo)
-    lo, hi = lo - pad, hi + pad
-    L, R, T, B = 50, 10, 20, 25
-    w, h = width - L - R, height - T - B
-    n = max(len(v) for v in vals)
-
-    def X(i):
-        return L + (w * i / max(n - 1, 1))
-
-    def Y(v):
-        return T + h * (hi - v) / (hi - lo)
-
-    parts = [f"<svg xmlns='http://www.w3.org/2000/svg' width='{width}' height='{height}' "
-             f"font-size='10'>",
-             f"<text x='{L}' y='12' font-weight='bold'>{_e(title)}</text>",
-             f"<rect x='{L}' y='{T}' width='{w}' height='{h}' fill='none' stroke='#999'/>",
-             f"<line x1='{L}' x2='{L + w}' y1='{Y(0):.1f}' y2='{Y(0):.1f}' stroke='#bbb' "
-             f"stroke-dasharray='3,3'/>"]
-    for v in (lo + pad, 0.0, hi - pad):
-        parts.append(f"<text x='{L - 4}' y='{Y(v) + 3:.1f}' text-anchor='end'>{v:.3g}</text>")
-    parts.append(f"<text x='{L + w / 2}' y='{height - 5}' text-anchor='middle'>point</text>")
-    parts.append(f"<text x='10' y='{T + h / 2}' transform='rotate(-90 10 {T + h / 2})' "
-                 f"text-anchor='middle'>{_e(ylabel)}</text>")
-    for k, (name, v) in enumerate(series.items()):
-        v = np.asarray(v, float)
-        c = colors[k % len(colors)]
-        pts = " ".join(f"{X(i):.1f},{Y(val):.1f}" for i, val in enumerate(v) if np.isfinite(val))
-        parts.append(f"<polyline fill='none' stroke='{c}' stroke-width='1.2' points='{pts}'/>")
-        parts.append(f"<text x='{L + w - 5 - 60 * k}' y='{T + 12}' fill='{c}' "
-                     f"text-anchor='end'>{_e(name)}</text>")
-    parts.append("</svg>")
-    return "".join(parts)
 
 
 def _corr_table(names, corr, hi=0.9, mid=0.7) -> str:
@@ -223,17 +182,27 @@ def render_report(result) -> str:
         out.append(_table(result.rejected, 3, left=("name", "phase", "gcp_id", "image_id")))
     else:
         out.append("<p>None.</p>")
-    # charts
-    out.append("<h2>Residuals per image</h2><div class='charts'>")
-    for iid in dict.fromkeys(res["image_id"]):
-        r = res[res["image_id"] == iid]
-        for stage in ("before", "after", "cross"):
-            q = r[r["stage"] == stage]
-            if len(q):
-                out.append(line_chart({"x": q["x"].to_numpy(), "y": q["y"].to_numpy()},
-                                      f"{iid} {stage}"))
-    out.append("</div></body></html>")
+    out.extend(_figures_html(res))
+    out.append("</body></html>")
     return "\n".join(out)
+
+
+def _figures_html(res: pd.DataFrame) -> list[str]:
+    """The matplotlib figures as inline SVG (one self-contained file)."""
+    from .figures import report_figures
+    figs = report_figures(res)
+    if not figs:
+        return ["<h2>Residual figures</h2><p>No residuals to draw.</p>"]
+    heads = {"map": "Residuals on the ground", "against": "Residuals against time and the "
+             "per-line quantities", "image": "Residual vectors per image"}
+    out, shown = [], set()
+    for section, caption, svg in figs:
+        if section not in shown:
+            out.append(f"<h2>{_e(heads[section])}</h2>")
+            shown.add(section)
+        out.append(f"<figure role='img' aria-label='{_e(caption)}'>{svg}"
+                   f"<figcaption>{_e(caption)}</figcaption></figure>")
+    return out
 
 
 def summarize_frame(res: pd.DataFrame, by) -> pd.DataFrame:

@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 
 from swathflow.adjustment import Solution
+from swathflow.calibration.points import point_context
 from swathflow.calibration.unknowns import Unknowns
 
 
@@ -29,7 +30,8 @@ def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.D
             "row": grp.index.to_numpy(), "gcp_id": grp["gcp_id"].to_numpy(), "image_id": iid,
             "direction": _direction(models[iid]), "role": grp["role"].to_numpy(),
             "stage": stage, "x": grp["element"].to_numpy(float) - comp[:, 1],
-            "y": grp["line"].to_numpy(float) - comp[:, 0]}, index=grp.index))
+            "y": grp["line"].to_numpy(float) - comp[:, 0],
+            **point_context(models[iid], grp)}, index=grp.index))
     if not out:
         return pd.DataFrame(columns=["row", "gcp_id", "image_id", "direction", "role", "stage",
                                      "x", "y"])

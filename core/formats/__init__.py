@@ -1,2 +1,3 @@
-"""File formats: POS trajectories (SBET, CSV), rasters (GeoTIFF/COG, ENVI), calibration
-files. Readers check what they read and raise FormatError with the file and the fix."""
+"""File formats: POS trajectories (readers are plugins: formats.navigation), the run's STAC
+catalogue, rasters (GeoTIFF/COG, ENVI), calibration files. Readers check what they read and
+raise FormatError with the file and the fix."""

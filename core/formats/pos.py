@@ -1,26 +1,22 @@
-"""POS trajectories: readers (Applanix SBET, CSV) and interpolation to scan-line times.
+"""POS trajectories: the reader entry point and interpolation to scan-line times.
+
+The readers are plugins (:mod:`swathflow.formats.navigation`, entry-point group
+``swathflow.pos_formats``): SBET, CSV, Resonon LCF, Inertial Explorer / POSPac text.
 
 A trajectory is an ``xarray.Dataset`` over ``time`` with ``lat``, ``lon`` (deg), ``h``
 (ellipsoidal m), ``roll``, ``pitch``, ``heading`` (deg, true heading clockwise from north).
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
-import pandas as pd
 import xarray as xr
 
 from swathflow.errors import FormatError, OutOfRangeError
 from swathflow.geometry.geodesy import geodetic_to_ecef
 
 POS_VARIABLES = ("lat", "lon", "h", "roll", "pitch", "heading")
-
-#: Applanix SBET record: 17 little-endian float64.
-SBET_FIELDS = ("time", "lat", "lon", "h", "vx", "vy", "vz", "roll", "pitch",
-               "platform_heading", "wander", "ax", "ay", "az", "wx", "wy", "wz")
-SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
 
 
 def _dataset(time, lat, lon, h, roll, pitch, heading, source: str, check: bool = True) -> xr.Dataset:
@@ -54,86 +50,12 @@ def check_trajectory(ds: xr.Dataset, source: str = "trajectory") -> xr.Dataset:
     return ds
 
 
-def read_sbet(path) -> xr.Dataset:
-    """Read an Applanix SBET file (17 little-endian float64 per record, angles in radians).
-
-    True heading: SBET stores the platform heading in the wander-angle frame and the wander
-    angle; ``true_heading = platform_heading - wander_angle`` (Applanix POS output record
-    description, as reproduced in the POS/SBET reader of the PFM/ABE hydrographic software,
-    ``FilePOSOutput.h``: "To get a true heading the following equation should be used:
-    true_heading = platform_heading - wander_angle").
-    """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FormatError(f"{path}: not a file; name the SBET file")
-    size = os.path.getsize(path)
-    if size == 0 or size % SBET_DTYPE.itemsize:
-        raise FormatError(
-            f"{path}: not a valid SBET file: {size} bytes is not a whole number of "
-            f"{SBET_DTYPE.itemsize}-byte records (17 float64); the file is truncated or "
-            f"not an SBET")
-    rec = np.fromfile(path, dtype=SBET_DTYPE)
-    heading = np.degrees(rec["platform_heading"] - rec["wander"])
-    heading = (heading + 180.0) % 360.0 - 180.0
-    return _dataset(rec["time"], np.degrees(rec["lat"]), np.degrees(rec["lon"]), rec["h"],
-                    np.degrees(rec["roll"]), np.degrees(rec["pitch"]), heading, path)
-
-
-def write_sbet(ds: xr.Dataset, path) -> None:
-    """Write a trajectory as SBET (wander angle 0; velocities etc. zero). Atomic."""
-    from swathflow.io import atomic_path
-    rec = np.zeros(ds.sizes["time"], dtype=SBET_DTYPE)
-    rec["time"] = ds["time"].values
-    rec["lat"] = np.radians(ds["lat"].values)
-    rec["lon"] = np.radians(ds["lon"].values)
-    rec["h"] = ds["h"].values
-    rec["roll"] = np.radians(ds["roll"].values)
-    rec["pitch"] = np.radians(ds["pitch"].values)
-    rec["platform_heading"] = np.radians(ds["heading"].values)
-    with atomic_path(path) as tmp:
-        rec.tofile(tmp)
-
-
-def read_pos_csv(path) -> xr.Dataset:
-    """Read ``time,lat,lon,h,roll,pitch,heading`` (degrees, metres); extra columns ignored."""
-    path = os.fspath(path)
-    try:
-        df = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
-            ValueError, OSError) as exc:
-        raise FormatError(f"{path}: cannot be read as CSV: "
-                          f"{str(exc).splitlines()[0][:200] if str(exc) else exc!r}") from None
-    df.columns = [str(c).strip() for c in df.columns]
-    missing = [c for c in ("time",) + POS_VARIABLES if c not in df.columns]
-    if missing:
-        raise FormatError(f"{path}: missing column(s) {', '.join(missing)}; the header must "
-                          f"contain time,lat,lon,h,roll,pitch,heading")
-    try:
-        cols = {c: pd.to_numeric(df[c]).to_numpy(float) for c in ("time",) + POS_VARIABLES}
-    except (ValueError, TypeError) as exc:
-        raise FormatError(f"{path}: non-numeric value: {exc}") from None
-    return _dataset(cols["time"], *(cols[k] for k in POS_VARIABLES), source=path)
-
-
-def write_pos_csv(ds: xr.Dataset, path) -> None:
-    from swathflow.io import atomic_path
-    df = pd.DataFrame({"time": ds["time"].values,
-                       **{k: ds[k].values for k in POS_VARIABLES}})
-    with atomic_path(path) as tmp:
-        df.to_csv(tmp, index=False, float_format="%.10f")
-
-
-def read_pos(path, format: str | None = None) -> xr.Dataset:
-    """Read a POS trajectory, ``format`` ``"sbet"`` or ``"csv"`` (default: from the suffix)."""
-    path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FormatError(f"{path}: POS file not found")
-    fmt = (format or os.path.splitext(path)[1].lstrip(".")).lower()
-    if fmt in ("sbet", "out"):
-        return read_sbet(path)
-    if fmt in ("csv", "txt"):
-        return read_pos_csv(path)
-    raise FormatError(f"{path}: unknown POS format {fmt!r}; use format='sbet' or 'csv'")
+def read_pos(path, format: str | None = None, **options) -> xr.Dataset:
+    """Read a POS trajectory with the registered reader for ``format`` (a name such as
+    ``"sbet"``, ``"csv"``, ``"lcf"``, ``"ascii"`` or a plugin's; default: from the suffix).
+    ``options`` go to the reader (docs/navigation-formats.md)."""
+    from swathflow.formats.navigation import read
+    return read(path, format, **options)
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,3 +140,12 @@ def interpolate_pos(ds: xr.Dataset, times, max_gap: float = 1.0) -> xr.Dataset:
     lon = (r["lon"] + 180.0) % 360.0 - 180.0
     return _dataset(t, r["lat"], lon, h, r["roll"], r["pitch"], heading, "interpolated",
                     check=False)
+
+
+# the built-in readers, where they have always been importable from
+from swathflow.formats.navigation.csv import read_pos_csv, write_pos_csv  # noqa: E402
+from swathflow.formats.navigation.sbet import SBET_DTYPE, SBET_FIELDS, read_sbet, write_sbet  # noqa: E402
+
+__all__ = ["POS_VARIABLES", "SBET_DTYPE", "SBET_FIELDS", "Trajectory", "check_trajectory",
+           "interpolate_pos", "read_pos", "read_pos_csv", "read_sbet", "write_pos_csv",
+           "write_sbet"]

@@ -194,10 +194,29 @@ def check_sensor(cfg: dict, toml: Path, c: Collector, parts: dict) -> None:
     parts["n_elements"] = int(n_el) if cls is not None and n_el is not None else None
 
 
+def _pos_format_options(posc: dict) -> tuple[str, ...]:
+    """The options the [pos] format's reader takes (docs/navigation-formats.md)."""
+    from swathflow.formats.navigation import find_format
+    try:
+        return tuple(find_format(str(posc.get("file") or ""), posc.get("format")).options)
+    except SwathflowError:      # an unknown format is reported when the file is read
+        return ()
+
+
+def _pos_options(root: Path, posc: dict, options: tuple[str, ...]) -> dict:
+    """The [pos] keys the reader takes; an LCF's ``times`` file is relative to the mission
+    folder."""
+    opts = {k: v for k, v in posc.items() if k in options}
+    if isinstance(opts.get("times"), str):
+        opts["times"] = str(rel(root, opts["times"]))
+    return opts
+
+
 def check_pos(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
     from swathflow.ingest.plausible import check_pos_plausible
     posc = cfg.get("pos", {}) if isinstance(cfg.get("pos", {}), dict) else {}
-    check_keys(posc, KNOWN_KEYS["pos"], toml, "[pos]", c)
+    options = _pos_format_options(posc)
+    check_keys(posc, KNOWN_KEYS["pos"] + options, toml, "[pos]", c)
     pos_file = posc.get("file")
     if pos_file is None:
         pos_file = next((n for n in ("pos.sbet", "pos.csv") if (root / n).exists()), None)
@@ -216,11 +235,12 @@ def check_pos(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> N
               f"{max_gap!r}", "max_gap = 1.0")
         max_gap = 1.0
     try:
-        ds = read_pos(pp, posc.get("format"))
+        ds = read_pos(pp, posc.get("format"), **_pos_options(root, posc, options))
     except SwathflowError as exc:
         msg = str(exc).replace(str(pp) + ": ", "")
         c.add(pp, "[pos]" if "format" in msg else "", msg,
-              'set [pos] format = "sbet" or "csv"' if "unknown POS format" in msg
+              "set [pos] format to a registered format (docs/navigation-formats.md)"
+              if "unknown POS format" in msg
               else "re-export the POS (times strictly increasing, finite values)")
         return
     parts["pos"] = ds

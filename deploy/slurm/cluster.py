@@ -1,6 +1,6 @@
 """A SLURM cluster for large area jobs (dask-jobqueue; `pip install dask-jobqueue`).
 
-    python deploy/dask/slurm.py 16          # starts 16 single-core workers, prints the address
+    python deploy/slurm/cluster.py 16       # starts 16 single-core worker jobs, prints the address
     swathflow run MISSION --out DIR --dask-address tcp://...
 
 Workers need swathflow installed (the same environment on a shared file system).

@@ -17,6 +17,12 @@ def _say(args):
     return lambda line: print(line, flush=True)
 
 
+def _echo(args, *parts, **kw) -> None:
+    """print, unless ``--quiet``."""
+    if not getattr(args, "quiet", False):
+        print(*parts, **kw)
+
+
 def _ids(text: str | None) -> tuple[str, ...] | None:
     if not text:
         return None
@@ -32,9 +38,9 @@ def validate(args) -> int:
         print(format_problems(args.mission, problems))
         return 2
     for pr in problems:                 # warnings only: the mission is usable
-        print(f"  - {pr}")
+        _echo(args, f"  - {pr}")
     n = 0 if p["gcps"] is None else len(p["gcps"])
-    print(f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
+    _echo(args, f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
           f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m"
           + (f", {len(problems)} warning(s)" if problems else "") + ")")
     return 0
@@ -79,7 +85,7 @@ def simulate(args) -> int:
                 **simulation_options(args))
     n_obs = sum(v["control"] + v["check"] for v in truth["gcp_counts"].values())
     ties = truth.get("tie_observations")
-    print(f"wrote {args.out}: {len(truth['images'])} images, {n_obs} GCP "
+    _echo(args, f"wrote {args.out}: {len(truth['images'])} images, {n_obs} GCP "
           f"{'and ' + str(ties) + ' tie ' if ties else ''}observations, "
           f"{'rendered' if truth['images_rendered'] else 'geometry only'}, "
           f"in {time.perf_counter() - t0:.1f} s (truth in {os.path.join(args.out, 'truth')})")
@@ -97,11 +103,12 @@ def calibrate(args) -> int:
         shared_boresight=(args.model == "12"), drift=args.drift,
         reference=args.reference, reference_dem=args.reference_dem, max_rounds=args.rounds,
         extra={"method": args.method, "max_rounds": args.max_rounds})
-    result = calibrate_mission(mission, options, progress=lambda line: print(line, flush=True))
+    result = calibrate_mission(mission, options, progress=_say(args))
     paths = result.write(args.out)
     for line in result.summary_lines():
-        print(line)
-    print(f"wrote {', '.join(paths[k] for k in paths if k != 'report')} and {paths['report']}")
+        _echo(args, line)
+    _echo(args, f"wrote {', '.join(paths[k] for k in paths if k != 'report')} and "
+          f"{paths['report']}")
     return 0
 
 
@@ -117,7 +124,7 @@ def rectify(args) -> int:
     rectify_mission(args.mission, args.out, calibration=args.calibration,
                     images=_ids(args.images), method=args.method, kernel=args.kernel,
                     tol=args.tolerance, tile=args.tile, products=products,
-                    progress=lambda line: print(line, flush=True),
+                    progress=_say(args),
                     bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band)
     return 0
 
@@ -156,7 +163,9 @@ def mosaic(args) -> int:
     return 0
 
 
-def _print_summary(result: dict) -> None:
+def _print_summary(result: dict, args=None) -> None:
+    if getattr(args, "quiet", False):
+        return
     print(f"mission {result['mission']}: done")
     print(f"  calibration  {result['calibration']}")
     if result.get("report"):
@@ -164,6 +173,8 @@ def _print_summary(result: dict) -> None:
     print(f"  rectified    {len(result['rectified'])} swings in "
           f"{os.path.dirname(result['rectified'][0]) if result['rectified'] else '-'}")
     print(f"  mosaic       {result['mosaic']}")
+    if result.get("catalog"):
+        print(f"  catalogue    {result['catalog']}")
     print("  stage timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in result["timings"].items()))
 
 
@@ -173,7 +184,7 @@ def run(args) -> int:
     load_mission(args.mission)      # bad input reported before Prefect and Dask start
     from swathflow.flows.mission import run as run_flow
     _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
-                            args.cluster, args.jobs))
+                            args.cluster, args.jobs), args)
     return 0
 
 
@@ -185,9 +196,10 @@ def demo(args) -> int:
     mission = out / "mission"
     t0 = time.perf_counter()
     if not (mission / "mission.toml").exists():
-        print(f"simulating the {args.preset} mission into {mission} ...", file=sys.stderr)
+        _echo(args, f"simulating the {args.preset} mission into {mission} ...", file=sys.stderr)
         simulate_mission(mission, preset=args.preset, seed=0)
     result = run_flow(mission, out / "products")
-    _print_summary(result)
-    print(f"demo finished in {time.perf_counter() - t0:.0f} s; open {result.get('report') or ''}")
+    _print_summary(result, args)
+    _echo(args, f"demo finished in {time.perf_counter() - t0:.0f} s; open "
+          f"{result.get('report') or ''}")
     return 0

@@ -77,6 +77,31 @@ def _call(target: str):
     return run
 
 
+def _verbosity_parser() -> argparse.ArgumentParser:
+    """--quiet / --verbose, shared by every command."""
+    common = argparse.ArgumentParser(add_help=False)
+    g = common.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true",
+                   help="print nothing but errors (no progress bars, no summary)")
+    g.add_argument("-v", "--verbose", action="store_true",
+                   help="also print each stage as plain lines when stderr is not a terminal, "
+                        "and Prefect's and Dask's informational logs")
+    return common
+
+
+def _apply_verbosity(args) -> None:
+    import logging
+    import os
+
+    from swathflow.flows.progress import QUIET, VERBOSE, NORMAL, set_verbosity
+    quiet, verbose = getattr(args, "quiet", False), getattr(args, "verbose", False)
+    set_verbosity(QUIET if quiet else VERBOSE if verbose else NORMAL)
+    if verbose:     # before Prefect is imported by the command
+        os.environ["PREFECT_LOGGING_LEVEL"] = "INFO"
+        os.environ["DASK_LOGGING__DISTRIBUTED"] = "info"
+        logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="swathflow",
@@ -85,15 +110,16 @@ def build_parser() -> argparse.ArgumentParser:
     from swathflow._version import __version__
     p.add_argument("--version", action="version", version=f"swathflow {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    common = [_verbosity_parser()]
 
-    s = sub.add_parser("sensors", help="list the registered sensor models (plugins)")
+    s = sub.add_parser("sensors", parents=common, help="list the registered sensor models (plugins)")
     s.set_defaults(func=_sensors)
 
-    s = sub.add_parser("validate", help="check a mission folder and list every problem")
+    s = sub.add_parser("validate", parents=common, help="check a mission folder and list every problem")
     s.add_argument("mission", help="mission folder (with mission.toml)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:validate"))
 
-    s = sub.add_parser("simulate", help="write a simulated mission bundle with its truth")
+    s = sub.add_parser("simulate", parents=common, help="write a simulated mission bundle with its truth")
     s.add_argument("out", help="output mission folder")
     s.add_argument("--preset", default="tiny",
                    help="a preset of a registered sensor's simulator (listed by "
@@ -120,8 +146,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write into OUT even when it already holds a mission or files")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:simulate"))
 
-    s = sub.add_parser("calibrate", help="estimate calibration parameters from control points "
-                                         "or a reference orthophoto")
+    s = sub.add_parser("calibrate", parents=common,
+                       help="estimate calibration parameters from control points or a "
+                            "reference orthophoto")
     s.add_argument("mission")
     s.add_argument("--out", required=True, help="output folder (calibration.json, report.html)")
     s.add_argument("--model", choices=["15", "12"], default="15",
@@ -159,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with a reference: at most this many match / adjust rounds (default 4)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:calibrate"))
 
-    s = sub.add_parser("rectify", help="orthorectify every swing to a COG")
+    s = sub.add_parser("rectify", parents=common, help="orthorectify every swing to a COG")
     s.add_argument("mission")
     s.add_argument("--calibration", help="calibration.json to use (default: mission priors)")
     s.add_argument("--out", required=True, help="output folder")
@@ -190,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(every value of the type stays data)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:rectify"))
 
-    s = sub.add_parser("mosaic", help="match strips and blend rectified swings into a mosaic")
+    s = sub.add_parser("mosaic", parents=common,
+                       help="match strips and blend rectified swings into a mosaic")
     s.add_argument("source", help="mission folder or folder of rectified swings")
     s.add_argument("--out", required=True, help="output mosaic GeoTIFF")
     s.add_argument("--mission", help="mission folder or mission.toml giving each image's strip")
@@ -214,10 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dask-address",
                    help="match the overlaps on an existing Dask scheduler (default: a local "
                         "cluster of --workers processes)")
-    s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:mosaic"))
 
-    s = sub.add_parser("run", help="run the whole mission flow (Prefect, Dask)")
+    s = sub.add_parser("run", parents=common, help="run the whole mission flow (Prefect, Dask)")
     s.add_argument("mission")
     s.add_argument("--out", required=True, help="output folder")
     s.add_argument("--calibration", help="use this calibration.json instead of calibrating")
@@ -230,7 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--cluster slurm: number of worker jobs to submit (default 2)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:run"))
 
-    s = sub.add_parser("demo", help="simulate the demo mission and run the whole flow on it")
+    s = sub.add_parser("demo", parents=common,
+                       help="simulate the demo mission and run the whole flow on it")
     s.add_argument("--out", default="swathflow-demo", help="output folder (default ./swathflow-demo)")
     s.add_argument("--preset", default="demo", help=argparse.SUPPRESS)
     s.set_defaults(func=_call("swathflow.flows.cli.commands:demo"))
@@ -249,6 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    _apply_verbosity(args)
     from swathflow.flows.guard import (
         Terminated,
         check_outputs,
@@ -285,12 +314,13 @@ def _show_warnings(command: str) -> None:
     """swathflow's own warnings (mission, sensor plugins) as one plain line each."""
     import warnings
 
+    from swathflow.formats.navigation import PosFormatWarning
     from swathflow.ingest.mission import MissionWarning
     from swathflow.sensors.registry import SensorPluginWarning
     previous = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, (MissionWarning, SensorPluginWarning)):
+        if issubclass(category, (MissionWarning, SensorPluginWarning, PosFormatWarning)):
             print(f"swathflow {command}: warning: {message}", file=sys.stderr)
         else:
             previous(message, category, filename, lineno, file, line)

@@ -1,0 +1,208 @@
+"""A STAC catalogue of a run's products (pystac): one item per rectified swing, one for
+the mosaic.
+
+Each item carries the projection extension (code, shape, transform, native bbox), the raster
+extension on its data asset (per band: nodata, data type, resolution), the eo extension where
+wavelengths are known, and the processing extension (software, level, lineage, time); the
+calibration and its report are assets. Footprints are polygons of the valid data (the nodata
+mask traced with ``rasterio.features.shapes`` on a decimated mask, simplified to about one
+decimated pixel, in EPSG:4326), not bounding boxes. The catalogue folder is written beside
+the products and swapped in whole, so readers never see half of it.
+"""
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+PROCESSING_SCHEMA = "https://stac-extensions.github.io/processing/v1.2.0/schema.json"
+COG = "image/tiff; application=geotiff; profile=cloud-optimized"
+MAX_MASK = 1024          # footprints are traced on a mask at most this many pixels across
+
+
+def valid_footprint(src, max_size: int = MAX_MASK) -> tuple[dict, float]:
+    """The valid-data polygon(s) of an open rasterio dataset as GeoJSON in EPSG:4326, and
+    the tracing resolution in the dataset's units."""
+    import shapely
+    from affine import Affine
+    from rasterio.features import shapes
+    from rasterio.warp import transform_geom
+    from shapely.geometry import mapping, shape
+
+    f = max(1, math.ceil(max(src.height, src.width) / max_size))
+    oh, ow = math.ceil(src.height / f), math.ceil(src.width / f)
+    mask = src.dataset_mask(out_shape=(oh, ow))
+    tr = src.transform @ Affine.scale(src.width / ow, src.height / oh)
+    polys = [shape(g) for g, v in shapes((mask > 0).astype(np.uint8), mask=mask > 0,
+                                         transform=tr) if v == 1]
+    if not polys:
+        return {"type": "Polygon", "coordinates": []}, 0.0
+    res = max(abs(tr.a), abs(tr.e))
+    geom = shapely.union_all(polys).simplify(2.0 * res, preserve_topology=True)
+    geo = shape(transform_geom(src.crs, "EPSG:4326", mapping(geom), precision=9))
+    # RFC 7946: exterior rings counter-clockwise, holes clockwise
+    return mapping(shapely.orient_polygons(geo, exterior_cw=False)), res
+
+
+def _bbox(geom: dict) -> list[float]:
+    from shapely.geometry import shape
+    return [float(v) for v in shape(geom).bounds]
+
+
+def _proj(src) -> dict:
+    epsg = src.crs.to_epsg()
+    out = {"code": f"EPSG:{epsg}"} if epsg else {"wkt2": src.crs.to_wkt()}
+    out.update(shape=[src.height, src.width], transform=[float(v) for v in
+                                                        list(src.transform)[:6]],
+               bbox=[float(v) for v in src.bounds])
+    return out
+
+
+def _raster_bands(src) -> list:
+    from pystac.extensions.raster import DataType, RasterBand
+    res = float(abs(src.transform.a))
+    bands = []
+    for i in range(src.count):
+        nodata = src.nodatavals[i]
+        if nodata is not None and isinstance(nodata, float) and math.isnan(nodata):
+            nodata = "nan"
+        bands.append(RasterBand.create(nodata=nodata, data_type=DataType(src.dtypes[i]),
+                                       spatial_resolution=res))
+    return bands
+
+
+def _wavelengths(src, given) -> list | None:
+    """Band centre wavelengths (micrometres): given, else band tags ``wavelength``."""
+    if given is not None:
+        return [float(w) for w in given]
+    found = []
+    for b in range(1, src.count + 1):
+        tags = {k.lower(): v for k, v in src.tags(b).items()}
+        if "wavelength" not in tags:
+            return None
+        w = float(tags["wavelength"])
+        units = tags.get("wavelength_units", "micrometers").lower()
+        found.append(w / 1000.0 if units.startswith("nan") else w)
+    return found
+
+
+def _item(path: str, item_id: str, when: dt.datetime, level: str, lineage: str,
+          wavelengths=None, properties: Mapping | None = None):
+    import pystac
+    import rasterio
+    from pystac.extensions.eo import Band, EOExtension
+    from pystac.extensions.projection import ProjectionExtension
+    from pystac.extensions.raster import RasterExtension
+    from swathflow._version import __version__
+    with rasterio.open(path) as src:
+        geom, res = valid_footprint(src)
+        proj, bands = _proj(src), _raster_bands(src)
+        waves, count = _wavelengths(src, wavelengths), src.count
+        tags = src.tags()
+    props = {"processing:software": {"swathflow": __version__}, "processing:level": level,
+             "processing:lineage": lineage,
+             "processing:datetime": dt.datetime.now(dt.UTC).isoformat(),
+             "swathflow:footprint_resolution": res}
+    props.update({f"swathflow:{k}": v for k, v in tags.items()
+                  if k in ("image_id", "strip", "direction", "mission", "sensor")})
+    props.update(properties or {})
+    item = pystac.Item(item_id, geom, _bbox(geom), when, props)
+    item.stac_extensions.append(PROCESSING_SCHEMA)
+    ProjectionExtension.ext(item, add_if_missing=True).apply(**proj)
+    asset = pystac.Asset(os.path.abspath(path), media_type=COG, roles=["data"],
+                         title=os.path.basename(path))
+    item.add_asset("data", asset)
+    RasterExtension.ext(asset, add_if_missing=True).apply(bands)
+    if waves is not None and len(waves) == count:
+        EOExtension.ext(asset, add_if_missing=True).apply(bands=[
+            Band.create(name=f"b{i + 1}", center_wavelength=w) for i, w in enumerate(waves)])
+    return item
+
+
+def _side_assets(item, assets: Mapping[str, tuple[str, str, str]]) -> None:
+    import pystac
+    for key, (path, media, title) in assets.items():
+        if path and os.path.exists(path):
+            item.add_asset(key, pystac.Asset(os.path.abspath(path), media_type=media,
+                                             roles=["metadata"], title=title))
+
+
+def _swap_in(tmp: str, out: str) -> None:
+    """Replace the folder ``out`` by ``tmp`` (rename; the old one removed after)."""
+    old = None
+    if os.path.exists(out):
+        old = tempfile.mkdtemp(prefix=".stac-old-", dir=os.path.dirname(out))
+        os.rmdir(old)
+        os.replace(out, old)
+    os.replace(tmp, out)
+    if old:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_catalog(rectified: Sequence, mosaic=None, out="stac", *, calibration=None,
+                  report=None, mosaic_report=None, quicklook=None, title: str = "swathflow run",
+                  catalog_id: str = "swathflow", acquired: dt.datetime | None = None,
+                  wavelengths: Mapping | None = None) -> str:
+    """Write a self-contained STAC catalogue of a run's products into the folder ``out``
+    and return the path of its ``catalog.json``.
+
+    ``rectified``: the per-swing COGs (item id: the file stem); ``mosaic``: the mosaic COG
+    (item ``mosaic``); ``calibration``, ``report``: assets of every item; ``mosaic_report``
+    (JSON or HTML) and ``quicklook`` (PNG): assets of the mosaic item. ``acquired``: the
+    acquisition time (the mission format has no date: default the processing time).
+    ``wavelengths``: item id -> band centre wavelengths in micrometres (default: band tags
+    ``wavelength``).
+    """
+    import pystac
+    when = acquired or dt.datetime.now(dt.UTC)
+    out = os.path.abspath(os.fspath(out))
+    cal_assets = {"calibration": (calibration, "application/json", "calibration parameters"),
+                  "report": (report, "text/html", "calibration report")}
+    catalog = pystac.Catalog(catalog_id, f"Products of {title}: rectified swings and mosaic",
+                             title=title)
+    wavelengths = wavelengths or {}
+    for path in rectified:
+        iid = os.path.splitext(os.path.basename(os.fspath(path)))[0]
+        item = _item(os.fspath(path), iid, when, "orthorectified swing",
+                     "one swing orthorectified onto the terrain with the per-direction "
+                     "calibration", wavelengths.get(iid))
+        _side_assets(item, cal_assets)
+        catalog.add_item(item)
+    if mosaic is not None:
+        item = _item(os.fspath(mosaic), "mosaic", when, "mosaic",
+                     f"{len(rectified)} rectified swings strip-matched and blended",
+                     wavelengths.get("mosaic"), {"swathflow:swings": len(rectified)})
+        _side_assets(item, {**cal_assets,
+                            "mosaic-report": (mosaic_report, _media(mosaic_report),
+                                              "mosaic report"),
+                            "overview": (quicklook, "image/png", "quicklook")})
+        catalog.add_item(item)
+    parent = os.path.dirname(out)
+    os.makedirs(parent, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}-", dir=parent)
+    try:
+        catalog.normalize_hrefs(tmp)
+        catalog.make_all_asset_hrefs_relative()
+        catalog.save(pystac.CatalogType.SELF_CONTAINED)
+        os.chmod(tmp, 0o777 & ~_umask())
+        _swap_in(tmp, out)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            shutil.rmtree(tmp)
+        raise
+    return os.path.join(out, "catalog.json")
+
+
+def _media(path) -> str:
+    return "text/html" if path and str(path).endswith(".html") else "application/json"
+
+
+def _umask() -> int:
+    from swathflow.io import _umask as umask
+    return umask()

@@ -1,0 +1,142 @@
+"""The run's STAC catalogue: pystac's validator (core schemas shipped in pystac, offline),
+pystac's extension classes reading back the fields, and footprints against the known
+valid-data polygon of synthetic COGs."""
+import json
+import socket
+from pathlib import Path
+
+import numpy as np
+import pystac
+import pytest
+import rasterio
+from pyproj import Transformer
+from pystac.extensions.eo import EOExtension
+from pystac.extensions.projection import ProjectionExtension
+from pystac.extensions.raster import RasterExtension
+from pystac.validation import validate_dict
+from rasterio.transform import from_origin
+from shapely.geometry import Polygon, shape
+from swathflow.formats.stac import PROCESSING_SCHEMA, write_catalog
+
+CRS = "EPSG:32633"
+X0, Y0, GSD = 500000.0, 5300000.0, 0.5
+
+
+@pytest.fixture
+def offline(monkeypatch):
+    """No network: any connection attempt fails the test (the schemas must be local)."""
+    def refuse(*a, **k):
+        raise AssertionError("network access attempted")
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket, "create_connection", refuse)
+
+
+def _rotated(cx, cy, length, width, angle_deg):
+    """Corners (col, row) of a rotated rectangle: the valid data of a swing."""
+    a = np.radians(angle_deg)
+    u, v = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+    c = np.array([cx, cy])
+    return [c + su * length / 2 * u + sv * width / 2 * v
+            for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+
+
+def _write_swing(path, corners, shape_=(400, 600), dtype="uint16", nodata=0, tags=None,
+                 band_tags=None):
+    rows, cols = np.mgrid[0:shape_[0], 0:shape_[1]] + 0.5
+    inside = Polygon(corners)
+    from shapely import contains_xy
+    mask = contains_xy(inside, cols, rows)
+    data = np.where(mask, 1000 + (rows + cols).astype(int) % 500, nodata).astype(dtype)
+    profile = {"driver": "COG", "width": shape_[1], "height": shape_[0], "count": 1,
+               "dtype": dtype, "crs": CRS, "transform": from_origin(X0, Y0, GSD, GSD),
+               "nodata": nodata}
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(data, 1)
+        dst.update_tags(**(tags or {}))
+        if band_tags:
+            dst.update_tags(1, **band_tags)
+    return mask
+
+
+def _truth_lonlat(corners):
+    to = Transformer.from_crs(CRS, "EPSG:4326", always_xy=True)
+    xy = [(X0 + c * GSD, Y0 - r * GSD) for c, r in corners]
+    return Polygon([to.transform(x, y) for x, y in xy])
+
+
+def _iou(a, b):
+    return a.intersection(b).area / a.union(b).area
+
+
+def test_catalogue_validates_and_describes_the_products(tmp_path, offline):
+    run = tmp_path / "run"
+    (run / "rectified").mkdir(parents=True)
+    (run / "calibration").mkdir()
+    corners = {"L1": _rotated(300, 200, 520, 140, 25), "R1": _rotated(300, 200, 560, 120, -35)}
+    for iid, c in corners.items():
+        _write_swing(run / "rectified" / f"{iid}.tif", c,
+                     tags={"image_id": iid, "direction": iid[0], "strip": "1"},
+                     band_tags={"wavelength": "10.5"} if iid == "L1" else None)
+    mosaic_corners = [(10, 10), (590, 10), (590, 390), (300, 100), (10, 390)]  # concave
+    _write_swing(run / "mosaic.tif", mosaic_corners, dtype="float32", nodata=-9999.0)
+    (run / "calibration" / "calibration.json").write_text("{}")
+    (run / "calibration" / "report.html").write_text("<html></html>")
+    (run / "mosaic.json").write_text("{}")
+    path = write_catalog([run / "rectified" / "L1.tif", run / "rectified" / "R1.tif"],
+                         run / "mosaic.tif", run / "stac",
+                         calibration=run / "calibration" / "calibration.json",
+                         report=run / "calibration" / "report.html",
+                         mosaic_report=run / "mosaic.json", title="test run")
+    assert Path(path) == run / "stac" / "catalog.json"
+    assert not [p for p in run.iterdir() if p.name.startswith(".")]   # no temporary left
+    cat = pystac.Catalog.from_file(path)
+    items = {i.id: i for i in cat.get_items()}
+    assert set(items) == {"L1", "R1", "mosaic"}
+    for item in items.values():
+        d = json.loads(Path(item.self_href).read_text())
+        validate_dict(d, extensions=[])          # STAC core item schema, shipped in pystac
+        assert PROCESSING_SCHEMA in d["stac_extensions"]
+        assert d["properties"]["processing:software"]["swathflow"]
+        assert d["properties"]["processing:level"]
+        # projection: what rasterio reads from the file
+        with rasterio.open(item.assets["data"].get_absolute_href()) as src:
+            proj = ProjectionExtension.ext(item)
+            assert proj.code == CRS
+            assert proj.shape == [src.height, src.width]
+            assert proj.transform == pytest.approx(list(src.transform)[:6])
+            band = RasterExtension.ext(item.assets["data"]).bands[0]
+            assert str(getattr(band.data_type, "value", band.data_type)) == src.dtypes[0]
+            assert band.nodata == src.nodata
+            assert band.spatial_resolution == pytest.approx(GSD)
+        assert item.assets["calibration"].get_absolute_href() == str(
+            run / "calibration" / "calibration.json")
+        assert item.assets["report"].media_type == "text/html"
+        assert not Path(item.assets["data"].href).is_absolute()   # self-contained
+    validate_dict(json.loads(Path(path).read_text()), extensions=[])
+    # wavelengths where known (L1 has a band tag), none invented for R1
+    assert EOExtension.ext(items["L1"].assets["data"]).bands[0].center_wavelength == 10.5
+    assert "eo:bands" not in items["R1"].assets["data"].extra_fields
+    assert items["mosaic"].assets["mosaic-report"].get_absolute_href() == str(run / "mosaic.json")
+    # footprints are the valid data, not the bounding box
+    for iid, c in {**corners, "mosaic": mosaic_corners}.items():
+        foot = shape(items[iid].geometry)
+        truth = _truth_lonlat(c)
+        assert _iou(foot, truth) > 0.97, iid
+        box = Polygon.from_bounds(*foot.bounds)
+        assert foot.area < 0.8 * box.area, iid
+        assert items[iid].bbox == pytest.approx(list(foot.bounds))
+        assert foot.exterior.is_ccw, iid                      # RFC 7946 winding
+        assert len(foot.exterior.coords) < 40, (iid, len(foot.exterior.coords))  # simplified
+
+
+def test_rewrite_replaces_the_catalogue_whole(tmp_path, offline):
+    (tmp_path / "rectified").mkdir()
+    c = _rotated(300, 200, 400, 100, 10)
+    for iid in ("A", "B"):
+        _write_swing(tmp_path / "rectified" / f"{iid}.tif", c)
+    write_catalog([tmp_path / "rectified" / "A.tif", tmp_path / "rectified" / "B.tif"],
+                  None, tmp_path / "stac")
+    path = write_catalog([tmp_path / "rectified" / "A.tif"], None, tmp_path / "stac")
+    ids = {i.id for i in pystac.Catalog.from_file(path).get_items()}
+    assert ids == {"A"}
+    assert not (tmp_path / "stac" / "B").exists()
