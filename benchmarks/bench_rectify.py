@@ -7,14 +7,20 @@ GDAL: the array value at [i, j] is the ground position of raw coordinate (i - 0.
 see shared/DESIGN.md). Positional error: subpixel shift against the truth ortho (analytic
 texture at the output pixel centres) over the whole footprint and per 128-px tile.
 
-    /tmp/venv/bin/python benchmarks/bench_rectify.py                 # side by side
-    /tmp/venv/bin/python benchmarks/bench_rectify.py --memory        # 2048 x 20000 swing, peak RSS
+    .venv/bin/python benchmarks/bench_rectify.py                  # side by side, 5x and 1x grids
+    .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m  # whole command vs GDAL
+    .venv/bin/python benchmarks/bench_rectify.py --startup         # start-up, numba cache warm/cold
+    .venv/bin/python benchmarks/bench_rectify.py --cube 100        # 100-band uint16 cube
+    .venv/bin/python benchmarks/bench_rectify.py --igm             # image_to_ground on a DEM
+    .venv/bin/python benchmarks/bench_rectify.py --memory          # 2048 x 20000 swing, peak RSS
     options: --elements 1024 --lines 2800 --threads 2 --kernel bilinear --repeat 3
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import resource
 import shutil
 import subprocess
 import sys
@@ -26,6 +32,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from test_rectify import render, scene_model, texture  # noqa: E402
 
@@ -48,7 +55,7 @@ def geoloc_arrays(model, terrain, crs, corner: bool = True, block: int = 256):
     return X, Y
 
 
-def _score(name, out, truth, seconds, cores):
+def _score(name, out, truth, seconds, cores, cpu=float("nan")):
     rep = R.shift_report(out, truth, tile=128, margin=16)
     ok = np.isfinite(out) & np.isfinite(truth)
     rms = float(np.sqrt(np.mean((out[ok] - truth[ok]) ** 2)))
@@ -58,23 +65,26 @@ def _score(name, out, truth, seconds, cores):
             "worst_tile_px": round(rep["worst_tile_px"], 4),
             "median_tile_px": round(rep["median_tile_px"], 4), "tiles": rep["tiles"],
             "rms_dn": round(rms, 3), "valid_px": int(np.isfinite(out).sum()),
-            "mpx_per_s_per_core": round(mpx / seconds / cores, 3)}
+            "mpx_per_s_per_core": round(mpx / seconds / cores, 3), "cpu_s": round(cpu, 3),
+            "mpx_per_cpu_s": round(mpx / cpu, 3) if cpu > 0 else float("nan")}
+
+
+def _timed(f):
+    """Run ``f``; (result, wall s, CPU s of this process)."""
+    c0, t0 = time.process_time(), time.perf_counter()
+    out = f()
+    return out, time.perf_counter() - t0, time.process_time() - c0
 
 
 def _best(n, run):
-    """Run ``n`` times; the last result and the best wall time (the machine is shared).
-    A result that is a tuple ending in its own time (the peers) reports that time."""
-    best, out = float("inf"), None
+    """Run ``n`` times (``run`` returns (result, wall, cpu)); the last result, the best
+    wall time and the CPU time of that run (the machine is shared)."""
+    best = (None, float("inf"), float("inf"))
     for _ in range(max(n, 1)):
-        t0 = time.perf_counter()
-        out = run()
-        dt = time.perf_counter() - t0
-        if isinstance(out, tuple) and len(out) >= 2 and isinstance(out[1], float):
-            dt = out[1]
-        best = min(best, dt)
-    if isinstance(out, tuple) and len(out) == 3:      # gdalwarp: (array, seconds, cmd)
-        out = (out[0], best, out[2])
-    return out, best
+        out, wall, cpu = run()
+        if wall < best[1]:
+            best = (out, wall, cpu)
+    return best
 
 
 def _gdalwarp(raw, X, Y, grid, kernel, threads, tmp):
@@ -108,84 +118,115 @@ def _gdalwarp(raw, X, Y, grid, kernel, threads, tmp):
            "-ts", str(grid.width), str(grid.height), "-r", kernel, "-dstnodata", "nan",
            "-ot", "Float32", "-multi", "-wo", f"NUM_THREADS={threads}",
            str(tmp / "raw.vrt"), str(out)]
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)
     dt = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
     with rasterio.open(out) as src:
         arr = src.read(1)
         assert src.transform.almost_equals(grid.transform), (src.transform, grid.transform)
-    return arr, dt, " ".join(cmd)
+    print(f"gdalwarp command: {' '.join(cmd)[:160]}...")
+    return arr, dt, cpu
 
 
 def _rasterio(raw, X, Y, grid, kernel, threads):
     from rasterio.crs import CRS
     from rasterio.warp import Resampling, reproject
     dst = np.full(grid.shape, np.nan, np.float32)
-    t0 = time.perf_counter()
-    reproject(raw.astype(np.float32), dst, src_geoloc_array=np.stack([X, Y]),
+    src = raw.astype(np.float32)
+    c0, t0 = time.process_time(), time.perf_counter()
+    reproject(src, dst, src_geoloc_array=np.stack([X, Y]),
               src_crs=CRS.from_wkt(grid.pyproj_crs.to_wkt()), dst_transform=grid.transform,
               dst_crs=CRS.from_wkt(grid.pyproj_crs.to_wkt()), dst_nodata=np.nan,
               resampling=getattr(Resampling, kernel), num_threads=threads)
-    return dst, time.perf_counter() - t0
+    return dst, time.perf_counter() - t0, time.process_time() - c0
 
 
-def side_by_side(args):
+def _grid_for_ratio(model, terrain, ratio, gsd):
+    """The footprint grid with ``ratio`` x the raw pixel count (or at ``gsd``)."""
+    if not ratio:
+        return footprint_grid(model, terrain, gsd)
+    g0 = footprint_grid(model, terrain, 1.0)
+    nl, ne = model.shape
+    return footprint_grid(model, terrain, math.sqrt(g0.shape[0] * g0.shape[1] / (ratio * nl * ne)))
+
+
+def side_by_side(args, ratio=None):
     import dask
     terrain = ConstantHeight(5.0)
     model = scene_model(n_lines=args.lines, n_elements=args.elements, swing=args.swing,
                         pixel_pitch=args.pitch)
-    grid = footprint_grid(model, terrain, args.gsd)
-    print(f"swing {model.shape[0]} lines x {model.shape[1]} elements; output grid "
-          f"{grid.shape[0]} x {grid.shape[1]} px at {args.gsd} m ({grid.crs}); "
+    grid = _grid_for_ratio(model, terrain, ratio, args.gsd)
+    gsd = grid.res[0]
+    npx = grid.shape[0] * grid.shape[1]
+    print(f"\nswing {model.shape[0]} lines x {model.shape[1]} elements; output grid "
+          f"{grid.shape[0]} x {grid.shape[1]} px at {gsd:.3f} m ({grid.crs}), "
+          f"{npx / (model.shape[0] * model.shape[1]):.2f} x the raw pixels; "
           f"kernel {args.kernel}; {args.threads} threads")
     t0 = time.perf_counter()
-    raw = render(model, terrain, grid.crs)
+    raw = render(model, terrain, grid.crs).astype(np.float32)
     print(f"render raw image: {time.perf_counter() - t0:.1f} s")
     truth = texture(*grid.centres())
     rows = []
-    # ours
-    with dask.config.set(scheduler="threads", num_workers=args.threads):
-        R.rectify(model, raw, grid, terrain, args.kernel, tile=512).compute()   # warm-up
-        for tol in sorted({R.TOLERANCE_PX, *args.tolerance}, reverse=True):
-            ours, dt = _best(args.repeat, lambda: R.rectify(
-                model, raw, grid, terrain, args.kernel, tol=tol, tile=512).compute())
-            rows.append(_score(f"swathflow exact (bound {tol:g} px)", ours, truth, dt,
-                               args.threads))
-    poly, dt = _best(args.repeat, lambda: R.rectify_polynomial(model, raw, grid, terrain))
-    rows.append(_score("swathflow polynomial (1 core)", poly, truth, dt, 1))
+    # ours: one thread (dask's synchronous scheduler), then args.threads threads
+
+    def ours(tol, sched, nw):
+        def run():
+            with dask.config.set(scheduler=sched, num_workers=nw):
+                return _timed(lambda: R.rectify(model, raw, grid, terrain, args.kernel,
+                                                tol=tol, tile=args.tile).compute())
+        return run
+
+    ours(R.TOLERANCE_PX, "sync", 1)()                                         # warm-up
+    for tol in sorted({R.TOLERANCE_PX, *args.tolerance}, reverse=True):
+        for sched, nw in (("sync", 1), ("threads", args.threads)):
+            out, dt, cpu = _best(args.repeat, ours(tol, sched, nw))
+            rows.append(_score(f"swathflow exact (bound {tol:g} px, {nw} thr)", out, truth,
+                               dt, nw, cpu))
+    out, dt, cpu = _best(args.repeat, lambda: _timed(
+        lambda: R.rectify_polynomial(model, raw, grid, terrain)))
+    rows.append(_score("swathflow polynomial (1 thr)", out, truth, dt, 1, cpu))
     t0 = time.perf_counter()
     X, Y = geoloc_arrays(model, terrain, grid.crs, corner=True)
     t_geo = time.perf_counter() - t0
     print(f"geolocation arrays (pixel corners, our model, not counted below): {t_geo:.1f} s")
-    (out, _), dt = _best(args.repeat, lambda: _rasterio(raw, X, Y, grid, args.kernel,
-                                                        args.threads))
-    rows.append(_score("rasterio reproject geoloc (corners)", out, truth, dt, args.threads))
-    rows[-1]["with_geoloc"] = round(dt + t_geo, 3)
+    for nw in (1, args.threads):
+        out, dt, cpu = _best(args.repeat, lambda nw=nw: _rasterio(raw, X, Y, grid, args.kernel,
+                                                                  nw))
+        rows.append(_score(f"rasterio reproject geoloc ({nw} thr)", out, truth, dt, nw, cpu))
+        rows[-1]["with_geoloc"] = round(dt + t_geo, 3)
     with tempfile.TemporaryDirectory() as td:
-        res, _ = _best(args.repeat, lambda: _gdalwarp(raw, X, Y, grid, args.kernel,
-                                                      args.threads, Path(td)))
-        if res is None:
+        if shutil.which("gdalwarp") is None:
             print("gdalwarp not found: skipping it (apt-get install gdal-bin)")
         else:
-            arr, dt, cmd = res
-            rows.append(_score("gdalwarp -geoloc (corners)", arr, truth, dt, args.threads))
-            rows[-1]["with_geoloc"] = round(dt + t_geo, 3)
-            print(f"gdalwarp command: {cmd[:160]}...")
+            for nw in (1, args.threads):
+                out, dt, cpu = _best(args.repeat, lambda nw=nw: _gdalwarp(
+                    raw, X, Y, grid, args.kernel, nw, Path(td)))
+                rows.append(_score(f"gdalwarp -geoloc ({nw} thr)", out, truth, dt, nw, cpu))
+                rows[-1]["with_geoloc"] = round(dt + t_geo, 3)
+    _table(rows, grid)
+    return rows
+
+
+def _table(rows, grid):
     base = rows[0]["seconds"]
     print()
-    print(f"{'method':<40}{'s':>8}{'x ours':>8}{'s+geoloc':>9}{'whole px':>10}{'worst tile':>11}"
-          f"{'median':>8}{'rms DN':>8}{'Mpx/s/core':>11}")
+    print(f"{'method':<42}{'wall s':>7}{'x ours':>7}{'cpu s':>7}{'whole px':>9}{'worst':>7}"
+          f"{'median':>7}{'rms DN':>7}{'Mpx/s/core':>11}{'Mpx/cpu-s':>10}")
     for r in rows:
-        g = f"{r['with_geoloc']:>9.2f}" if "with_geoloc" in r else f"{'':>9}"
-        print(f"{r['method']:<40}{r['seconds']:>8.2f}{r['seconds'] / base:>8.2f}{g}"
-              f"{r['whole_shift_px']:>10.4f}{r['worst_tile_px']:>11.4f}"
-              f"{r['median_tile_px']:>8.4f}{r['rms_dn']:>8.3f}{r['mpx_per_s_per_core']:>11.3f}")
-    print("\ns: warp time given the raw image (ours computes its own geometry inside); "
-          "s+geoloc: the peers plus computing their geolocation arrays with our model")
+        print(f"{r['method']:<42}{r['seconds']:>7.2f}{r['seconds'] / base:>7.2f}"
+              f"{r['cpu_s']:>7.2f}{r['whole_shift_px']:>9.4f}{r['worst_tile_px']:>7.4f}"
+              f"{r['median_tile_px']:>7.4f}{r['rms_dn']:>7.3f}{r['mpx_per_s_per_core']:>11.2f}"
+              f"{r['mpx_per_cpu_s']:>10.2f}")
+    print("wall s: warp time given the raw image (ours computes its own geometry inside; the "
+          "peers get pixel-corner geolocation arrays from our model for free); x ours: wall "
+          "time over ours at 1 thread; Mpx/s/core = output Mpx / wall s / threads; "
+          "Mpx/cpu-s = output Mpx / CPU s (robust on a shared machine)")
     print(f"(output grid {grid.shape[0] * grid.shape[1] / 1e6:.2f} Mpx, "
           f"{rows[0]['tiles']} full 128-px tiles; texture amplitude ~ +-60 DN)")
-    print("reproduce: /tmp/venv/bin/python benchmarks/bench_rectify.py " + " ".join(sys.argv[1:]))
-    return rows
+    print("reproduce: .venv/bin/python benchmarks/bench_rectify.py " + " ".join(sys.argv[1:]))
 
 
 MEMORY_SCRIPT = r"""
@@ -200,14 +241,19 @@ import dask
 nl, ne, out_dir, gsd = {nl}, {ne}, {out!r}, {gsd}
 model = scene_model(n_lines=nl, n_elements=ne, swing={swing}, pixel_pitch=15e-6)
 terrain = ConstantHeight(5.0)
+nb = {bands}
 raw = np.lib.format.open_memmap(os.path.join(out_dir, "raw.npy"), mode="w+",
-                                dtype=np.uint16, shape=(nl, ne))
+                                dtype=np.uint16, shape=(nb, nl, ne))
 for l0 in range(0, nl, 1024):
     l = np.arange(l0, min(l0 + 1024, nl))[:, None]
     e = np.arange(ne)[None, :]
-    raw[l0:l0 + 1024] = (1000 + 500 * np.sin(l / 37.0) * np.cos(e / 23.0)).astype(np.uint16)
+    base = 1000 + 500 * np.sin(l / 37.0) * np.cos(e / 23.0)
+    for b in range(nb):
+        raw[b, l0:l0 + 1024] = (base + 3 * b).astype(np.uint16)
 raw.flush(); del raw
 raw = np.load(os.path.join(out_dir, "raw.npy"), mmap_mode="r")
+if nb == 1:
+    raw = raw[0]
 grid = footprint_grid(model, terrain, gsd)
 t0 = time.perf_counter()
 with dask.config.set(scheduler="threads", num_workers={threads}):
@@ -215,17 +261,17 @@ with dask.config.set(scheduler="threads", num_workers={threads}):
                         kernel="bilinear", tile=512)
 dt = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(json.dumps(dict(lines=nl, elements=ne, grid=list(grid.shape), seconds=round(dt, 1),
+print(json.dumps(dict(lines=nl, elements=ne, bands=nb, grid=list(grid.shape), seconds=round(dt, 1),
                       peak_rss_mb=round(peak, 1), out_mpx=grid.shape[0] * grid.shape[1] / 1e6)))
 """
 
 
-def memory_run(nl=20000, ne=2048, gsd=0.5, swing=54.0, threads=2, keep=None) -> dict:
+def memory_run(nl=20000, ne=2048, gsd=0.5, swing=54.0, threads=2, keep=None, bands=1) -> dict:
     """Rectify a synthetic nl x ne swing (raw uint16 memmap on disk) in a fresh process;
     returns its peak RSS (MB), time and grid."""
     with tempfile.TemporaryDirectory(dir=keep) as td:
         code = MEMORY_SCRIPT.format(tests=str(ROOT / "tests"), nl=nl, ne=ne, out=td, gsd=gsd,
-                                    swing=swing, threads=threads)
+                                    swing=swing, threads=threads, bands=bands)
         p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
         if p.returncode:
             raise RuntimeError(p.stderr[-3000:])
@@ -235,26 +281,53 @@ def memory_run(nl=20000, ne=2048, gsd=0.5, swing=54.0, threads=2, keep=None) -> 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--memory", action="store_true", help="the 2048 x 20000 peak-memory run")
+    ap.add_argument("--memory-lines", type=int, default=20000)
+    ap.add_argument("--memory-bands", type=int, default=1)
+    ap.add_argument("--startup", action="store_true", help="command and engine start-up")
+    ap.add_argument("--command", metavar="MISSION",
+                    help="the whole swathflow rectify command vs GDAL on a mission folder "
+                         "(simulated with --preset when absent)")
+    ap.add_argument("--preset", default="demo", help="simulator preset for --command")
+    ap.add_argument("--cube", type=int, metavar="BANDS", help="a uint16 cube of BANDS bands")
+    ap.add_argument("--igm", action="store_true", help="image_to_ground on a DEM, points/s")
+    ap.add_argument("--ratios", default="5,1",
+                    help="output/raw pixel-count ratios of the side-by-side grids "
+                         "(default 5,1); empty: one grid at --gsd")
     ap.add_argument("--elements", type=int, default=1024)
     ap.add_argument("--lines", type=int, default=2800)
     ap.add_argument("--pitch", type=float, default=30e-6, help="detector pitch, m")
     ap.add_argument("--swing", type=float, default=15.0, help="half swing, deg")
     ap.add_argument("--gsd", type=float, default=0.75)
+    ap.add_argument("--tile", type=int, default=512)
     ap.add_argument("--kernel", default="bilinear", choices=("nearest", "bilinear", "cubic"))
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3, help="runs per method; best time kept")
-    ap.add_argument("--tolerance", type=float, nargs="*", default=[0.005],
+    ap.add_argument("--tolerance", type=float, nargs="*", default=[],
                     help="extra coordinate-interpolation bounds (px) to time beside the default")
     args = ap.parse_args()
+    import rectify_extra as X
+    reproduce = ".venv/bin/python benchmarks/bench_rectify.py " + " ".join(sys.argv[1:])
     if args.memory:
-        r = memory_run(threads=args.threads)
+        r = memory_run(nl=args.memory_lines, threads=args.threads, bands=args.memory_bands)
         print(json.dumps(r))
-        print(f"2048 x 20000 swing: peak RSS {r['peak_rss_mb']:.0f} MB "
+        print(f"2048 x {args.memory_lines} x {args.memory_bands}-band uint16 swing: "
+              f"peak RSS {r['peak_rss_mb']:.0f} MB "
               f"(bound 2048 MB), {r['seconds']:.0f} s, output grid {r['grid'][0]} x "
               f"{r['grid'][1]} ({r['out_mpx']:.0f} Mpx)")
-        print("reproduce: /tmp/venv/bin/python benchmarks/bench_rectify.py --memory")
-        return
-    side_by_side(args)
+    elif args.startup:
+        X.main("startup")
+    elif args.command:
+        X.main("command", mission_dir=args.command, preset=args.preset, threads=args.threads)
+    elif args.cube:
+        for nw in (1, args.threads):
+            X.main("cube", bands=args.cube, threads=nw)
+    elif args.igm:
+        X.main("igm")
+    else:
+        ratios = [float(r) for r in args.ratios.split(",") if r.strip()] or [None]
+        for ratio in ratios:
+            side_by_side(args, ratio)
+    print("reproduce: " + reproduce)
 
 
 if __name__ == "__main__":

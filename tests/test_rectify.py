@@ -346,7 +346,8 @@ def _compare_with_truth(mission_dir, out_dir, tile=32):
         if tif.name.count(".") > 1:          # .glt.tif / .igm.tif
             continue
         with rasterio.open(tif) as src:
-            rect = src.read(1)
+            # native dtype (uint16 here): nodata is the mask band (or a nodata value)
+            rect = src.read(1, masked=True).astype(float).filled(np.nan)
             t = src.transform
         # place the image's window inside the truth grid (both snapped to the GSD)
         sub_r, sub_t = overlap_with_truth(rect, t, truth)

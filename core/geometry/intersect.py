@@ -48,12 +48,14 @@ def _refine_constant(origin, direction, lam, h, iterations: int = 4):
 
 
 def intersect(origin, direction, terrain: Terrain, step: float | None = None,
-              max_iter: int = 40) -> np.ndarray:
+              max_iter: int = 40, compiled: bool = True) -> np.ndarray:
     """Intersect rays with the terrain; returns ECEF ``(..., 3)``, NaN where a ray misses.
 
     For a DEM the ray is marched downwards from the DEM's highest to its lowest height in
     steps of ``step`` metres along the ray (default: about one DEM cell), the first crossing
-    is bracketed and refined by regula falsi to below 0.1 mm in height.
+    is bracketed and refined by regula falsi to below 0.1 mm in height. A raster DEM goes
+    through the compiled kernel of :mod:`swathflow.geometry.march` (``compiled=False``:
+    the numpy reference, which asks ``terrain.height`` at every step).
     """
     origin = np.asarray(origin, float)
     direction = np.asarray(direction, float)
@@ -66,6 +68,11 @@ def intersect(origin, direction, terrain: Terrain, step: float | None = None,
         lam = _refine_constant(origin, direction, lam, terrain.h)
         out = origin + lam[:, None] * direction
         return out.reshape(shape)
+    if compiled and all(hasattr(terrain, k) for k in ("data", "transform", "crs_wkt")):
+        from swathflow.geometry.march import intersect_dem
+        if step is None:
+            step = getattr(terrain, "cell_size_m", None) or 30.0
+        return intersect_dem(origin, direction, terrain, step, max_iter).reshape(shape)
     return _intersect_dem(origin, direction, terrain, step, max_iter).reshape(shape)
 
 

@@ -66,8 +66,9 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
                           f"{', '.join(m.images)}")
     model = m.model(image_id, _parameters(m, calibration))
     grid = footprint_grid(model, m.terrain, gsd or m.gsd, crs or m.crs)
+    options.setdefault("dtype", "float32")     # NaN nodata, as documented (the engine
     data = _engine()(model, m.image(image_id), grid, m.terrain, kernel=kernel, tile=tile,
-                     **options)
+                     **options)                # would keep the raw integer type)
     e = m.images[image_id]
     attrs = {"image_id": image_id, "direction": e.direction, "strip": e.strip,
              "mission": m.name, "sensor": m.sensor.get("model", ""), "kernel": kernel}

@@ -6,13 +6,14 @@ import hashlib
 import json
 import os
 import time
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 from swathflow.errors import FormatError
 from swathflow.formats.calibfile import calibration_priors, read_calibration
 from swathflow.geometry.grid import footprint_grid
 from swathflow.ingest.mission import load_mission
 from swathflow.io import write_text
+from swathflow.rectification.rawimage import open_raw_image
 from swathflow.rectification.rectify import TOLERANCE_PX, rectify_image
 
 
@@ -20,9 +21,14 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                     images: Sequence[str] | None = None, method: str = "exact",
                     kernel: str = "bilinear", tol: float = TOLERANCE_PX, tile: int = 512,
                     products: Sequence[str] = (),
-                    progress: Callable[[str], None] | None = None) -> list[dict]:
+                    progress: Callable[[str], None] | None = None, bands=None,
+                    dtype: str | None = None, mask_band: bool = False) -> list[dict]:
     """Rectify the mission's images into ``out_dir/<id>.tif`` with ``calibration`` (a
-    calibration.json; default: the mission's priors). Returns one summary per image."""
+    calibration.json; default: the mission's priors). Every band of each raw image is
+    rectified (``bands``: a subset by 1-based index or wavelength, see
+    :func:`~swathflow.rectification.rawimage.parse_bands`), in the raw dtype unless
+    ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``). Returns
+    one summary per image."""
     mission = load_mission(mission_path)
     params, cal_tag = mission.priors, "none: mission priors (mission.toml [calibration])"
     if calibration:
@@ -49,9 +55,10 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
         grid = footprint_grid(model, mission.terrain, mission.gsd, mission.crs)
         out = os.path.join(out_dir, f"{iid}.tif")
         t0 = time.perf_counter()
-        s = rectify_image(model, mission.image(iid), mission.terrain, out, grid=grid,
-                          method=method, kernel=kernel, tol=tol, tile=tile,
-                          products=tuple(products),
+        s = rectify_image(model, open_raw_image(mission.images[iid].file), mission.terrain,
+                          out, grid=grid, method=method, kernel=kernel, tol=tol, tile=tile,
+                          products=tuple(products), bands=bands, dtype=dtype,
+                          mask_band=mask_band,
                           tags={"image_id": iid, "calibration": cal_tag,
                                 "mission": mission.name,
                                 "parameters": json.dumps(model.parameters.values_dict())})

@@ -30,181 +30,35 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
-
 from swathflow.errors import FormatError, SwathflowError
 from swathflow.geometry.grid import Grid, ecef_to_map, footprint_grid
-from swathflow.io import atomic_path
-from swathflow.geometry.terrain import Terrain, open_terrain
+from swathflow.geometry.terrain import open_terrain
+from swathflow.rectification.lattice import TOLERANCE_PX, exact_raw, inverse_map
+from swathflow.rectification.rawimage import RawImage, RawSource, open_raw_image
+from swathflow.rectification.tiles import (
+    KERNELS,
+    check_inputs,
+    glt_blocks,
+    output_plan,
+    rectify,
+    rectify_blocks,
+    rectify_tile,
+)
+from swathflow.rectification.writing import GDAL_CACHE_MB, write_cog, write_cogs  # noqa: F401
 
-#: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
-TOLERANCE_PX = 0.05
-KERNELS = ("nearest", "bilinear", "cubic")
+__all__ = ["KERNELS", "TOLERANCE_PX", "RawImage", "RawSource", "exact_raw", "inverse_map",
+           "open_raw_image", "rectify", "rectify_image", "rectify_tile", "resample",
+           "write_cog", "write_cogs"]
 METHODS = ("exact", "polynomial")
-_MARGIN = {"nearest": 1, "bilinear": 2, "cubic": 3}
-#: GDAL block cache while writing (MB): GDAL's default is 5 % of the machine's memory
-GDAL_CACHE_MB = 256
 
 
 # ----------------------------------------------------------------------------------------
-# raw image access
+# raw image access and the inverse map (rectification/ holds the engine)
 # ----------------------------------------------------------------------------------------
-class RawSource:
-    """Windowed read access to a raw image: a numpy array (or memmap), an xarray
-    DataArray / Dataset (data var ``dn``), a dask array, or a raster path. Reads return
-    float64 with NaN for nodata."""
-
-    def __init__(self, data, nodata=None):
-        self._path = None
-        if isinstance(data, (str, os.PathLike)):
-            import rasterio
-            self._path = os.fspath(data)
-            with rasterio.open(self._path) as src:
-                self.shape = (src.height, src.width)
-                self.dtype = np.dtype(src.dtypes[0])
-                self.nodata = src.nodata if nodata is None else nodata
-            self._data = None
-            return
-        if hasattr(data, "data_vars"):          # xarray Dataset
-            data = data["dn"]
-        if hasattr(data, "dims") and hasattr(data, "transpose"):   # xarray DataArray
-            data = data.transpose("line", "element")
-            nodata = data.attrs.get("_FillValue", data.attrs.get("nodata")) if nodata is None \
-                else nodata
-            data = data.data                           # numpy or dask underneath
-        self._data = data
-        self.shape = tuple(int(n) for n in data.shape[-2:])
-        self.dtype = np.dtype(data.dtype)
-        self.nodata = nodata
-
-    def read(self, l0: int, l1: int, e0: int, e1: int) -> np.ndarray:
-        if self._path is not None:
-            import rasterio
-            from rasterio.windows import Window
-            with rasterio.open(self._path) as src:
-                a = src.read(1, window=Window(e0, l0, e1 - e0, l1 - l0))
-        else:
-            a = self._data[l0:l1, e0:e1]
-            if hasattr(a, "compute"):
-                import dask
-                with dask.config.set(scheduler="sync"):
-                    a = a.compute()
-            a = np.asarray(getattr(a, "values", a))
-        a = a.astype(np.float64)
-        if self.nodata is not None and not (isinstance(self.nodata, float)
-                                            and math.isnan(self.nodata)):
-            a[a == self.nodata] = np.nan
-        return a
-
-
-# ----------------------------------------------------------------------------------------
-# inverse mapping: output pixel centres -> raw (line, element)
-# ----------------------------------------------------------------------------------------
-def _exact_raw(model, grid: Grid, terrain: Terrain, rows, cols) -> np.ndarray:
-    """Exact raw coordinates ``(n, 2)`` of grid pixel centres (rows, cols may lie off the
-    grid; the grid's transform extends)."""
-    x, y = grid.xy(rows, cols)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        g = grid.to_ecef(x, y, terrain)
-        return model.ground_to_image(g, clip=False)
-
-
-def inverse_map(model, grid: Grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
-                stats: dict | None = None) -> np.ndarray:
-    """Raw (line, element) ``(rows, cols, 2)`` under every pixel centre of ``grid`` (NaN
-    where the image does not see the ground; coordinates beyond the detector's ends are
-    kept, the caller masks them).
-
-    Adaptive: bilinear interpolation of a lattice of exact values, each lattice cell
-    checked at its centre and edge midpoints and split where the interpolation misses by
-    ``tol / 2`` raw pixels or more there (the margin keeps the error between test points
-    below ``tol``); all-NaN cells next to split cells are split too, so the
-    footprint's edge is traced at pixel resolution. ``stats`` (a dict) receives the count of
-    exact evaluations.
-    """
-    terrain = open_terrain(terrain)
-    h, w = grid.shape
-    step = 1 << max(int(math.log2(max(step, 1))), 0)
-    nr = max(int(math.ceil((h - 1) / step)), 1)       # cells along rows
-    nc = max(int(math.ceil((w - 1) / step)), 1)
-    H, W = nr * step + 1, nc * step + 1
-    exact = np.full((H, W, 2), np.nan)
-    known = np.zeros((H, W), bool)
-    res = np.full((H, W, 2), np.nan)
-    n_eval = 0
-
-    def evaluate(r, c):
-        nonlocal n_eval
-        r = np.asarray(r, np.intp)
-        c = np.asarray(c, np.intp)
-        need = ~known[r, c]
-        if need.any():
-            rr, cc = r[need], c[need]
-            key = np.unique(rr * W + cc)
-            rr, cc = key // W, key % W
-            exact[rr, cc] = _exact_raw(model, grid, terrain, rr, cc)
-            known[rr, cc] = True
-            n_eval += key.size
-        return exact[r, c]
-
-    # level 0 lattice
-    rr, cc = np.meshgrid(np.arange(nr + 1) * step, np.arange(nc + 1) * step, indexing="ij")
-    evaluate(rr.ravel(), cc.ravel())
-    ci, cj = np.meshgrid(np.arange(nr), np.arange(nc), indexing="ij")
-    cells = np.stack([ci.ravel() * step, cj.ravel() * step], axis=-1)
-    s = step
-    while s > 1 and cells.size:
-        hs = s // 2
-        r, c = cells[:, 0], cells[:, 1]
-        q00, q01 = exact[r, c], exact[r, c + s]
-        q10, q11 = exact[r + s, c], exact[r + s, c + s]
-        tests = [(r + hs, c + hs, (q00 + q01 + q10 + q11) / 4),
-                 (r, c + hs, (q00 + q01) / 2), (r + s, c + hs, (q10 + q11) / 2),
-                 (r + hs, c, (q00 + q10) / 2), (r + hs, c + s, (q01 + q11) / 2)]
-        evaluate(np.concatenate([t[0] for t in tests]),          # one model call per level
-                 np.concatenate([t[1] for t in tests]))
-        err = np.zeros(len(cells))
-        all_nan = np.isnan(np.stack([q00, q01, q10, q11])).all(axis=(0, 2))
-        for tr, tc, interp in tests:
-            ex = exact[tr, tc]
-            d = np.abs(ex - interp).max(axis=-1)
-            err = np.maximum(err, np.where(np.isnan(d), np.inf, d))
-            all_nan &= np.isnan(ex).all(axis=-1)
-        good = err < tol / 2        # half the bound at the test points: the error
-        bad = ~good & ~all_nan
-        # fill good cells by bilinear interpolation of their corners
-        if good.any():
-            g = np.flatnonzero(good)
-            t = np.arange(s + 1) / s
-            wr = t[None, :, None, None]
-            wc = t[None, None, :, None]
-            block = ((1 - wr) * (1 - wc) * q00[g][:, None, None] + (1 - wr) * wc * q01[g][:, None, None]
-                     + wr * (1 - wc) * q10[g][:, None, None] + wr * wc * q11[g][:, None, None])
-            ri = r[g][:, None, None] + np.arange(s + 1)[None, :, None]
-            cj2 = c[g][:, None, None] + np.arange(s + 1)[None, None, :]
-            res[ri, cj2] = block
-        # split bad cells and the all-NaN cells next to them
-        lvl = np.zeros((H // s + 2, W // s + 2), bool)
-        lvl[r[bad] // s + 1, c[bad] // s + 1] = True
-        near = np.zeros_like(lvl)
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                near[1 + di:lvl.shape[0] - 1 + di, 1 + dj:lvl.shape[1] - 1 + dj] |= lvl[1:-1, 1:-1]
-        split = bad | (all_nan & near[r // s + 1, c // s + 1])
-        sel = cells[split]
-        cells = np.concatenate([sel, sel + [hs, 0], sel + [0, hs], sel + [hs, hs]])
-        s = hs
-    if cells.size:                                  # s == 1: every corner is a pixel
-        r = np.concatenate([cells[:, 0] + dr for dr in (0, 1) for dc in (0, 1)])
-        c = np.concatenate([cells[:, 1] + dc for dr in (0, 1) for dc in (0, 1)])
-        res[r, c] = evaluate(r, c)
-    if stats is not None:
-        stats["exact_evaluations"] = stats.get("exact_evaluations", 0) + n_eval
-        stats["pixels"] = stats.get("pixels", 0) + h * w
-    return res[:h, :w]
+_exact_raw = exact_raw
 
 
 # ----------------------------------------------------------------------------------------
@@ -264,82 +118,6 @@ def resample(raw: np.ndarray, line, element, kernel: str = "bilinear") -> np.nda
 
 
 # ----------------------------------------------------------------------------------------
-# the exact method, tile by tile
-# ----------------------------------------------------------------------------------------
-def rectify_tile(model, source: RawSource, grid: Grid, terrain, kernel: str = "bilinear",
-                 tol: float = TOLERANCE_PX, step: int = 32, stats: dict | None = None,
-                 return_coords: bool = False):
-    """Rectify one window of the output grid (``grid`` is the window's own grid).
-
-    Returns float32 values (NaN = nodata), and with ``return_coords`` also the raw
-    (line, element) array ``(rows, cols, 2)`` (NaN outside the footprint)."""
-    coords = inverse_map(model, grid, terrain, tol=tol, step=step, stats=stats)
-    nl, ne = source.shape
-    li, ei = coords[..., 0], coords[..., 1]
-    inside = (li >= -0.5) & (li <= nl - 0.5) & (ei >= -0.5) & (ei <= ne - 0.5)
-    out = np.full(grid.shape, np.nan, np.float32)
-    if inside.any():
-        m = _MARGIN[kernel]
-        l0 = max(int(np.floor(li[inside].min())) - m, 0)
-        l1 = min(int(np.ceil(li[inside].max())) + m + 1, nl)
-        e0 = max(int(np.floor(ei[inside].min())) - m, 0)
-        e1 = min(int(np.ceil(ei[inside].max())) + m + 1, ne)
-        raw = source.read(l0, l1, e0, e1)
-        v = resample(raw, li[inside] - l0, ei[inside] - e0, kernel)
-        # taps were clamped to the window; the window covers every tap except at the
-        # image's own edges, where repeating the edge pixel is intended
-        out[inside] = v
-    if return_coords:
-        coords = np.where(inside[..., None], coords, np.nan)
-        return out, coords
-    return out
-
-
-def rectify(model, image, grid: Grid, terrain, kernel: str = "bilinear",
-            tol: float = TOLERANCE_PX, tile: int = 512, step: int = 32, glt: bool = False):
-    """The rectified image as a lazy dask array over ``grid`` (tiles of ``tile`` pixels);
-    with ``glt`` a tuple ``(image, glt)``, the GLT an int32 ``(2, rows, cols)`` dask array.
-    Compute it with any dask scheduler, or pass it to :func:`write_cog`."""
-    import dask.array as da
-    if kernel not in KERNELS:
-        raise FormatError(f"unknown resampling kernel {kernel!r}; use one of {', '.join(KERNELS)}")
-    source = image if isinstance(image, RawSource) else RawSource(image)
-    if tuple(source.shape) != tuple(model.shape):
-        raise FormatError(f"raw image is {source.shape[0]} x {source.shape[1]} but the sensor "
-                          f"model expects {model.shape[0]} x {model.shape[1]} (lines x elements)")
-    terrain = open_terrain(terrain)
-    chunks = grid.chunks(tile)
-
-    def block(block_info=None):
-        (r0, r1), (c0, c1) = block_info[None]["array-location"][-2:]
-        sub = grid.window(slice(r0, r1), slice(c0, c1))
-        v, co = rectify_tile(model, source, sub, terrain, kernel, tol, step,
-                             return_coords=True)
-        if not glt:
-            return v
-        g = np.zeros((3,) + v.shape, np.float32)
-        g[0] = v
-        ok = np.isfinite(co[..., 0])
-        g[1] = np.where(ok, np.floor(co[..., 1] + 0.5) + 1, 0)
-        g[2] = np.where(ok, np.floor(co[..., 0] + 0.5) + 1, 0)
-        return g
-
-    if not glt:
-        return da.map_blocks(block, dtype=np.float32, chunks=chunks,
-                             name=f"rectify-{_token(model, grid, kernel, tol, source)}")
-    both = da.map_blocks(block, dtype=np.float32, chunks=((3,),) + chunks,
-                         name=f"rectify-glt-{_token(model, grid, kernel, tol, source)}")
-    return both[0], both[1:].astype(np.int32)
-
-
-def _token(*args) -> str:
-    from dask.base import tokenize
-    return tokenize(*[a.token() if hasattr(a, "token") else
-                      (a.state() if hasattr(a, "state") else
-                       (id(a) if isinstance(a, RawSource) else a)) for a in args])
-
-
-# ----------------------------------------------------------------------------------------
 # the polynomial (forward) method of the fast-rectification paper
 # ----------------------------------------------------------------------------------------
 def _quiet_ground(model, image, terrain) -> np.ndarray:
@@ -374,7 +152,10 @@ def rectify_polynomial(model, image, grid: Grid, terrain, samples: int = 9, degr
 
     Holds the output grid in memory (sum and count arrays); reads the raw image in blocks
     of ``block_lines`` lines."""
-    source = image if isinstance(image, RawSource) else RawSource(image)
+    source = open_raw_image(image)
+    if source.count != 1:
+        raise FormatError(f"the polynomial method rectifies one band; the raw image has "
+                          f"{source.count}: select one (bands) or use the exact method")
     terrain = open_terrain(terrain)
     nl, ne = model.shape
     hgt, wid = grid.shape
@@ -386,7 +167,7 @@ def rectify_polynomial(model, image, grid: Grid, terrain, samples: int = 9, degr
         r, c = grid.rowcol(x, y, op=None)
         r = np.floor(r + 0.5)
         c = np.floor(c + 0.5)
-        v = source.read(l0, l1, 0, ne)
+        v = _as_float(source, source.read(l0, l1, 0, ne)[0])
         ok = (r >= 0) & (r < hgt) & (c >= 0) & (c < wid) & np.isfinite(v)
         flat = (r[ok] * wid + c[ok]).astype(np.intp)
         total += np.bincount(flat, v[ok], minlength=hgt * wid)
@@ -406,6 +187,15 @@ def rectify_polynomial(model, image, grid: Grid, terrain, samples: int = 9, degr
     if stats is not None:
         stats["holes_after_fill"] = int((foot & np.isnan(out)).sum())
     return out.astype(np.float32)
+
+
+def _as_float(source, a) -> np.ndarray:
+    """float64 with NaN for the source's nodata."""
+    a = a.astype(np.float64)
+    nd = source.nodata
+    if nd is not None and not (isinstance(nd, float) and math.isnan(nd)):
+        a[a == nd] = np.nan
+    return a
 
 
 def fill_gaps_idw(values: np.ndarray, holes: np.ndarray) -> np.ndarray:
@@ -463,141 +253,19 @@ def igm_block(model, terrain, crs, l0: int, l1: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------
-# streaming Cloud-Optimized GeoTIFF writing (memory bounded by one tile)
-# ----------------------------------------------------------------------------------------
-class _WindowWriter:
-    """A ``__setitem__`` target for ``dask.array.store`` writing windows of a rasterio
-    dataset (2-D: band 1; 3-D: bands)."""
-
-    def __init__(self, dst, bands: int | None = None):
-        self.dst = dst
-        self.bands = bands
-
-    def __setitem__(self, key, value):
-        from rasterio.windows import Window
-        if self.bands is None:
-            rs, cs = key
-            self.dst.write(np.asarray(value), 1, window=Window(cs.start, rs.start,
-                                                              cs.stop - cs.start,
-                                                              rs.stop - rs.start))
-        else:
-            _, rs, cs = key
-            self.dst.write(np.asarray(value), window=Window(cs.start, rs.start,
-                                                            cs.stop - cs.start,
-                                                            rs.stop - rs.start))
-
-
-def _store_here(sources, targets, scheduler=None, batch: int | None = None) -> None:
-    """Compute the arrays' blocks on the active scheduler (threads, or a distributed
-    cluster) and write each block in THIS process as it arrives. The targets are open
-    files, which must never travel to a worker; memory stays bounded by one batch of
-    blocks. Blocks of one batch share their graph, so common tiles are computed once."""
-    import dask
-    from dask.array.core import slices_from_chunks
-    items = []
-    for arr, tgt in zip(sources, targets):
-        for blk, slc in zip(arr.to_delayed().ravel(), slices_from_chunks(arr.chunks)):
-            items.append((blk, slc, tgt))
-    client = None
-    if scheduler is None:
-        try:
-            from distributed import default_client
-            client = default_client()
-        except (ImportError, ValueError):
-            client = None
-    n = batch or (4 * max(1, sum(client.nthreads().values())) if client else 16)
-    for i in range(0, len(items), n):
-        chunk = items[i:i + n]
-        if client is not None:
-            from distributed import as_completed
-            futures = client.compute([blk for blk, _, _ in chunk])
-            index = {f.key: k for k, f in enumerate(futures)}
-            for fut, value in as_completed(futures, with_results=True):
-                _, slc, tgt = chunk[index[fut.key]]
-                tgt[slc] = value
-        else:
-            values = dask.compute(*[blk for blk, _, _ in chunk], scheduler=scheduler)
-            for (_, slc, tgt), value in zip(chunk, values):
-                tgt[slc] = value
-
-
-def write_cog(path, arrays, grid: Grid | None, nodata=None, tags: Mapping | None = None,
-              blocksize: int = 512, dtype=None, compress: str = "deflate",
-              overview_resampling: str = "average", scheduler=None) -> None:
-    """Compute a dask/numpy array (2-D, or 3-D bands) and write it as a Cloud-Optimized
-    GeoTIFF atomically, window by window. See :func:`write_cogs`."""
-    write_cogs([dict(path=path, array=arrays, grid=grid, nodata=nodata, tags=tags,
-                     dtype=dtype)], blocksize, compress, overview_resampling, scheduler)
-
-
-def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
-               overview_resampling: str = "average", scheduler=None) -> None:
-    """Write several rasters computed in ONE dask graph (shared tiles computed once).
-
-    Each output is a dict: ``path``, ``array`` (dask or numpy, 2-D or bands x rows x cols),
-    ``grid`` (None: ungeoreferenced, raw geometry), ``nodata``, ``tags``, ``dtype``. Each
-    is streamed into a tiled GeoTIFF beside its target (memory bounded by the tiles in
-    flight), then laid out by GDAL's COG driver with internal overviews, atomically."""
-    import contextlib
-    import dask.array as da
-    import rasterio
-    from rasterio.shutil import copy as rio_copy
-    from swathflow.formats.raster import _crs
-    with contextlib.ExitStack() as stack:
-        sources, targets, parts = [], [], []
-        for o in outputs:
-            arr = o["array"]
-            if not hasattr(arr, "chunks"):
-                arr = da.from_array(np.asarray(arr), chunks=blocksize)
-            dtype = np.dtype(o.get("dtype") or arr.dtype)
-            if dtype != arr.dtype:
-                arr = arr.astype(dtype)
-            bands = arr.shape[0] if arr.ndim == 3 else None
-            rows, cols = arr.shape[-2:]
-            profile = dict(driver="GTiff", width=cols, height=rows, count=bands or 1,
-                           dtype=dtype.name, tiled=True, blockxsize=blocksize,
-                           blockysize=blocksize, compress=compress, BIGTIFF="IF_SAFER")
-            if o.get("grid") is not None:
-                profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
-            if o.get("nodata") is not None:
-                profile["nodata"] = o["nodata"]
-            final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
-            part = stack.enter_context(atomic_path(os.fspath(o["path"]) + ".part",
-                                                   suffix=".tif"))
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-                dst = stack.enter_context(rasterio.open(part, "w", **profile))
-            if o.get("tags"):
-                dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
-            sources.append(arr)
-            targets.append(_WindowWriter(dst, bands))
-            parts.append((dst, part, final, o["path"]))
-        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-            _store_here(sources, targets, scheduler)
-        for dst, part, final, path in parts:
-            dst.close()
-            pred = {"PREDICTOR": "YES"} if compress == "deflate" else {}
-            with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-                rio_copy(part, final, driver="COG", COMPRESS=compress.upper(),
-                         BLOCKSIZE=blocksize,
-                         OVERVIEW_RESAMPLING=overview_resampling.upper(),
-                         BIGTIFF="IF_SAFER", **pred)
-    for _, _, _, path in parts:                      # the .part files are renamed, not kept
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(os.fspath(path) + ".part")
-
-
-# ----------------------------------------------------------------------------------------
 # one image, end to end
 # ----------------------------------------------------------------------------------------
 def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd=None,
                   crs="auto-utm", method: str = "exact", kernel: str = "bilinear",
                   tol: float = TOLERANCE_PX, tile: int = 512, products=(),
-                  tags: Mapping | None = None, scheduler=None) -> dict:
+                  tags: Mapping | None = None, scheduler=None, bands=None,
+                  dtype=None, mask_band: bool = False) -> dict:
     """Rectify one raw image to a COG at ``out_path`` (and ``<stem>.glt.tif`` /
     ``<stem>.igm.tif`` when asked in ``products``). The grid is ``grid`` or the image's
-    footprint at ``gsd`` in ``crs``. Returns a small summary dict."""
+    footprint at ``gsd`` in ``crs``. Every band (or the ``bands`` selected) is written,
+    in the raw dtype (``dtype`` overrides; integer nodata, or a mask band with
+    ``mask_band``: see :func:`output_plan`), with the bands' descriptions, wavelengths and
+    units. Returns a small summary dict."""
     import time
     from swathflow._version import __version__
     if method not in METHODS:
@@ -622,15 +290,21 @@ def rectify_image(model, image, terrain, out_path, grid: Grid | None = None, gsd
     summary = {"path": os.fspath(out_path), "grid": grid.state(), "method": method,
                "kernel": kernel}
     if method == "exact":
-        want_glt = "glt" in products
-        res = rectify(model, image, grid, terrain, kernel, tol, tile, glt=want_glt)
-        outs = [dict(path=out_path, array=res[0] if want_glt else res, grid=grid,
-                     nodata=float("nan"), tags=base)]
-        if want_glt:
-            outs.append(dict(path=stem + ".glt.tif", array=res[1], grid=grid, nodata=0,
-                             dtype=np.int32,
-                             tags={**base, "product": "GLT", "bands": "element+1,line+1",
-                                   "convention": "ENVI GLT, 1-based, 0 = none"}))
+        source = open_raw_image(image, bands=bands)
+        check_inputs(model, source, kernel)
+        dt, out_nodata, use_mask = output_plan(source, dtype, mask_band)
+        arr = rectify_blocks(model, source, grid, terrain, kernel, tol, tile, dtype=dtype,
+                             mask_plane=use_mask)
+        outs = [{"path": out_path, "array": arr, "grid": grid, "nodata": out_nodata, "tags": base,
+                     "mask": use_mask, "bands": source.band_info}]
+        summary.update(bands=source.count, dtype=dt.name,
+                       nodata="mask band" if use_mask else str(out_nodata))
+        if "glt" in products:
+            outs.append({"path": stem + ".glt.tif",
+                             "array": glt_blocks(model, source, grid, terrain, kernel, tol, tile),
+                             "grid": grid, "nodata": 0, "dtype": np.int32,
+                             "tags": {**base, "product": "GLT", "bands": "element+1,line+1",
+                                   "convention": "ENVI GLT, 1-based, 0 = none"}})
         write_cogs(outs, blocksize=tile, scheduler=scheduler)
     else:
         st: dict = {}
@@ -669,7 +343,7 @@ def _xcorr_peak(a, w, b, upsample: int = 20) -> np.ndarray:
     peak = np.array(np.unravel_index(np.argmax(cc), cc.shape), float)
     n = np.array(a.shape, float)
     peak = np.where(peak > n // 2, peak - n, peak)
-    size = int(math.ceil(upsample * 1.5))
+    size = math.ceil(upsample * 1.5)
     rows = (np.arange(size) - size // 2) / upsample + peak[0]
     cols = (np.arange(size) - size // 2) / upsample + peak[1]
     kr = np.fft.fftfreq(a.shape[0]) * a.shape[0]

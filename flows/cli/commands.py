@@ -126,7 +126,8 @@ def rectify(args) -> int:
     rectify_mission(args.mission, args.out, calibration=args.calibration,
                     images=_ids(args.images), method=args.method, kernel=args.kernel,
                     tol=args.tolerance, tile=args.tile, products=products,
-                    progress=_say(args))
+                    progress=_say(args),
+                    bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band)
     return 0
 
 

@@ -202,6 +202,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tolerance", type=_positive_float, default=0.05,
                    help="bound on the interpolated raw coordinates' error, pixels (default 0.05)")
     s.add_argument("--tile", type=_positive_int, default=512, help="output tile size (default 512)")
+    s.add_argument("--bands", default="",
+                   help="bands to rectify (default all), comma separated: 1-based indices "
+                        "and ranges (1,4-6) or wavelengths with a unit (550nm,0.67um: the "
+                        "nearest band, from the ENVI header or GDAL band metadata)")
+    s.add_argument("--dtype", choices=("uint8", "uint16", "int16", "uint32", "int32",
+                                       "float32", "float64"),
+                   help="output data type (default: the raw image's; float64 raw -> "
+                        "float32). Integer nodata: the raw image's nodata value, else the "
+                        "type's lowest (0 unsigned); a valid value equal to it moves one "
+                        "unit. Float output: NaN")
+    s.add_argument("--mask-band", action="store_true",
+                   help="integer output: no nodata value, an internal mask band instead "
+                        "(every value of the type stays data)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:rectify"))
 
     s = sub.add_parser("mosaic", parents=common,

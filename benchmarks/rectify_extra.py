@@ -1,0 +1,274 @@
+"""Parts of benchmarks/bench_rectify.py: the whole ``swathflow rectify`` command against
+GDAL's geolocation warp on a simulated mission, the command's start-up, a 100-band uint16
+cube and ``image_to_ground`` on a DEM. Each prints its figures; wall time and CPU time are
+both given (the machine is shared: CPU seconds are the fair per-core measure)."""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _run(cmd, env=None) -> tuple[float, float, str]:
+    """(wall s, CPU s of the child, stdout) of a command."""
+    c0, t0 = _children_cpu(), time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+    if p.returncode:
+        raise RuntimeError(f"{' '.join(map(str, cmd))} failed:\n{p.stderr[-2000:]}")
+    return wall, cpu, p.stdout
+
+
+# ----------------------------------------------------------------------------------------
+# start-up
+# ----------------------------------------------------------------------------------------
+ENGINE_READY = (
+    "import time; t0 = time.perf_counter(); c0 = time.process_time()\n"
+    "import numpy as np\n"
+    "from swathflow.rectification import kernel as K\n"
+    "K.resample_window(np.zeros((1, 8, 8), np.uint16), np.zeros((2, 4, 4), np.float32),"
+    " 'bilinear', None, np.uint16, None)\n"
+    "K.lattice_coords(np.zeros((1, 3), np.int64) + 1, np.zeros((1, 4, 2)), 4, 4, 0, 0, 8, 8)\n"
+    "print(time.perf_counter() - t0, time.process_time() - c0)\n")
+
+
+def startup(repeat: int = 3) -> dict:
+    """``swathflow rectify --help`` (the command's own start-up), and the engine's: import
+    plus the first call of every kernel, with numba's on-disk cache warm and cold."""
+    sw = str(BIN / "swathflow")
+    helps = min((_run([sw, "rectify", "--help"])[:2] for _ in range(repeat)))
+    warm = min(tuple(map(float, _run([sys.executable, "-c", ENGINE_READY])[2].split()))
+               for _ in range(repeat))
+    with tempfile.TemporaryDirectory() as td:
+        env = dict(os.environ, NUMBA_CACHE_DIR=td)
+        cold = tuple(map(float, _run([sys.executable, "-c", ENGINE_READY], env=env)[2].split()))
+    r = lambda p: {"wall_s": round(p[0], 3), "cpu_s": round(p[1], 3)}  # noqa: E731
+    return {"rectify_help": r(helps), "engine_ready_cache_warm": r(warm),
+            "engine_ready_cache_cold_jit": r(cold)}
+
+
+# ----------------------------------------------------------------------------------------
+# the whole command against GDAL on a simulated mission
+# ----------------------------------------------------------------------------------------
+def _mission(path, preset):
+    if not (Path(path) / "mission.toml").exists():
+        _run([str(BIN / "swathflow"), "simulate", str(path), "--preset", preset, "--seed", "3"])
+    return Path(path)
+
+
+def _vrt(tmp, image, X, Y, crs_wkt, dtype):
+    nl, ne = X.shape
+    from swathflow.formats.raster import write_geotiff
+    write_geotiff(tmp / "x.tif", X, None, (1, 0, 0, 0, 1, 0))
+    write_geotiff(tmp / "y.tif", Y, None, (1, 0, 0, 0, 1, 0))
+    wkt = crs_wkt.replace('"', "&quot;")
+    vrt = tmp / "raw.vrt"
+    vrt.write_text(f"""<VRTDataset rasterXSize="{ne}" rasterYSize="{nl}">
+  <Metadata domain="GEOLOCATION">
+    <MDI key="SRS">{wkt}</MDI>
+    <MDI key="X_DATASET">{tmp / 'x.tif'}</MDI><MDI key="X_BAND">1</MDI>
+    <MDI key="Y_DATASET">{tmp / 'y.tif'}</MDI><MDI key="Y_BAND">1</MDI>
+    <MDI key="PIXEL_OFFSET">0</MDI><MDI key="LINE_OFFSET">0</MDI>
+    <MDI key="PIXEL_STEP">1</MDI><MDI key="LINE_STEP">1</MDI>
+  </Metadata>
+  <VRTRasterBand dataType="{dtype}" band="1">
+    <SimpleSource><SourceFilename>{image}</SourceFilename><SourceBand>1</SourceBand></SimpleSource>
+  </VRTRasterBand>
+</VRTDataset>
+""")
+    return vrt
+
+
+def _geoloc(model, terrain, crs):
+    from swathflow.geometry.grid import ecef_to_map
+    nl, ne = model.shape
+    ll, ee = np.meshgrid(np.arange(nl) - 0.5, np.arange(ne) - 0.5, indexing="ij")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        g = model.image_to_ground(np.stack([ll, ee], axis=-1).astype(float), terrain)
+    X, Y, _ = ecef_to_map(g, crs)
+    return X, Y
+
+
+def _shift(path_or_array, transform, truth):
+    import rasterio
+    from truth_ortho import overlap_with_truth
+
+    from swathflow.rectification.rectify import shift_report
+    if isinstance(path_or_array, (str, Path)):
+        with rasterio.open(path_or_array) as src:
+            a = src.read(1, masked=True).astype(float).filled(np.nan)
+            transform = src.transform
+    else:
+        a = path_or_array
+    sub_r, sub_t = overlap_with_truth(a, transform, truth)
+    return shift_report(sub_r, sub_t, tile=64, margin=16)
+
+
+def command(mission_dir, preset="demo", threads=2) -> dict:
+    """``swathflow rectify`` (a subprocess: start-up, every swing, COG writing) against
+    ``gdalwarp -geoloc`` and ``rasterio.warp.reproject`` on the same swings and grids, the
+    peers given their geolocation arrays (pixel corners, our model) for free."""
+    import rasterio
+    from rasterio.crs import CRS
+    from rasterio.warp import Resampling, reproject
+
+    from swathflow.formats.calibfile import calibration_priors, read_calibration
+    from swathflow.formats.raster import read_raster
+    from swathflow.geometry.grid import Grid
+    from swathflow.ingest.mission import load_mission
+    m = _mission(mission_dir, preset)
+    cal = m / "truth" / "calibration.json"
+    truth = read_raster(m / "truth" / "ortho.tif", masked_to_nan=True)
+    out = Path(tempfile.mkdtemp(prefix="bench-rect-"))
+    env = dict(os.environ, DASK_NUM_WORKERS=str(threads))
+    wall, cpu, _ = _run([str(BIN / "swathflow"), "rectify", str(m), "--calibration", str(cal),
+                         "--out", str(out / "ours")], env=env)
+    mission = load_mission(m)
+    params = mission.priors.updated(calibration_priors(read_calibration(cal)))
+    gdal = shutil.which("gdalwarp")
+    rows = {"ours": dict(wall=wall, cpu=cpu, px=0, shifts=[]),
+            "gdalwarp": dict(wall=0.0, cpu=0.0, px=0, shifts=[]),
+            "rasterio": dict(wall=0.0, cpu=0.0, px=0, shifts=[])}
+    for iid in mission.image_ids:
+        ours = out / "ours" / f"{iid}.tif"
+        with rasterio.open(ours) as src:
+            grid = Grid(mission.crs, src.transform, src.shape)
+            dtype = src.dtypes[0]
+        n = grid.shape[0] * grid.shape[1]
+        rows["ours"]["px"] += n
+        rows["ours"]["shifts"].append(_shift(ours, None, truth))
+        model = mission.model(iid, params)
+        X, Y = _geoloc(model, mission.terrain, grid.crs)       # free for the peers
+        crs = CRS.from_wkt(grid.pyproj_crs.to_wkt())
+        src_path = mission.images[iid].file
+        if gdal:
+            tmp = Path(tempfile.mkdtemp(prefix="bench-gdal-"))
+            vrt = _vrt(tmp, src_path, X, Y, grid.pyproj_crs.to_wkt(), "UInt16")
+            xmin, ymin, xmax, ymax = grid.bounds
+            cmd = [gdal, "-q", "-overwrite", "-geoloc", "-t_srs", grid.pyproj_crs.to_string(),
+                   "-te", str(xmin), str(ymin), str(xmax), str(ymax), "-ts", str(grid.width),
+                   str(grid.height), "-r", "bilinear", "-dstnodata", "0", "-ot", dtype,
+                   "-multi", "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES",
+                   "-co", "COMPRESS=DEFLATE", str(vrt), str(tmp / "gdal.tif")]
+            w, c, _ = _run(cmd)
+            rows["gdalwarp"]["wall"] += w
+            rows["gdalwarp"]["cpu"] += c
+            rows["gdalwarp"]["px"] += n
+            rows["gdalwarp"]["shifts"].append(_shift(tmp / "gdal.tif", None, truth))
+            rows["gdalwarp"]["cmd"] = " ".join(cmd)
+            shutil.rmtree(tmp)
+        with rasterio.open(src_path) as s:
+            raw = s.read(1)
+        dst = np.zeros(grid.shape, raw.dtype)
+        c0, t0 = time.process_time(), time.perf_counter()
+        reproject(raw, dst, src_geoloc_array=np.stack([X, Y]), src_crs=crs,
+                  dst_transform=grid.transform, dst_crs=crs, dst_nodata=0,
+                  resampling=Resampling.bilinear, num_threads=threads)
+        rows["rasterio"]["wall"] += time.perf_counter() - t0
+        rows["rasterio"]["cpu"] += time.process_time() - c0
+        rows["rasterio"]["px"] += n
+        rows["rasterio"]["shifts"].append(
+            _shift(np.where(dst > 0, dst.astype(float), np.nan), grid.transform, truth))
+    shutil.rmtree(out)
+    res = {}
+    for k, r in rows.items():
+        if not r["px"]:
+            continue
+        sh = r.pop("shifts")
+        res[k] = {"wall_s": round(r["wall"], 2), "cpu_s": round(r["cpu"], 2),
+                  "out_mpx": round(r["px"] / 1e6, 2),
+                  "mpx_per_cpu_s": round(r["px"] / 1e6 / max(r["cpu"], 1e-9), 2),
+                  "median_whole_shift_px": round(float(np.median([s["whole_px"] for s in sh])), 4),
+                  "worst_tile_px": round(float(np.nanmax([s["worst_tile_px"] for s in sh])), 4)}
+        if "cmd" in r:
+            res[k]["cmd"] = r["cmd"][:200]
+    return res
+
+
+# ----------------------------------------------------------------------------------------
+# a 100-band uint16 cube
+# ----------------------------------------------------------------------------------------
+def cube(bands=100, lines=1200, elements=256, threads=1) -> dict:
+    """Output Mpx x bands per second of a uint16 cube at about the raw resolution."""
+    import dask
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_rectify import scene_model
+
+    from swathflow.geometry.grid import footprint_grid
+    from swathflow.geometry.terrain import ConstantHeight
+    from swathflow.rectification import rectify as R
+    model = scene_model(n_lines=lines, n_elements=elements, swing=15.0, pixel_pitch=30e-6)
+    terrain = ConstantHeight(5.0)
+    b, li, ei = np.ogrid[0:bands, 0:lines, 0:elements]
+    raw = (2000 + 7 * b + 300 * np.sin(li / 9.0) * np.cos(ei / 7.0)).astype(np.uint16)
+    g0 = footprint_grid(model, terrain, 1.0)
+    gsd = float(np.sqrt(g0.shape[0] * g0.shape[1] / (lines * elements)))
+    grid = footprint_grid(model, terrain, gsd)
+    sched = "sync" if threads == 1 else "threads"
+    with dask.config.set(scheduler=sched, num_workers=threads):
+        R.rectify(model, raw, grid, terrain, tile=512).compute()            # warm-up
+        c0, t0 = time.process_time(), time.perf_counter()
+        out = R.rectify(model, raw, grid, terrain, tile=512).compute()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    assert out.dtype == np.uint16 and out.shape[0] == bands
+    mpxb = grid.shape[0] * grid.shape[1] * bands / 1e6
+    return {"raw": [bands, lines, elements], "grid": list(grid.shape), "gsd": round(gsd, 3),
+            "threads": threads, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
+            "mpx_bands_per_s_per_core_wall": round(mpxb / wall / threads, 1),
+            "mpx_bands_per_cpu_s": round(mpxb / cpu, 1)}
+
+
+# ----------------------------------------------------------------------------------------
+# image_to_ground on a DEM
+# ----------------------------------------------------------------------------------------
+def igm(points=200_000) -> dict:
+    """Points per second of ``image_to_ground`` on a DEM (the hills DEM of the tests)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_rectify import hills_dem, scene_model
+
+    from swathflow.geometry.grid import footprint_grid
+    from swathflow.geometry.terrain import ConstantHeight
+    model = scene_model(n_lines=600, n_elements=192)
+    with tempfile.TemporaryDirectory() as td:
+        dem = hills_dem(Path(td) / "hills.tif", footprint_grid(model, ConstantHeight(5.0), 1.5))
+        rng = np.random.default_rng(0)
+        img = np.stack([rng.uniform(0, 599, points), rng.uniform(0, 191, points)], axis=-1)
+        model.image_to_ground(img[:1000], dem)
+        c0, t0 = time.process_time(), time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model.image_to_ground(img, dem)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        # before: the same rays through the numpy marching (intersect(compiled=False))
+        from swathflow.geometry.intersect import intersect
+        c1 = time.process_time()
+        o, d = model.ray(img)
+        intersect(o, d, dem, compiled=False)
+        cpu_before = time.process_time() - c1
+    return {"points": points, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
+            "points_per_cpu_s": round(points / cpu),
+            "numpy_marching_points_per_cpu_s": round(points / cpu_before)}
+
+
+def main(what: str, **kw) -> None:
+    fn = {"startup": startup, "command": command, "cube": cube, "igm": igm}[what]
+    r = fn(**kw)
+    print(json.dumps(r, indent=1))

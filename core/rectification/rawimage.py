@@ -1,0 +1,412 @@
+"""Raw images for the rectifier: windowed, multi-band, native-dtype reads.
+
+Sources: a numpy array (2-D ``(line, element)`` or 3-D ``(band, line, element)``, memmaps
+included), an xarray DataArray / Dataset (data var ``dn``, dims ``line``, ``element`` and
+optionally ``band``), a dask array, or a file: ENVI BSQ / BIL / BIP with its ``.hdr``
+(memory-mapped, any interleave, either byte order) or anything rasterio reads (multi-band
+GeoTIFF...). Reads return the native dtype, ``(bands, lines, elements)``.
+
+Band metadata (names, wavelengths, their units, FWHM) comes from the ENVI header or from
+GDAL band descriptions / metadata, and selection works by 1-based index (``"1,4-6"``) or
+by wavelength (``"550nm,0.67um"``: the nearest band, within its FWHM or half the band
+spacing).
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+from swathflow.errors import FormatError
+
+ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8",
+               15: "u8"}
+_UNITS_NM = {"nm": 1.0, "nanometers": 1.0, "nanometer": 1.0, "um": 1e3, "µm": 1e3,
+             "micrometers": 1e3, "micrometer": 1e3, "microns": 1e3, "micron": 1e3,
+             "mm": 1e6, "millimeters": 1e6}
+
+
+@dataclass(frozen=True)
+class BandInfo:
+    """One band: 1-based ``index`` in the file, ``description``, ``wavelength`` and
+    ``fwhm`` (in ``units``, or None) ."""
+
+    index: int
+    description: str = ""
+    wavelength: float | None = None
+    fwhm: float | None = None
+    units: str | None = None
+
+    def tags(self) -> dict:
+        t = {"source_band": str(self.index)}
+        if self.wavelength is not None:
+            t["wavelength"] = repr(self.wavelength)
+            t["wavelength_units"] = self.units or ""
+        if self.fwhm is not None:
+            t["fwhm"] = repr(self.fwhm)
+        return t
+
+
+def _open_raw(path):
+    """rasterio.open for raw (non-georeferenced) images, without the warning."""
+    import warnings
+
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        return rasterio.open(os.fspath(path))
+
+
+# ----------------------------------------------------------------------------------------
+# ENVI headers
+# ----------------------------------------------------------------------------------------
+def envi_header_path(path) -> str | None:
+    """The ``.hdr`` of an ENVI data file (``x.bil.hdr`` or ``x.hdr``), or None."""
+    path = os.fspath(path)
+    if path.lower().endswith(".hdr"):
+        return path
+    for cand in (path + ".hdr", os.path.splitext(path)[0] + ".hdr"):
+        if os.path.exists(cand):
+            return cand
+    return None
+
+
+def read_envi_header(path) -> dict:
+    """Parse an ENVI header into ``{key (lower case): str | list[str]}`` (brace lists
+    split on commas). Raises :class:`FormatError` naming the file when it is not one."""
+    with open(path, encoding="utf-8", errors="replace") as f:
+        text = f.read()
+    if not text.lstrip().upper().startswith("ENVI"):
+        raise FormatError(f"{path}: not an ENVI header (the first line must be 'ENVI')")
+    out: dict = {}
+    for m in re.finditer(r"^\s*([^=\n]+?)\s*=\s*(\{[^}]*\}|[^\n]*)", text, re.MULTILINE):
+        key, val = m.group(1).strip().lower(), m.group(2).strip()
+        if val.startswith("{"):
+            inner = val[1:-1].strip()
+            out[key] = [v.strip() for v in inner.split(",")] if key != "description" else inner
+        else:
+            out[key] = val
+    return out
+
+
+def _int(hdr, key, path, default=None):
+    try:
+        return int(hdr[key]) if key in hdr else default
+    except ValueError:
+        raise FormatError(f"{path}: '{key} = {hdr[key]}' is not an integer") from None
+
+
+def _floats(hdr, key, n, path):
+    if key not in hdr:
+        return [None] * n
+    vals = hdr[key] if isinstance(hdr[key], list) else [hdr[key]]
+    try:
+        vals = [float(v) for v in vals if v != ""]
+    except ValueError:
+        raise FormatError(f"{path}: '{key}' holds a value that is not a number") from None
+    if len(vals) != n:
+        raise FormatError(f"{path}: '{key}' lists {len(vals)} values for {n} bands; give "
+                          f"one per band")
+    return vals
+
+
+def _envi_bands(hdr, n, path) -> list[BandInfo]:
+    names = hdr.get("band names") or []
+    names = names if isinstance(names, list) else [names]
+    wl = _floats(hdr, "wavelength", n, path)
+    fw = _floats(hdr, "fwhm", n, path)
+    units = hdr.get("wavelength units")
+    units = units if isinstance(units, str) and units.lower() != "unknown" else None
+    return [BandInfo(i + 1, names[i] if i < len(names) else "", wl[i], fw[i],
+                     units if wl[i] is not None else None) for i in range(n)]
+
+
+def open_envi(path) -> RawImage:
+    """An ENVI image (BSQ, BIL or BIP; ``path`` the data file or its ``.hdr``)."""
+    path = os.fspath(path)
+    hdr_path = envi_header_path(path)
+    if hdr_path is None:
+        raise FormatError(f"{path}: no ENVI header beside it (expected {path}.hdr)")
+    hdr = read_envi_header(hdr_path)
+    data = path if not path.lower().endswith(".hdr") else _envi_data_path(hdr_path)
+    ns, nl, nb = (_int(hdr, k, hdr_path) for k in ("samples", "lines", "bands"))
+    if not (ns and nl and nb):
+        raise FormatError(f"{hdr_path}: 'samples', 'lines' and 'bands' are required")
+    code = _int(hdr, "data type", hdr_path)
+    if code not in ENVI_DTYPES:
+        raise FormatError(f"{hdr_path}: 'data type = {hdr.get('data type')}' is not "
+                          f"supported; use one of {sorted(ENVI_DTYPES)}")
+    order = ">" if _int(hdr, "byte order", hdr_path, 0) == 1 else "<"
+    dtype = np.dtype(order + ENVI_DTYPES[code])
+    inter = str(hdr.get("interleave", "bsq")).lower()
+    shapes = {"bsq": ((nb, nl, ns), (0, 1, 2)), "bil": ((nl, nb, ns), (1, 0, 2)),
+              "bip": ((nl, ns, nb), (2, 0, 1))}
+    if inter not in shapes:
+        raise FormatError(f"{hdr_path}: 'interleave = {inter}' is not bsq, bil or bip")
+    offset = _int(hdr, "header offset", hdr_path, 0)
+    need = offset + nb * nl * ns * dtype.itemsize
+    if not os.path.exists(data) or os.path.getsize(data) < need:
+        have = os.path.getsize(data) if os.path.exists(data) else 0
+        raise FormatError(f"{data}: {have} bytes but the header {hdr_path} describes "
+                          f"{need} ({nb} bands x {nl} lines x {ns} samples of {dtype.name}, "
+                          f"offset {offset}); fix the header or the file")
+    shape, axes = shapes[inter]
+    mm = np.memmap(data, dtype=dtype, mode="r", offset=offset, shape=shape)
+    nodata = hdr.get("data ignore value")
+    nodata = float(nodata) if isinstance(nodata, str) and nodata else None
+    return RawImage(mm.transpose(axes), nodata, _envi_bands(hdr, nb, hdr_path), path=data,
+                    interleave=inter)
+
+
+def _envi_data_path(hdr_path: str) -> str:
+    stem = os.path.splitext(hdr_path)[0]
+    for ext in ("", ".bil", ".bip", ".bsq", ".img", ".dat", ".raw"):
+        if os.path.exists(stem + ext) and not (stem + ext).lower().endswith(".hdr"):
+            return stem + ext
+    raise FormatError(f"{hdr_path}: no data file beside the header (tried {stem}.bil/.bip/"
+                      f".bsq/.img/.dat)")
+
+
+# ----------------------------------------------------------------------------------------
+# the raw image
+# ----------------------------------------------------------------------------------------
+@dataclass(eq=False)
+class RawImage:
+    """A raw image ``(bands, lines, elements)`` with windowed native-dtype reads.
+
+    ``data`` is an array-like (numpy, memmap, dask) or None with ``path`` a raster file
+    read through rasterio. ``selected`` are the 0-based band positions read (all by
+    default); ``two_d`` marks a 2-D source whose rectification stays 2-D."""
+
+    data: object
+    nodata: float | None = None
+    bands: list = field(default_factory=list)
+    path: str = ""
+    interleave: str = ""
+    selected: tuple = ()
+    two_d: bool = False
+
+    def __post_init__(self):
+        if self.data is not None:
+            self.shape3 = tuple(int(n) for n in self.data.shape)
+            self.dtype = np.dtype(self.data.dtype).newbyteorder("=")
+        if not self.bands:
+            self.bands = [BandInfo(i + 1) for i in range(self.shape3[0])]
+        if not self.selected:
+            self.selected = tuple(range(self.shape3[0]))
+
+    # --- shape ------------------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(lines, elements), as the sensor model's shape."""
+        return self.shape3[1], self.shape3[2]
+
+    @property
+    def count(self) -> int:
+        return len(self.selected)
+
+    @property
+    def band_info(self) -> list[BandInfo]:
+        return [self.bands[i] for i in self.selected]
+
+    def select(self, spec) -> RawImage:
+        """A view reading only the bands of ``spec`` (see :func:`parse_bands`)."""
+        sel = parse_bands(spec, self.bands, self.path or "raw image")
+        return RawImage(self.data, self.nodata, self.bands, self.path, self.interleave,
+                        tuple(sel), False) if self.data is not None else \
+            _with_rasterio(self, tuple(sel))
+
+    # --- reads ------------------------------------------------------------------------
+    def read(self, l0: int, l1: int, e0: int, e1: int) -> np.ndarray:
+        """``(bands, l1 - l0, e1 - e0)`` in the native dtype (native byte order)."""
+        if self.data is None:
+            from rasterio.windows import Window
+            with _open_raw(self.path) as src:
+                a = src.read([i + 1 for i in self.selected],
+                             window=Window(e0, l0, e1 - e0, l1 - l0))
+            return a
+        sel = list(self.selected)
+        if sel == list(range(self.shape3[0])):
+            a = self.data[:, l0:l1, e0:e1]
+        elif len(sel) == 1:
+            a = self.data[sel[0]:sel[0] + 1, l0:l1, e0:e1]
+        else:
+            a = self.data[:, l0:l1, e0:e1][sel] if self.interleave == "bip" else \
+                np.stack([self.data[i, l0:l1, e0:e1] for i in sel])
+        if hasattr(a, "compute"):
+            import dask
+            with dask.config.set(scheduler="sync"):
+                a = a.compute()
+        a = np.asarray(getattr(a, "values", a))
+        if not a.dtype.isnative:
+            a = a.astype(a.dtype.newbyteorder("="))
+        return np.ascontiguousarray(a)
+
+    def token(self):
+        return (self.path or id(self.data), self.selected, str(self.dtype), self.nodata)
+
+
+def _with_rasterio(img: RawImage, sel) -> RawImage:
+    out = RawImage.__new__(RawImage)
+    out.__dict__.update(img.__dict__)
+    out.selected = sel
+    out.two_d = False
+    return out
+
+
+def _open_rasterio(path: str, nodata=None) -> RawImage:
+    import rasterio
+    try:
+        with _open_raw(path) as src:
+            shape3 = (src.count, src.height, src.width)
+            dtype = np.dtype(src.dtypes[0])
+            nd = src.nodata if nodata is None else nodata
+            infos = []
+            for i in range(1, src.count + 1):
+                md = src.tags(i)
+                wl = md.get("wavelength")
+                fw = md.get("fwhm")
+                infos.append(BandInfo(i, src.descriptions[i - 1] or "",
+                                      float(wl) if wl not in (None, "") else None,
+                                      float(fw) if fw not in (None, "") else None,
+                                      md.get("wavelength_units") or None))
+    except rasterio.errors.RasterioIOError as exc:
+        raise FormatError(f"{path}: cannot read image: {exc}") from None
+    img = RawImage.__new__(RawImage)
+    img.data, img.nodata, img.bands, img.path = None, nd, infos, path
+    img.interleave, img.shape3, img.dtype = "", shape3, dtype
+    img.selected, img.two_d = tuple(range(shape3[0])), shape3[0] == 1
+    return img
+
+
+class RawSource:
+    """The former single-band reader, kept for its callers: band 1 (the first selected
+    band) of any raw image :func:`open_raw_image` accepts, read as float64 ``(lines,
+    elements)`` with NaN for nodata. The engine itself reads :attr:`image`."""
+
+    def __init__(self, data, nodata=None):
+        self.image = open_raw_image(data, nodata=nodata)
+        self.shape = self.image.shape
+        self.dtype = self.image.dtype
+        self.nodata = self.image.nodata
+
+    def read(self, l0: int, l1: int, e0: int, e1: int) -> np.ndarray:
+        a = self.image.read(l0, l1, e0, e1)[0].astype(np.float64)
+        nd = self.nodata
+        if nd is not None and not (isinstance(nd, float) and math.isnan(nd)):
+            a[a == nd] = np.nan
+        return a
+
+    def token(self):
+        return self.image.token()
+
+
+def open_raw_image(image, nodata=None, bands=None) -> RawImage:
+    """A :class:`RawImage` from a path (ENVI or any raster), an array (2-D or 3-D),
+    an xarray object, a :class:`RawImage` or a :class:`RawSource`; ``bands`` selects a
+    subset."""
+    if isinstance(image, RawSource):
+        image = image.image
+    if isinstance(image, RawImage):
+        img = image
+    elif isinstance(image, (str, os.PathLike)):
+        path = os.fspath(image)
+        if not os.path.exists(path):
+            raise FormatError(f"{path}: raw image not found")
+        img = open_envi(path) if envi_header_path(path) else _open_rasterio(path, nodata)
+        if nodata is not None:
+            img.nodata = nodata
+    else:
+        img = _from_array(image, nodata)
+    return img.select(bands) if bands not in (None, "", ()) else img
+
+
+def _from_array(data, nodata) -> RawImage:
+    infos = []
+    if hasattr(data, "data_vars"):          # xarray Dataset
+        data = data["dn"]
+    if hasattr(data, "dims") and hasattr(data, "transpose"):   # xarray DataArray
+        dims = ("band", "line", "element") if "band" in data.dims else ("line", "element")
+        data = data.transpose(*dims)
+        if nodata is None:
+            nodata = data.attrs.get("_FillValue", data.attrs.get("nodata"))
+        if "wavelength" in data.coords and "band" in data.dims:
+            wl = np.asarray(data["wavelength"].values, float)
+            units = data["wavelength"].attrs.get("units")
+            infos = [BandInfo(i + 1, "", float(w), None, units) for i, w in enumerate(wl)]
+        data = data.data
+    two_d = data.ndim == 2
+    if two_d:
+        data = data[None]
+    if data.ndim != 3:
+        raise FormatError(f"a raw image must be 2-D (line, element) or 3-D (band, line, "
+                          f"element), got shape {data.shape}")
+    if nodata is not None and isinstance(nodata, float) and math.isnan(nodata):
+        nodata = None                           # NaN is always nodata
+    return RawImage(data, nodata, infos, two_d=two_d)
+
+
+# ----------------------------------------------------------------------------------------
+# band selection
+# ----------------------------------------------------------------------------------------
+_WL = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*(nm|um|µm)\s*$", re.IGNORECASE)
+
+
+def parse_bands(spec, infos: list[BandInfo], where: str = "raw image") -> list[int]:
+    """0-based band positions from ``spec``: 1-based indices and ranges (``"1,3,5-8"``),
+    wavelengths with a unit (``"550nm"``, ``"0.67um"``: the nearest band, within its
+    FWHM, or half the spacing to its neighbours when the header has no FWHM), or a list
+    of ints (1-based)."""
+    n = len(infos)
+    items = spec if isinstance(spec, (list, tuple)) else str(spec).split(",")
+    out: list[int] = []
+    for it in items:
+        tok = str(it).strip()
+        if not tok:
+            continue
+        m = _WL.match(tok)
+        if m:
+            out.append(_by_wavelength(float(m.group(1)) * _UNITS_NM[m.group(2).lower()
+                                                                    .replace("µ", "u")],
+                                      tok, infos, where))
+            continue
+        rng = re.fullmatch(r"(\d+)\s*-\s*(\d+)", tok)
+        try:
+            lo, hi = (int(rng.group(1)), int(rng.group(2))) if rng else (int(tok), int(tok))
+        except ValueError:
+            raise FormatError(f"{where}: band {tok!r} is neither a 1-based index, a range "
+                              f"(3-7) nor a wavelength with a unit (550nm, 0.55um)") from None
+        if not (1 <= lo <= hi <= n):
+            raise FormatError(f"{where}: band {tok} is out of range; the image has bands "
+                              f"1-{n}")
+        out.extend(range(lo - 1, hi))
+    if not out:
+        raise FormatError(f"{where}: the band selection {spec!r} selects no band")
+    return out
+
+
+def _by_wavelength(nm: float, tok: str, infos, where) -> int:
+    wl = np.array([_to_nm(b) for b in infos], float)
+    if not np.isfinite(wl).any():
+        raise FormatError(f"{where}: band {tok} asks for a wavelength but the image has no "
+                          f"band wavelengths (with units); select bands by index instead")
+    i = int(np.nanargmin(np.abs(wl - nm)))
+    fw = infos[i].fwhm
+    if fw is not None and infos[i].units:
+        tolerance = fw * _UNITS_NM.get(infos[i].units.lower(), math.nan)
+    else:
+        others = np.abs(np.delete(wl, i) - wl[i]) if len(wl) > 1 else np.array([np.inf])
+        tolerance = np.nanmin(others)
+    if not abs(wl[i] - nm) <= max(tolerance / 2 if fw is None else tolerance, 1e-9):
+        raise FormatError(f"{where}: no band at {tok}: the nearest is band {i + 1} at "
+                          f"{wl[i]:g} nm")
+    return i
+
+
+def _to_nm(b: BandInfo) -> float:
+    if b.wavelength is None or not b.units:
+        return math.nan
+    return b.wavelength * _UNITS_NM.get(b.units.lower(), math.nan)

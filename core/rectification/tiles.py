@@ -1,0 +1,206 @@
+"""The exact method, tile by tile: lattice (:mod:`.lattice`) -> compiled kernels
+(:mod:`.kernel`) -> a lazy dask array over the output grid.
+
+Per tile: the lattice's leaves bound the raw window the tile needs (bilinear interpolation
+stays inside its corners' box); that window is read once, in its native dtype, for the
+selected bands; the coordinates are painted once (float32, window-relative) and every band
+is resampled at them. Memory is bounded by the tile and its raw window, never by the swing.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+from swathflow.errors import FormatError
+from swathflow.geometry.terrain import open_terrain
+from swathflow.rectification.kernel import lattice_coords, resample_window
+from swathflow.rectification.lattice import TOLERANCE_PX, leaves
+from swathflow.rectification.rawimage import RawImage, open_raw_image
+
+KERNELS = ("nearest", "bilinear", "cubic")
+MARGIN = {"nearest": 1, "bilinear": 2, "cubic": 3}
+#: output dtypes a user may ask for (``--dtype``)
+DTYPES = ("uint8", "uint16", "int16", "uint32", "int32", "float32", "float64")
+
+
+def output_plan(source: RawImage, dtype=None,
+                mask_band: bool = False) -> tuple[np.dtype, float | None, bool]:
+    """(output dtype, output nodata, mask band) for a raw image.
+
+    The raw dtype is kept (uint8, uint16, int16, int32, uint32, float32); float64 and
+    other types become float32 unless ``dtype`` says otherwise. Float output: NaN marks
+    nodata. Integer output: the raw image's own nodata value when the output type can
+    hold it, else the type's lowest value (0 unsigned, -32768 for int16...); a valid
+    value that lands on the nodata value moves one unit inwards (as GDAL's warper does),
+    so nodata cannot collide with data. With ``mask_band`` integer output carries no
+    nodata value but a mask band (every value of the type stays data)."""
+    if dtype is not None:
+        dt = np.dtype(dtype)
+        if dt.name not in DTYPES:
+            raise FormatError(f"output dtype {dt.name!r} is not supported; use one of "
+                              f"{', '.join(DTYPES)}")
+    else:
+        src = np.dtype(source.dtype)
+        dt = src if src.name in DTYPES and src.name != "float64" else np.dtype(np.float32)
+        if src.name == "int8":
+            dt = np.dtype(np.int16)
+    if dt.kind == "f":
+        return dt, float("nan"), False
+    if mask_band:
+        return dt, None, True
+    nd = source.nodata
+    info = np.iinfo(dt)
+    if nd is not None and not (isinstance(nd, float) and math.isnan(nd)):
+        if float(nd) == int(nd) and info.min <= nd <= info.max:
+            return dt, int(nd), False
+    return dt, int(info.min), False
+
+
+def _window(lv, kernel, nl, ne):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)       # all-NaN leaves
+        b = lv.bounds(nl, ne)
+    if b is None:
+        return None
+    m = MARGIN[kernel]
+    l0 = max(math.floor(b[0]) - m, 0)
+    l1 = min(math.ceil(b[1]) + m + 1, nl)
+    e0 = max(math.floor(b[2]) - m, 0)
+    e1 = min(math.ceil(b[3]) + m + 1, ne)
+    return (l0, l1, e0, e1) if l1 > l0 and e1 > e0 else None
+
+
+def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_PX, step=32,
+                stats=None):
+    """(window-relative coordinates ``(2, h, w)`` float32, window ``(l0, l1, e0, e1)`` or
+    None) of one output tile."""
+    lv = leaves(model, grid, terrain, tol, step)
+    if stats is not None:
+        stats["exact_evaluations"] = stats.get("exact_evaluations", 0) + lv.exact_evaluations
+        stats["pixels"] = stats.get("pixels", 0) + grid.shape[0] * grid.shape[1]
+    nl, ne = source.shape
+    win = _window(lv, kernel, nl, ne)
+    h, w = grid.shape
+    if win is None:
+        return np.full((2, h, w), np.nan, np.float32), None
+    return lattice_coords(lv.cells, lv.corners, h, w, win[0], win[2], nl, ne), win
+
+
+def rectify_tile(model, source, grid, terrain, kernel: str = "bilinear",
+                 tol: float = TOLERANCE_PX, step: int = 32, stats: dict | None = None,
+                 return_coords: bool = False):
+    """One window of the output grid (``grid`` is the window's own grid) as float32
+    ``(rows, cols)`` of the first (selected) band, NaN = nodata; with ``return_coords``
+    also the raw (line, element) ``(rows, cols, 2)`` (NaN off the image). The multi-band,
+    native-dtype form is :func:`tile_values`."""
+    src = open_raw_image(source)
+    src = src.select([src.selected[0] + 1]) if src.count > 1 else src
+    v, ok = tile_values(model, src, grid, terrain, kernel, tol, step, stats,
+                        dtype=np.float32)
+    out = np.where(ok, v[0], np.float32(np.nan))
+    if not return_coords:
+        return out
+    co, win = tile_coords(model, src, grid, terrain, kernel, tol, step)
+    if win is None:
+        return out, np.full(grid.shape + (2,), np.nan)
+    return out, np.stack([co[0] + win[0], co[1] + win[2]], axis=-1).astype(np.float64)
+
+
+def tile_values(model, source, grid, terrain, kernel: str = "bilinear",
+                tol: float = TOLERANCE_PX, step: int = 32, stats: dict | None = None,
+                dtype=None, mask_band: bool = False):
+    """Rectify one window of the output grid (``grid`` is the window's own grid).
+
+    Returns ``(values (bands, h, w), valid (h, w) bool)`` in the output dtype of
+    :func:`output_plan` (nodata pixels hold the output nodata, or 0 with a mask)."""
+    source = open_raw_image(source)
+    dt, ond, _ = output_plan(source, dtype, mask_band)
+    co, win = tile_coords(model, source, grid, terrain, kernel, tol, step, stats)
+    if win is None:
+        h, w = grid.shape
+        fill = ond if ond is not None else 0
+        return np.full((source.count, h, w), fill, dt), np.zeros((h, w), bool)
+    raw = source.read(*win)
+    return resample_window(raw, co, kernel, source.nodata, dt, ond)
+
+
+def glt_tile(co, win):
+    """ENVI GLT ``(2, h, w)`` int32 (element + 1, line + 1; 0 = none) of a tile."""
+    g = np.zeros((2,) + co.shape[1:], np.int32)
+    if win is None:
+        return g
+    ok = np.isfinite(co[0])
+    g[0] = np.where(ok, np.floor(np.where(ok, co[1], 0) + win[2] + 0.5) + 1, 0)
+    g[1] = np.where(ok, np.floor(np.where(ok, co[0], 0) + win[0] + 0.5) + 1, 0)
+    return g
+
+
+def _token(*args) -> str:
+    from dask.base import tokenize
+    return tokenize(*[a.token() if hasattr(a, "token") else
+                      (a.state() if hasattr(a, "state") else a) for a in args])
+
+
+def check_inputs(model, source, kernel):
+    if kernel not in KERNELS:
+        raise FormatError(f"unknown resampling kernel {kernel!r}; use one of {', '.join(KERNELS)}")
+    if tuple(source.shape) != tuple(model.shape):
+        raise FormatError(f"raw image is {source.shape[0]} x {source.shape[1]} but the sensor "
+                          f"model expects {model.shape[0]} x {model.shape[1]} (lines x elements)")
+
+
+def rectify_blocks(model, source: RawImage, grid, terrain, kernel="bilinear",
+                   tol=TOLERANCE_PX, tile=512, step=32, dtype=None, mask_plane=False):
+    """Lazy ``(bands [+ 1 mask plane], rows, cols)`` dask array of the rectified image in
+    the output dtype; the mask plane (255 valid, 0 not) only with ``mask_plane``."""
+    import dask.array as da
+    terrain = open_terrain(terrain)
+    dt, _, _ = output_plan(source, dtype, mask_plane)
+    nb = source.count + (1 if mask_plane else 0)
+
+    def block(block_info=None):
+        (r0, r1), (c0, c1) = block_info[None]["array-location"][-2:]
+        sub = grid.window(slice(r0, r1), slice(c0, c1))
+        v, ok = tile_values(model, source, sub, terrain, kernel, tol, step, dtype=dtype,
+                            mask_band=mask_plane)
+        if not mask_plane:
+            return v
+        return np.concatenate([v, np.where(ok, 255, 0).astype(dt)[None]])
+
+    return da.map_blocks(block, dtype=dt, chunks=((nb,),) + grid.chunks(tile),
+                         name=f"rectify-{_token(model, grid, kernel, tol, source, dt.name, mask_plane)}")
+
+
+def glt_blocks(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_PX, tile=512,
+               step=32):
+    """Lazy ENVI GLT ``(2, rows, cols)`` int32 dask array (the lattice alone, no reads)."""
+    import dask.array as da
+    terrain = open_terrain(terrain)
+
+    def block(block_info=None):
+        (r0, r1), (c0, c1) = block_info[None]["array-location"][-2:]
+        sub = grid.window(slice(r0, r1), slice(c0, c1))
+        return glt_tile(*tile_coords(model, source, sub, terrain, kernel, tol, step))
+
+    return da.map_blocks(block, dtype=np.int32, chunks=((2,),) + grid.chunks(tile),
+                         name=f"rectify-glt-{_token(model, grid, kernel, tol, source)}")
+
+
+def rectify(model, image, grid, terrain, kernel: str = "bilinear",
+            tol: float = TOLERANCE_PX, tile: int = 512, step: int = 32, glt: bool = False,
+            dtype=None, bands=None):
+    """The rectified image as a lazy dask array over ``grid`` (tiles of ``tile`` pixels):
+    ``(rows, cols)`` for a 2-D raw image, ``(bands, rows, cols)`` for a multi-band one
+    (``bands`` selects a subset: see :func:`.rawimage.parse_bands`), in the output dtype
+    of :func:`output_plan` (``dtype`` overrides). With ``glt`` a tuple ``(image, glt)``,
+    the GLT an int32 ``(2, rows, cols)`` dask array. Compute it with any dask scheduler,
+    or pass it to :func:`write_cog`."""
+    source = open_raw_image(image, bands=bands)
+    check_inputs(model, source, kernel)
+    img = rectify_blocks(model, source, grid, terrain, kernel, tol, tile, step, dtype)
+    if source.two_d:
+        img = img[0]
+    if not glt:
+        return img
+    return img, glt_blocks(model, source, grid, terrain, kernel, tol, tile, step)
