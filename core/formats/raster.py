@@ -39,6 +39,36 @@ def _crs(crs):
     return CRS.from_wkt(pyproj.CRS.from_user_input(crs).to_wkt())
 
 
+def _as_bands(array) -> np.ndarray:
+    """A (bands, rows, cols) array of a type GeoTIFF holds."""
+    arr = np.asarray(array)
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3:
+        raise ValueError(f"write_geotiff needs a 2-D or 3-D array, got shape {arr.shape}")
+    if arr.dtype == np.float16:
+        return arr.astype(np.float32)
+    if arr.dtype == bool:
+        return arr.astype(np.uint8)
+    return arr
+
+
+def _profile(arr, crs, transform, nodata, compress, blocksize, cog) -> dict:
+    count, height, width = arr.shape
+    profile = dict(driver="GTiff", width=width, height=height, count=count,
+                   dtype=arr.dtype.name, crs=_crs(crs), transform=_affine(transform),
+                   compress=compress)
+    if nodata is not None:
+        profile["nodata"] = nodata
+    if compress == "deflate" and arr.dtype.kind in "fui":
+        profile["predictor"] = 3 if arr.dtype.kind == "f" else 2
+    if cog or (height >= blocksize and width >= blocksize):
+        profile.update(tiled=True, blockxsize=blocksize, blockysize=blocksize)
+    if arr.size * arr.itemsize > 3.5e9:
+        profile["BIGTIFF"] = "YES"
+    return profile
+
+
 def write_geotiff(path, array, crs, transform, nodata=None, cog: bool = False,
                   tags: dict | None = None, compress: str = "deflate",
                   blocksize: int = 256, overview_resampling: str = "average") -> None:
@@ -49,30 +79,8 @@ def write_geotiff(path, array, crs, transform, nodata=None, cog: bool = False,
     ``tags``: dataset-level metadata (values are stored as strings).
     """
     import rasterio
-    arr = np.asarray(array)
-    if arr.ndim == 2:
-        arr = arr[None]
-    if arr.ndim != 3:
-        raise ValueError(f"write_geotiff needs a 2-D or 3-D array, got shape {arr.shape}")
-    if arr.dtype == np.float16:
-        arr = arr.astype(np.float32)
-    if arr.dtype == bool:
-        arr = arr.astype(np.uint8)
-    count, height, width = arr.shape
-    profile = dict(driver="GTiff", width=width, height=height, count=count,
-                   dtype=arr.dtype.name, crs=_crs(crs), transform=_affine(transform),
-                   compress=compress)
-    if nodata is not None:
-        profile["nodata"] = nodata
-    if arr.dtype.kind == "f" and compress == "deflate":
-        profile["predictor"] = 3
-    elif arr.dtype.kind in "ui" and compress == "deflate":
-        profile["predictor"] = 2
-    tiled = cog or (height >= blocksize and width >= blocksize)
-    if tiled:
-        profile.update(tiled=True, blockxsize=blocksize, blockysize=blocksize)
-    if arr.size * arr.itemsize > 3.5e9:
-        profile["BIGTIFF"] = "YES"
+    arr = _as_bands(array)
+    profile = _profile(arr, crs, transform, nodata, compress, blocksize, cog)
     tags = {k: str(v) for k, v in (tags or {}).items()}
     with atomic_path(path, suffix=".tif") as tmp:
         if not cog:
