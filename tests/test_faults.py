@@ -138,6 +138,12 @@ def test_misspelt_sensor_key(m, capsys):
     _bad(capsys, m, "focal_lenght", "focal_length")
 
 
+def test_sensor_model_not_a_name(m, capsys):
+    """Found by the mission.toml fuzzer: a list as the model name was a TypeError."""
+    _toml(m, 'model = "pendulum"', 'model = []')
+    _bad(capsys, m, "[sensor].model", "swathflow sensors")
+
+
 def test_fractional_n_elements(m, capsys):
     _toml(m, "n_elements = 64", "n_elements = 64.5")
     _bad(capsys, m, "n_elements", "whole number")

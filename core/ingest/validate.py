@@ -165,7 +165,7 @@ def check_sensor(cfg: dict, toml: Path, c: Collector, parts: dict) -> None:
     else:
         name = sensor.get("model")
         reg = _registry()
-        if name not in reg:
+        if not isinstance(name, str) or name not in reg:
             c.add(toml, "[sensor].model", f"unknown sensor plugin {name!r}",
                   f"use one of: {', '.join(sorted(reg)) or 'none'} (see 'swathflow sensors'),"
                   f" or install the plugin")
