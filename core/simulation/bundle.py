@@ -270,3 +270,55 @@ def write_mission_toml(out, preset, crs, gsd, pos_name, sensor_lines, priors, im
               f'{image_key} = "{d}"', f"strip = {s}"]
     write_text(out / "mission.toml", "\n".join(L) + "\n")
 
+
+
+def write_noisy_pos(out: Path, truth_ds, cfg, rng) -> str:
+    """The mission's POS file (the true trajectory plus white GPS and attitude noise:
+    ``cfg.gps_noise`` m, ``cfg.att_noise`` deg, drawn from ``rng``) in ``cfg.pos_format``
+    (sbet or csv), and the truth as ``truth/pos.csv``; returns the POS file's name."""
+    from swathflow.formats.pos import write_pos_csv, write_sbet
+    nt = truth_ds.sizes["time"]
+    lat = truth_ds["lat"].values
+    noisy = truth_ds.copy(deep=True)
+    noisy["lat"] = ("time", lat + rng.normal(0, cfg.gps_noise, nt) / 111_132.0)
+    noisy["lon"] = ("time", truth_ds["lon"].values + rng.normal(0, cfg.gps_noise, nt)
+                    / (111_320.0 * np.cos(np.radians(lat))))
+    noisy["h"] = ("time", truth_ds["h"].values + rng.normal(0, cfg.gps_noise, nt))
+    for k in ("roll", "pitch", "heading"):
+        noisy[k] = ("time", truth_ds[k].values + rng.normal(0, cfg.att_noise, nt))
+    noisy["heading"] = (noisy["heading"] + 180.0) % 360.0 - 180.0
+    name = "pos.sbet" if cfg.pos_format == "sbet" else "pos.csv"
+    (write_sbet if cfg.pos_format == "sbet" else write_pos_csv)(noisy, out / name)
+    write_pos_csv(truth_ds, out / "truth" / "pos.csv")
+    return name
+
+
+def write_truth_ortho(out: Path, cfg, crs, models, terrain, texture, to_map, say) -> dict:
+    """The images' footprint on the ``cfg.gsd`` grid and, with ``cfg.write_ortho``, the truth
+    ortho (``truth/ortho.tif``: the texture averaged over each output pixel, in expected DN
+    ``cfg.offset + cfg.gain * T``)."""
+    from swathflow.formats.raster import write_geotiff
+    from swathflow.ingest.mission import image_border
+    from swathflow.simulation.texture import area_average
+    gsd = cfg.gsd
+    border = []
+    for m in models.values():
+        o, d = m.ray(image_border(m.shape, 40))
+        g = intersect(o, d, terrain)
+        ee, nn, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
+        border.append(np.stack([ee, nn], -1))
+    border = np.concatenate(border)
+    xmin = math.floor(np.nanmin(border[:, 0]) / gsd) * gsd
+    xmax = math.ceil(np.nanmax(border[:, 0]) / gsd) * gsd
+    ymin = math.floor(np.nanmin(border[:, 1]) / gsd) * gsd
+    ymax = math.ceil(np.nanmax(border[:, 1]) / gsd) * gsd
+    transform = (gsd, 0.0, xmin, 0.0, -gsd, ymax)
+    shape = (int(round((ymax - ymin) / gsd)), int(round((xmax - xmin) / gsd)))
+    if cfg.write_ortho:
+        say(f"truth ortho {shape[1]} x {shape[0]} at {gsd} m")
+        t = area_average(texture, transform, shape, cfg.ortho_supersample)
+        write_geotiff(out / "truth" / "ortho.tif", (cfg.offset + cfg.gain * t).astype(np.float32),
+                      crs, transform, tags={"units": "expected DN (offset + gain * T)",
+                                            "gain": cfg.gain, "offset": cfg.offset})
+    return {"transform": transform, "shape": shape, "written": bool(cfg.write_ortho),
+            "bounds": [xmin, ymin, xmax, ymax]}

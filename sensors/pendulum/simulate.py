@@ -27,14 +27,14 @@ import numpy as np
 import pandas as pd
 
 from swathflow.simulation.bundle import (Plan, make_trajectory, plain, toml_value,
-                                        write_mission_toml, write_swing)
+                                        write_mission_toml, write_noisy_pos, write_swing,
+                                        write_truth_ortho)
 from swathflow.errors import SwathflowError
 from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer, utm_crs_for
 from swathflow.geometry.intersect import intersect
 from swathflow.io import write_text
 from swathflow.formats.pos import Trajectory
-from swathflow.sensors.pendulum.simwrite import (texture_with_targets, write_gcps, write_ortho,
-                                                 write_pos, write_terrain)
+from swathflow.sensors.pendulum.simwrite import texture_with_targets, write_gcps, write_terrain
 
 #: papers.md section 1, Table 4 (Hai'an 2018): the true parameters of preset ``paper``
 TABLE4 = {
@@ -419,11 +419,11 @@ def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = Non
     timings["images"] = time.perf_counter() - clock - sum(timings.values())
 
     # footprint -> output grid, truth ortho
-    ortho = write_ortho(out, cfg, plan, models, terrain, tex, to_map, say)
+    ortho = write_truth_ortho(out, cfg, plan.crs, models, terrain, tex, to_map, say)
     timings["ortho"] = time.perf_counter() - clock - sum(timings.values())
 
     meas, gross = write_gcps(out, cfg, plan, models, pts, obs, seed)
-    pos_name = write_pos(out, cfg, truth_ds, seed)
+    pos_name = write_noisy_pos(out, truth_ds, cfg, np.random.default_rng([int(seed), 4]))
 
     # truth calibration and truth.json
     write_calibration(out / "truth" / "calibration.json", "pendulum",

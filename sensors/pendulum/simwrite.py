@@ -9,9 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from swathflow.formats.pos import write_pos_csv, write_sbet
 from swathflow.geometry.geodesy import transformer
-from swathflow.geometry.intersect import intersect
 from swathflow.simulation.bundle import Plan, square_grid, write_csv
 
 if TYPE_CHECKING:
@@ -67,37 +65,6 @@ def texture_with_targets(cfg: SimConfig, plan: Plan, seed: int, texture: str | N
     return tex0.with_targets(pts[["E", "N"]].to_numpy(), radius), tex_info
 
 
-def write_ortho(out: Path, cfg: SimConfig, plan: Plan, models, terrain, tex, to_map,
-                 say) -> dict:
-    """The swings' footprint on the ``gsd`` grid and (``write_ortho``) the truth ortho."""
-    from swathflow.formats.raster import write_geotiff
-    from swathflow.ingest.mission import image_border
-    from swathflow.simulation.texture import area_average
-    gsd = cfg.gsd
-    border = []
-    for m in models.values():
-        pb = image_border(m.shape, 40)
-        o, dvec = m.ray(pb)
-        g = intersect(o, dvec, terrain)
-        ee, nn, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-        border.append(np.stack([ee, nn], -1))
-    border = np.concatenate(border)
-    xmin = math.floor(np.nanmin(border[:, 0]) / gsd) * gsd
-    xmax = math.ceil(np.nanmax(border[:, 0]) / gsd) * gsd
-    ymin = math.floor(np.nanmin(border[:, 1]) / gsd) * gsd
-    ymax = math.ceil(np.nanmax(border[:, 1]) / gsd) * gsd
-    ortho_tr = (gsd, 0.0, xmin, 0.0, -gsd, ymax)
-    ortho_shape = (int(round((ymax - ymin) / gsd)), int(round((xmax - xmin) / gsd)))
-    if cfg.write_ortho:
-        say(f"truth ortho {ortho_shape[1]} x {ortho_shape[0]} at {gsd} m")
-        o = area_average(tex, ortho_tr, ortho_shape, cfg.ortho_supersample)
-        write_geotiff(out / "truth" / "ortho.tif", (cfg.offset + cfg.gain * o).astype(np.float32),
-                      plan.crs, ortho_tr, tags={"units": "expected DN (offset + gain * T)",
-                                                "gain": cfg.gain, "offset": cfg.offset})
-    return {"transform": ortho_tr, "shape": ortho_shape, "written": bool(cfg.write_ortho),
-            "bounds": [xmin, ymin, xmax, ymax]}
-
-
 def write_gcps(out: Path, cfg: SimConfig, plan: Plan, models, pts, obs, seed: int):
     """GCP observations with noise and gross errors (``gcp.csv``) and their truth
     (``truth/gcp.csv``); returns the measurements and the gross errors."""
@@ -132,27 +99,3 @@ def write_gcps(out: Path, cfg: SimConfig, plan: Plan, models, pts, obs, seed: in
     write_csv(out / "truth" / "gcp.csv", obs, {**fmt, "line": "%.6f", "element": "%.6f",
                                                  "E": "%.4f", "N": "%.4f"})
     return meas, gross
-
-
-def write_pos(out: Path, cfg: SimConfig, truth_ds, seed: int) -> str:
-    """The mission's POS (the truth plus GPS and attitude noise) and ``truth/pos.csv``."""
-    prng = np.random.default_rng([int(seed), 4])
-    nt = truth_ds.sizes["time"]
-    lat = truth_ds["lat"].values
-    m_per_deg_lat = 111_132.0
-    m_per_deg_lon = 111_320.0 * np.cos(np.radians(lat))
-    noisy = truth_ds.copy(deep=True)
-    noisy["lat"] = ("time", lat + prng.normal(0, cfg.gps_noise, nt) / m_per_deg_lat)
-    noisy["lon"] = ("time", truth_ds["lon"].values + prng.normal(0, cfg.gps_noise, nt)
-                    / m_per_deg_lon)
-    noisy["h"] = ("time", truth_ds["h"].values + prng.normal(0, cfg.gps_noise, nt))
-    for kk in ("roll", "pitch", "heading"):
-        noisy[kk] = ("time", truth_ds[kk].values + prng.normal(0, cfg.att_noise, nt))
-    noisy["heading"] = (noisy["heading"] + 180.0) % 360.0 - 180.0
-    pos_name = "pos.sbet" if cfg.pos_format == "sbet" else "pos.csv"
-    if cfg.pos_format == "sbet":
-        write_sbet(noisy, out / pos_name)
-    else:
-        write_pos_csv(noisy, out / pos_name)
-    write_pos_csv(truth_ds, out / "truth" / "pos.csv")
-    return pos_name

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from swathflow.formats.pos import Trajectory, write_pos_csv, write_sbet
+from swathflow.formats.pos import Trajectory
 from swathflow.geometry.geodesy import transformer
 from swathflow.io import write_text
 from swathflow.sensors.pushbroom.simconfig import (PRESETS, VIEW_LETTER, VIEWS, PushbroomConfig,
@@ -43,7 +43,7 @@ from swathflow.sensors.pushbroom.simconfig import (PRESETS, VIEW_LETTER, VIEWS, 
                                                    prior_table, sensor_table, true_parameters)
 from swathflow.sensors.pushbroom.simpoints import sample_points, write_points
 from swathflow.simulation.bundle import (make_trajectory, plain, toml_value, write_mission_toml,
-                                        write_swing)
+                                        write_noisy_pos, write_swing, write_truth_ortho)
 
 __all__ = ["PRESETS", "VIEWS", "PushbroomConfig", "preset_config", "simulate"]
 
@@ -103,9 +103,9 @@ def simulate(out, preset: str = "pushbroom", seed: int = 0, progress=None,
         paths = write_swing(out, iid, cam.models[iid], terrain, tex, to_map, cfg,
                             np.random.default_rng([int(seed), 82, k]), {"time": lt["time"]})
         entries.append((iid, *paths, view, s))
-    ortho = _write_ortho(out, cfg, plan, cam.models, terrain, tex, to_map, say)
+    ortho = write_truth_ortho(out, cfg, plan.crs, cam.models, terrain, tex, to_map, say)
     gobs, tobs = write_points(out, cfg, seed, pts)
-    pos_name = _write_pos(out, cfg, pos_ds, seed)
+    pos_name = write_noisy_pos(out, pos_ds, cfg, np.random.default_rng([int(seed), 84]))
     # truth calibration, truth.json, mission.toml
     write_calibration(out / "truth" / "calibration.json", "pushbroom",
                       {b.name: {"value": list(b.value), "sigma": [0.0] * b.size,
@@ -181,57 +181,6 @@ def _ground_points(cfg: PushbroomConfig, plan, strips, models, terrain, rng) -> 
     tie_ids = [f"T{k + 1:04d}" for k in range(cfg.n_ties)]
     return _Points(g_xyz, g_en, g_obs, gcp_ids, roles, t_xyz, t_obs, tie_ids, radius,
                    nadir_gsd)
-
-
-def _write_ortho(out: Path, cfg: PushbroomConfig, plan, models, terrain, tex, to_map,
-                 say) -> dict:
-    """The footprint of every image on the ``gsd`` grid and (``write_ortho``) the truth
-    ortho there; returns its transform, shape and bounds."""
-    from swathflow.formats.raster import write_geotiff
-    from swathflow.geometry.intersect import intersect
-    from swathflow.ingest.mission import image_border
-    from swathflow.simulation.texture import area_average
-    border = []
-    for m in models.values():
-        o, d = m.ray(image_border(m.shape, 40))
-        g = intersect(o, d, terrain)
-        ee, nn, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-        border.append(np.stack([ee, nn], -1))
-    border = np.concatenate(border)
-    gsd = cfg.gsd
-    xmin = math.floor(np.nanmin(border[:, 0]) / gsd) * gsd
-    xmax = math.ceil(np.nanmax(border[:, 0]) / gsd) * gsd
-    ymin = math.floor(np.nanmin(border[:, 1]) / gsd) * gsd
-    ymax = math.ceil(np.nanmax(border[:, 1]) / gsd) * gsd
-    ortho_tr = (gsd, 0.0, xmin, 0.0, -gsd, ymax)
-    ortho_shape = (int(round((ymax - ymin) / gsd)), int(round((xmax - xmin) / gsd)))
-    if cfg.write_ortho:
-        say(f"truth ortho {ortho_shape[1]} x {ortho_shape[0]} at {gsd} m")
-        o = area_average(tex, ortho_tr, ortho_shape, cfg.ortho_supersample)
-        write_geotiff(out / "truth" / "ortho.tif",
-                      (cfg.offset + cfg.gain * o).astype(np.float32), plan.crs, ortho_tr,
-                      tags={"units": "expected DN (offset + gain * T)", "gain": cfg.gain,
-                            "offset": cfg.offset})
-    return {"transform": ortho_tr, "shape": ortho_shape, "bounds": [xmin, ymin, xmax, ymax]}
-
-
-def _write_pos(out: Path, cfg: PushbroomConfig, pos_ds, seed: int) -> str:
-    """The mission's POS (the geometry's POS plus white noise) and ``truth/pos.csv``."""
-    prng = np.random.default_rng([int(seed), 84])
-    nt = pos_ds.sizes["time"]
-    lat = pos_ds["lat"].values
-    noisy = pos_ds.copy(deep=True)
-    noisy["lat"] = ("time", lat + prng.normal(0, cfg.gps_noise, nt) / 111_132.0)
-    noisy["lon"] = ("time", pos_ds["lon"].values + prng.normal(0, cfg.gps_noise, nt)
-                    / (111_320.0 * np.cos(np.radians(lat))))
-    noisy["h"] = ("time", pos_ds["h"].values + prng.normal(0, cfg.gps_noise, nt))
-    for kk in ("roll", "pitch", "heading"):
-        noisy[kk] = ("time", pos_ds[kk].values + prng.normal(0, cfg.att_noise, nt))
-    noisy["heading"] = (noisy["heading"] + 180.0) % 360.0 - 180.0
-    pos_name = "pos.sbet" if cfg.pos_format == "sbet" else "pos.csv"
-    (write_sbet if cfg.pos_format == "sbet" else write_pos_csv)(noisy, out / pos_name)
-    write_pos_csv(pos_ds, out / "truth" / "pos.csv")
-    return pos_name
 
 
 def _truth(cfg: PushbroomConfig, seed, plan, strips, cam: _Camera, pts: _Points, gobs, tobs,

@@ -29,11 +29,12 @@ import numpy as np
 import pandas as pd
 
 from swathflow.errors import SwathflowError
-from swathflow.formats.pos import Trajectory, write_pos_csv, write_sbet
+from swathflow.formats.pos import Trajectory
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
 from swathflow.io import write_text
 from swathflow.simulation.bundle import (Plan, make_trajectory, plain, square_grid, toml_value,
-                                        write_csv, write_mission_toml, write_swing)
+                                        write_csv, write_mission_toml, write_noisy_pos,
+                                        write_swing, write_truth_ortho)
 
 
 @dataclass
@@ -217,9 +218,9 @@ def simulate(out, preset: str = "rotating-mirror", seed: int = 0, progress=None,
         paths = write_swing(out, iid, models[iid], terrain, tex, to_map, cfg,
                             np.random.default_rng([int(seed), 92, k]), lt)
         entries.append((iid, *paths, "", strip))
-    ortho = _write_ortho(out, cfg, plan, models, terrain, tex, to_map, say)
+    ortho = write_truth_ortho(out, cfg, plan.crs, models, terrain, tex, to_map, say)
     _write_gcps(out, cfg, gcps, seed)
-    pos_name = _write_pos(out, cfg, pos_ds, seed)
+    pos_name = write_noisy_pos(out, pos_ds, cfg, np.random.default_rng([int(seed), 94]))
     write_calibration(out / "truth" / "calibration.json", "rotating-mirror",
                       {b.name: {"value": list(b.value), "sigma": [0.0] * b.size,
                                 "units": b.units} for b in pset.blocks},
@@ -242,7 +243,10 @@ def simulate(out, preset: str = "rotating-mirror", seed: int = 0, progress=None,
                   "gcp_px": cfg.gcp_noise, "read_noise_dn": cfg.read_noise},
         "gcp_target_radius_m": radius, "nadir_gsd_m": nadir_gsd,
         "radiometry": {"gain": cfg.gain, "offset": cfg.offset},
-        "ortho": ortho, "terrain": {"source": "procedural", "mean_h": terrain_mean},
+        "ortho": ({"file": "truth/ortho.tif", "transform": list(ortho["transform"]),
+                   "shape": list(ortho["shape"]), "supersample": cfg.ortho_supersample}
+                  if ortho["written"] else None),
+        "terrain": {"source": "procedural", "mean_h": terrain_mean},
         "seconds": round(time.perf_counter() - clock, 3),
     }
     write_text(out / "truth" / "truth.json", json.dumps(truth, indent=2) + "\n")
@@ -313,53 +317,3 @@ def _write_gcps(out: Path, cfg: MirrorConfig, gcps: pd.DataFrame, seed: int) -> 
     write_csv(out / "truth" / "gcp.csv", gcps, {**fmt, "line": "%.6f", "element": "%.6f",
                                                   "E": "%.4f", "N": "%.4f", "X": "%.4f",
                                                   "Y": "%.4f", "Z": "%.4f"})
-
-
-def _write_ortho(out: Path, cfg: MirrorConfig, plan: Plan, models, terrain, tex, to_map,
-                 say) -> dict | None:
-    """The truth ortho (expected DN) over the images' footprints on the ``gsd`` grid."""
-    from swathflow.formats.raster import write_geotiff
-    from swathflow.geometry.intersect import intersect
-    from swathflow.ingest.mission import image_border
-    from swathflow.simulation.texture import area_average
-    if not cfg.write_ortho:
-        return None
-    border = []
-    for m in models.values():
-        g = intersect(*m.ray(image_border(m.shape, 40)), terrain)
-        e, n, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-        border.append(np.stack([e, n], -1))
-    b = np.concatenate(border)
-    gsd = cfg.gsd
-    x0, x1 = (math.floor(np.nanmin(b[:, 0]) / gsd) * gsd,
-              math.ceil(np.nanmax(b[:, 0]) / gsd) * gsd)
-    y0, y1 = (math.floor(np.nanmin(b[:, 1]) / gsd) * gsd,
-              math.ceil(np.nanmax(b[:, 1]) / gsd) * gsd)
-    tr = (gsd, 0.0, x0, 0.0, -gsd, y1)
-    shape = (int(round((y1 - y0) / gsd)), int(round((x1 - x0) / gsd)))
-    say(f"truth ortho {shape[1]} x {shape[0]} at {gsd} m")
-    o = area_average(tex, tr, shape, cfg.ortho_supersample)
-    write_geotiff(out / "truth" / "ortho.tif", (cfg.offset + cfg.gain * o).astype(np.float32),
-                  plan.crs, tr, tags={"units": "expected DN (offset + gain * T)",
-                                      "gain": cfg.gain, "offset": cfg.offset})
-    return {"file": "truth/ortho.tif", "transform": list(tr), "shape": list(shape),
-            "supersample": cfg.ortho_supersample}
-
-
-def _write_pos(out: Path, cfg: MirrorConfig, pos_ds, seed: int) -> str:
-    """The mission's POS (the true trajectory plus white noise) and ``truth/pos.csv``."""
-    prng = np.random.default_rng([int(seed), 94])
-    nt = pos_ds.sizes["time"]
-    lat = pos_ds["lat"].values
-    noisy = pos_ds.copy(deep=True)
-    noisy["lat"] = ("time", lat + prng.normal(0, cfg.gps_noise, nt) / 111_132.0)
-    noisy["lon"] = ("time", pos_ds["lon"].values + prng.normal(0, cfg.gps_noise, nt)
-                    / (111_320.0 * np.cos(np.radians(lat))))
-    noisy["h"] = ("time", pos_ds["h"].values + prng.normal(0, cfg.gps_noise, nt))
-    for k in ("roll", "pitch", "heading"):
-        noisy[k] = ("time", pos_ds[k].values + prng.normal(0, cfg.att_noise, nt))
-    noisy["heading"] = (noisy["heading"] + 180.0) % 360.0 - 180.0
-    name = "pos.sbet" if cfg.pos_format == "sbet" else "pos.csv"
-    (write_sbet if cfg.pos_format == "sbet" else write_pos_csv)(noisy, out / name)
-    write_pos_csv(pos_ds, out / "truth" / "pos.csv")
-    return name
