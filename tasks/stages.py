@@ -147,9 +147,9 @@ def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) ->
 
 def mosaic_control(mission_path: str, calibration: str) -> dict:
     """Image id -> (absolute offset, sigma) in grid pixels from the mission's control
-    points with ``calibration`` (see :mod:`swathflow.tasks.control`)."""
+    points with ``calibration`` (see :mod:`swathflow.mosaicking.control`)."""
     from swathflow.formats.calibfile import calibration_priors, read_calibration
-    from swathflow.tasks.control import control_offsets
+    from swathflow.mosaicking.control import control_offsets
     m = _load(mission_path)
     params = m.priors.updated(calibration_priors(read_calibration(calibration)))
     return {k: (o, s) for k, (o, s, _) in control_offsets(m, params).items()}

@@ -1,4 +1,4 @@
-"""Absolute offsets from control points (tasks/control.py) on a simulated mission: with the
+"""Absolute offsets from control points (swathflow.mosaicking.control) on a simulated mission: with the
 true calibration the rectified swings sit where they belong (offsets near zero within their
 sigmas); control points surveyed 10 m further east make every image read 10 m / GSD
 columns to the west."""
@@ -9,7 +9,7 @@ import numpy as np
 from swathflow.formats.calibfile import calibration_priors, read_calibration
 from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef, transformer
 from swathflow.ingest.mission import load_mission
-from swathflow.tasks.control import control_offsets
+from swathflow.mosaicking.control import control_offsets
 
 
 def _truth_params(m, mission_path):
