@@ -301,13 +301,13 @@ def write_truth_ortho(out: Path, cfg, crs, models, terrain, texture, to_map, say
     from swathflow.ingest.mission import image_border
     from swathflow.simulation.texture import area_average
     gsd = cfg.gsd
-    border = []
+    parts = []
     for m in models.values():
         o, d = m.ray(image_border(m.shape, 40))
         g = intersect(o, d, terrain)
         ee, nn, _ = to_map.transform(g[:, 0], g[:, 1], g[:, 2])
-        border.append(np.stack([ee, nn], -1))
-    border = np.concatenate(border)
+        parts.append(np.stack([ee, nn], -1))
+    border = np.concatenate(parts)
     xmin = math.floor(np.nanmin(border[:, 0]) / gsd) * gsd
     xmax = math.ceil(np.nanmax(border[:, 0]) / gsd) * gsd
     ymin = math.floor(np.nanmin(border[:, 1]) / gsd) * gsd
