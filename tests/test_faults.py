@@ -171,12 +171,18 @@ def test_max_pixels_lifts_the_limit(m, capsys):
     assert code == 0, text
 
 
-def test_run_validates_before_starting_prefect(m, tmp_path, capsys):
+def test_run_validates_before_starting_prefect(m, tmp_path):
+    """Bad input is reported before the flow (Prefect) or a Dask cluster is even imported:
+    checked in a fresh interpreter, from the modules loaded when the command returns."""
     _toml(m, "gsd = 0.4", "gsd = -1")
-    t0 = time.perf_counter()
-    code, text = _run(capsys, "run", m, "--out", tmp_path / "o")
-    assert code == 2 and "[mission].gsd" in text
-    assert time.perf_counter() - t0 < 8.0      # no Prefect server or Dask cluster started
+    code = ("import sys\nfrom swathflow.flows.cli import main\n"
+            f"rc = main(['run', {str(m)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
+            "print('RC', rc, 'flow' if 'swathflow.flows.mission' in sys.modules else '-', "
+            "'dask' if 'distributed' in sys.modules else '-')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert "[mission].gsd" in r.stderr + r.stdout
+    assert "RC 2 - -" in r.stdout, r.stdout + r.stderr
 
 
 # ------------------------------------------------------------------------------------------
