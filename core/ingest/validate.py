@@ -392,7 +392,8 @@ def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
               "write the image as GeoTIFF or ENVI")
         return None
     if note:
-        c.warn(ip, where, note, "write one band per image file")
+        c.warn(ip, where, note, "'swathflow rectify' rectifies every band (--bands selects "
+               "some); for the flow, write one band per image file")
     parts["image_shapes"][entry.id] = (rows, cols)
     n_el = parts.get("n_elements")
     if n_el is not None and cols != n_el:
