@@ -62,3 +62,19 @@ def listening_on(port: int) -> list[str]:
 
 
 LOOPBACK_HEX = {"0100007F", "00000000000000000000000001000000"}
+
+
+def wait_for(condition, timeout: float, failure: str, interval: float = 1.0):
+    """Poll ``condition()`` until it returns something truthy and return that; a service
+    that never gets there fails the test with ``failure`` (a bound on a wait for a
+    service, not a speed requirement)."""
+    import time
+    end = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > end:
+            raise AssertionError(f"{failure} (waited {timeout:g} s)")
+        time.sleep(interval)
+

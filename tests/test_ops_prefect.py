@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from ops_util import BIN, LOOPBACK_HEX, ROOT, alive, free_port, listening_on, pids_in, script
+from ops_util import BIN, LOOPBACK_HEX, ROOT, alive, free_port, listening_on, pids_in, script, wait_for
 
 pytestmark = pytest.mark.slow
 PREFECT = str(BIN / "prefect")
@@ -63,13 +63,12 @@ def _run_inbox(env, inbox, products, cal, timeout=900) -> dict:
                    "--param", f"inbox={inbox}", "--param", f"out_root={products}",
                    "--param", f"calibration={cal}")
     run_id = next(line.split()[-1] for line in out.splitlines() if "UUID" in line)
-    deadline = time.time() + timeout
-    while True:
+    def ended():
         run = _api(env, f"/flow_runs/{run_id}")
-        if run["state_type"] in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED"):
-            return run
-        assert time.time() < deadline, f"the inbox run did not end in {timeout} s: {run['state_type']}"
-        time.sleep(1)
+        return run if run["state_type"] in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED") \
+            else None
+
+    return wait_for(ended, timeout, "the inbox run did not end")
 
 
 @contextlib.contextmanager
@@ -136,14 +135,11 @@ def _check_failure_alert(env, run):
     (with the run's flow and the broken mission in its text) reaches the listener."""
     query = {"filter": {"event": {"name": ["prefect.flow-run.Failed"]},
                         "any_resource": {"id": [f"prefect.flow-run.{run['id']}"]}}}
-    deadline = time.time() + 120                # events are stored in batches, seconds later
-    while not _api(env, "/events/filter", query)["events"]:
-        assert time.time() < deadline, "no prefect.flow-run.Failed event for the inbox run"
-        time.sleep(1)
-    deadline = time.time() + 120
-    while not any("swathflow-inbox" in b and "flight-c" in b for b in _Hook.received):
-        assert time.time() < deadline, f"no alert for the failed inbox run: {_Hook.received}"
-        time.sleep(1)
+    # events are stored in batches, seconds later
+    wait_for(lambda: _api(env, "/events/filter", query)["events"], 120,
+             "no prefect.flow-run.Failed event for the inbox run")
+    wait_for(lambda: any("swathflow-inbox" in b and "flight-c" in b for b in _Hook.received),
+             120, f"no alert for the failed inbox run: {_Hook.received}")
 
 
 def test_inbox_on_postgres_backed_server_with_a_broken_mission(tiny_mission, tmp_path):

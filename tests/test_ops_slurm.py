@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from ops_util import ROOT, alive, free_port, pids_in, script
+from ops_util import ROOT, alive, free_port, pids_in, script, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
@@ -118,9 +118,7 @@ def test_scale_from_one_to_two_jobs_and_scancel_one_mid_run(slurm, tiny_mission,
         result = run(tiny_mission, out, calibration=cal, dask_address=cluster.scheduler_address)
         t.join(5)
         assert cancelled, "no Dask work was seen on a SLURM worker to cancel its job"
-        deadline = time.time() + 60
-        while any(j.startswith(cancelled["job"] + " ") for j in _squeue(env)):
-            assert time.time() < deadline, "the cancelled job is still in the queue"
-            time.sleep(0.5)
+        wait_for(lambda: not any(j.startswith(cancelled["job"] + " ") for j in _squeue(env)),
+                 60, "the cancelled job is still in the queue", interval=0.5)
     _check_against_truth(tiny_mission, result)
     assert Path(result["mosaic"]).exists()
