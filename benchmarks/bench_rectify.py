@@ -95,29 +95,15 @@ def _gdalwarp(raw, X, Y, grid, kernel, threads, tmp):
         return None
     nl, ne = raw.shape
     write_geotiff(tmp / "raw.tif", raw.astype(np.float32), None, (1, 0, 0, 0, 1, 0))
-    write_geotiff(tmp / "x.tif", X, None, (1, 0, 0, 0, 1, 0))
-    write_geotiff(tmp / "y.tif", Y, None, (1, 0, 0, 0, 1, 0))
-    wkt = grid.pyproj_crs.to_wkt().replace('"', "&quot;")
-    (tmp / "raw.vrt").write_text(f"""<VRTDataset rasterXSize="{ne}" rasterYSize="{nl}">
-  <Metadata domain="GEOLOCATION">
-    <MDI key="SRS">{wkt}</MDI>
-    <MDI key="X_DATASET">{tmp / 'x.tif'}</MDI><MDI key="X_BAND">1</MDI>
-    <MDI key="Y_DATASET">{tmp / 'y.tif'}</MDI><MDI key="Y_BAND">1</MDI>
-    <MDI key="PIXEL_OFFSET">0</MDI><MDI key="LINE_OFFSET">0</MDI>
-    <MDI key="PIXEL_STEP">1</MDI><MDI key="LINE_STEP">1</MDI>
-  </Metadata>
-  <VRTRasterBand dataType="Float32" band="1">
-    <SimpleSource><SourceFilename>{tmp / 'raw.tif'}</SourceFilename><SourceBand>1</SourceBand></SimpleSource>
-  </VRTRasterBand>
-</VRTDataset>
-""")
+    from rectify_extra import _vrt       # the geolocation VRT, as the whole-command run uses
+    vrt = _vrt(tmp, tmp / "raw.tif", X, Y, grid.pyproj_crs.to_wkt(), "Float32")
     xmin, ymin, xmax, ymax = grid.bounds
     out = tmp / "gdal.tif"
     cmd = [gdal, "-q", "-overwrite", "-geoloc", "-t_srs", grid.pyproj_crs.to_string(),
            "-te", str(xmin), str(ymin), str(xmax), str(ymax),
            "-ts", str(grid.width), str(grid.height), "-r", kernel, "-dstnodata", "nan",
            "-ot", "Float32", "-multi", "-wo", f"NUM_THREADS={threads}",
-           str(tmp / "raw.vrt"), str(out)]
+           str(vrt), str(out)]
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)
