@@ -33,6 +33,31 @@ def _sines(rng, t, amp, periods, n=3):
     return out
 
 
+
+@dataclass(kw_only=True)
+class Rendering:
+    """The fields of a simulator's configuration that the shared pieces here read
+    (:func:`render_image`, :func:`write_swing`, :func:`write_noisy_pos`,
+    :func:`write_truth_ortho`); a plugin's configuration dataclass inherits them and may
+    change their defaults."""
+
+    # POS noise and format
+    gps_noise: float = 0.01         # m, per axis
+    att_noise: float = 0.001        # deg
+    pos_format: str = "sbet"        # "sbet" or "csv"
+    # rendering through the sensor model
+    render: bool = True
+    supersample: int = 2
+    node_step: int = 8
+    block_lines: int = 256
+    gain: float = 12000.0
+    offset: float = 1000.0
+    read_noise: float = 15.0        # DN
+    shot_noise: float = 1.0         # DN per sqrt(DN)
+    image_format: str = "tif"       # "tif" or "envi"
+    write_ortho: bool = True
+    ortho_supersample: int = 2
+
 @dataclass
 class Plan:
     crs: str

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from swathflow.simulation.bundle import (Plan, make_trajectory, plain, toml_value,
+from swathflow.simulation.bundle import (Plan, Rendering, make_trajectory, plain, toml_value,
                                         write_mission_toml, write_noisy_pos, write_swing,
                                         write_truth_ortho)
 from swathflow.errors import SwathflowError
@@ -55,7 +55,7 @@ PRIORS = {
 
 
 @dataclass
-class SimConfig:
+class SimConfig(Rendering):
     """Everything that defines a simulated mission (a preset plus overrides)."""
 
     preset: str = "tiny"
@@ -96,7 +96,6 @@ class SimConfig:
     pos_rate: float = 200.0
     gps_noise: float = 0.02         # m, per axis
     att_noise: float = 0.005        # deg
-    pos_format: str = "sbet"
     # truth parameters
     perturb: float = 0.02           # random change of Table 4 values (m / deg), 0 for paper
     direction_effect: bool = True   # False: opk_pos_L == opk_pos_R (their mean)
@@ -115,17 +114,8 @@ class SimConfig:
     gross_range: tuple = (10.0, 40.0)   # px
     ground_noise: float = 0.0       # m
     # rendering
-    render: bool = True
     supersample: int = 3
-    node_step: int = 8
-    block_lines: int = 256
-    gain: float = 12000.0
-    offset: float = 1000.0
-    read_noise: float = 15.0        # DN
-    shot_noise: float = 1.0         # DN per sqrt(DN)
-    image_format: str = "tif"       # "tif" or "envi"
     ortho_supersample: int = 3
-    write_ortho: bool = True
     target_radius_px: float = 2.0   # GCP targets: disk radius in nadir pixels
 
     @property

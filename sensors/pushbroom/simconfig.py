@@ -9,14 +9,14 @@ import numpy as np
 
 from swathflow.errors import SwathflowError
 from swathflow.geometry.geodesy import transformer, utm_crs_for
-from swathflow.simulation.bundle import Plan, square_grid
+from swathflow.simulation.bundle import Plan, Rendering, square_grid
 
 VIEWS = {"forward": 25.0, "nadir": 0.0, "backward": -25.0}
 VIEW_LETTER = {"forward": "F", "nadir": "N", "backward": "B"}
 
 
 @dataclass
-class PushbroomConfig:
+class PushbroomConfig(Rendering):
     """Everything that defines a simulated push-broom mission (a preset plus overrides)."""
 
     preset: str = "pushbroom"
@@ -55,9 +55,6 @@ class PushbroomConfig:
     sway_amp: float = 2.0
     # POS: white noise on top of the (fix-corrected) POS
     pos_rate: float = 200.0
-    gps_noise: float = 0.01         # m
-    att_noise: float = 0.001        # deg
-    pos_format: str = "sbet"
     # truth and priors
     u_gps: tuple = (0.12, -0.21, -1.08)          # m (truth)
     u_gps_prior: tuple = (0.0, 0.0, -1.0)
@@ -79,17 +76,6 @@ class PushbroomConfig:
     edge_margin: float = 3.0        # px from the image edges
     target_radius_px: float = 1.5
     # rendering (as swathflow.sensors.pendulum.simulate.render_image)
-    render: bool = True
-    supersample: int = 2
-    node_step: int = 8
-    block_lines: int = 256
-    gain: float = 12000.0
-    offset: float = 1000.0
-    read_noise: float = 15.0
-    shot_noise: float = 1.0
-    image_format: str = "tif"
-    write_ortho: bool = True
-    ortho_supersample: int = 2
 
     @property
     def ifov(self) -> float:

@@ -32,13 +32,13 @@ from swathflow.errors import SwathflowError
 from swathflow.formats.pos import Trajectory
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
 from swathflow.io import write_text
-from swathflow.simulation.bundle import (Plan, make_trajectory, plain, square_grid, toml_value,
+from swathflow.simulation.bundle import (Plan, Rendering, make_trajectory, plain, square_grid, toml_value,
                                         write_csv, write_mission_toml, write_noisy_pos,
                                         write_swing, write_truth_ortho)
 
 
 @dataclass
-class MirrorConfig:
+class MirrorConfig(Rendering):
     """Everything that defines a simulated rotating-mirror mission (a preset plus overrides;
     the field names :mod:`swathflow.simulation.bundle` reads are shared with the built-in
     simulators)."""
@@ -77,9 +77,6 @@ class MirrorConfig:
     sway_amp: float = 2.0
     # POS: white noise on top of the true trajectory
     pos_rate: float = 200.0
-    gps_noise: float = 0.01         # m
-    att_noise: float = 0.001        # deg
-    pos_format: str = "sbet"
     # truth and priors
     u_gps: tuple = (0.25, -0.15, -0.9)       # m
     opk_mount: tuple = (0.3, -0.2, 0.25)     # deg
@@ -94,17 +91,6 @@ class MirrorConfig:
     edge_margin: float = 4.0        # px from the image edges
     target_radius_px: float = 1.5
     # rendering (swathflow.simulation.bundle.render_image)
-    render: bool = True
-    supersample: int = 2
-    node_step: int = 8
-    block_lines: int = 256
-    gain: float = 12000.0
-    offset: float = 1000.0
-    read_noise: float = 15.0
-    shot_noise: float = 1.0
-    image_format: str = "tif"
-    write_ortho: bool = True
-    ortho_supersample: int = 2
 
     @property
     def ifov(self) -> float:
