@@ -1,20 +1,18 @@
 """Rectify every (or some) image of a mission with a calibration: one COG per image and a
-``rectify.json`` summary."""
+``rectify.json`` summary. Each image is ``to_cog(rectify(...))`` of the Python API
+(:mod:`swathflow.rectification.api`), as the flow's rectify task writes it."""
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
 from collections.abc import Callable, Sequence
 
 from swathflow.errors import FormatError
-from swathflow.formats.calibfile import calibration_priors, read_calibration
-from swathflow.geometry.grid import footprint_grid
 from swathflow.ingest.mission import load_mission
 from swathflow.io import write_text
-from swathflow.rectification.rawimage import open_raw_image
-from swathflow.rectification.rectify import TOLERANCE_PX, rectify_image
+from swathflow.rectification.api import geolocation, rectify, to_cog
+from swathflow.rectification.lattice import TOLERANCE_PX
 
 
 def rectify_mission(mission_path, out_dir, calibration: str | None = None,
@@ -27,20 +25,12 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     calibration.json; default: the mission's priors). Every band of each raw image is
     rectified (``bands``: a subset by 1-based index or wavelength, see
     :func:`~swathflow.rectification.rawimage.parse_bands`), in the raw dtype unless
-    ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``). Returns
-    one summary per image."""
+    ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``);
+    ``products`` adds ``<id>.glt.tif`` / ``<id>.igm.tif``. Returns one summary per image."""
+    unknown = set(products) - {"glt", "igm"}
+    if unknown:
+        raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
     mission = load_mission(mission_path)
-    params, cal_tag = mission.priors, "none: mission priors (mission.toml [calibration])"
-    if calibration:
-        doc = read_calibration(calibration)
-        if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):
-            raise FormatError(f"{calibration}: calibration is for sensor "
-                              f"{doc['sensor']!r}, the mission uses "
-                              f"{mission.sensor.get('model')!r}")
-        params = mission.priors.updated(calibration_priors(doc))
-        with open(calibration, "rb") as f:
-            digest = hashlib.sha256(f.read()).hexdigest()[:16]
-        cal_tag = f"{os.path.abspath(calibration)} (sha256 {digest})"
     ids = mission.image_ids
     if images:
         missing = [i for i in images if i not in ids]
@@ -49,23 +39,22 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                               f"has {', '.join(ids)}")
         ids = list(images)
     os.makedirs(out_dir, exist_ok=True)
-    summaries = []
+    summaries, cal_tag = [], ""
     for iid in ids:
-        model = mission.model(iid, params)
-        grid = footprint_grid(model, mission.terrain, mission.gsd, mission.crs)
         out = os.path.join(out_dir, f"{iid}.tif")
         t0 = time.perf_counter()
-        s = rectify_image(model, open_raw_image(mission.images[iid].file), mission.terrain,
-                          out, grid=grid, method=method, kernel=kernel, tol=tol, tile=tile,
-                          products=tuple(products), bands=bands, dtype=dtype,
-                          mask_band=mask_band,
-                          tags={"image_id": iid, "calibration": cal_tag,
-                                "mission": mission.name,
-                                "parameters": json.dumps(model.parameters.values_dict())})
-        s["image_id"] = iid
+        arr = rectify(mission, iid, calibration, kernel=kernel, tile=tile, method=method,
+                      tol=tol, bands=bands, dtype=dtype, mask_band=mask_band)
+        s = to_cog(arr, out, blocksize=tile)
+        for p in products:
+            to_cog(geolocation(mission, iid, calibration, p, kernel=kernel, tile=tile, tol=tol),
+                   os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=tile)
+        s.update(image_id=iid, method=method, kernel=kernel,
+                 seconds=round(time.perf_counter() - t0, 3))
+        cal_tag = arr.attrs["calibration"]
         summaries.append(s)
         if progress:
-            progress(f"{iid}: {grid.shape[0]} x {grid.shape[1]} px -> {out} "
+            progress(f"{iid}: {arr.rio.height} x {arr.rio.width} px -> {out} "
                      f"({time.perf_counter() - t0:.1f} s)")
     write_text(os.path.join(out_dir, "rectify.json"),
                json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")

@@ -115,7 +115,8 @@ def calibrate(args) -> int:
 
 
 def rectify(args) -> int:
-    """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image."""
+    """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image,
+    each ``swathflow.to_cog(swathflow.rectify(...))`` (through ``rectify_mission``)."""
     from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
     if not args.calibration:
