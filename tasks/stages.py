@@ -151,7 +151,7 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
     """Strip matching and feathered mosaic of the rectified swings: ``OUT/mosaic.tif``.
     ``anchor``: ``"gcp"`` ties the network to the mission's control points, ``"mean"``
     holds the mean offset at zero; ``"auto"``: gcp when the mission has control points."""
-    from swathflow.mosaicking.mosaic import mosaic as run
+    from swathflow.mosaicking.api import mosaic as run
     out = Path(out_dir) / "mosaic.tif"
     m = _load(mission_path) if mission_path else None
     has_control = m is not None and m.gcps is not None and \
