@@ -68,11 +68,10 @@ def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
         planned = plan_mosaic(paths, feather=feather, mode=mode,
                               **{k: v for k, v in options.items() if k in _PLAN})
-        report = planned[3]
-        if out is not None:
-            report = finish_mosaic(planned, out, feather, mode, tile,
-                                   **{k: v for k, v in options.items()
-                                      if k in _FINISH and k != "tile"})
+    report = planned[3]
+    if out is not None:
+        report = finish_mosaic(planned, out, feather, mode, tile, cache_mb=cache_mb,
+                               **{k: v for k, v in options.items() if k in _FINISH})
     layout, off, rad, _ = planned
     arr, _ = mosaic_array(layout, off, rad, feather, mode, tile)
     grid = Grid(layout.crs.to_string(), layout.transform, layout.shape)

@@ -72,7 +72,8 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
         plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
                             max_shift, block, min_texture, workers, strips, log, control)
-        return finish_mosaic(plan_, out, feather, mode, tile, workers, png, report, cog, t0)
+    return finish_mosaic(plan_, out, feather, mode, tile, workers, png, report, cog, t0,
+                         cache_mb)
 
 
 def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
@@ -106,13 +107,17 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
 
 def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: int = 1024,
                   workers: int | None = None, png: bool = True, report: bool = True,
-                  cog: bool = True, t0: float | None = None) -> dict:
+                  cog: bool = True, t0: float | None = None, cache_mb: int = 64) -> dict:
     """Blend a :func:`plan_mosaic` result into the COG ``out`` (tiles over dask threads,
-    streamed, atomic), then the quicklook, the report picture and ``<out>.json``."""
+    streamed, atomic, GDAL's block cache capped at ``cache_mb``), then the quicklook, the
+    report picture and ``<out>.json`` (with GDAL's default cache: the overview reads are
+    many times slower under the cap)."""
+    import rasterio
     t0 = time.perf_counter() if t0 is None else t0
     layout, off, rad, rep = planned
     rep = dict(rep)
-    rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog))
+    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+        rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog))
     _products(out, rep, png, report, layout)
     rep["seconds"] = round(time.perf_counter() - t0, 3)
     rep["mpx_per_s"] = round(layout.shape[0] * layout.shape[1] / 1e6 / rep["seconds"], 3)
