@@ -174,7 +174,7 @@ def _log_matching(log, rep) -> None:
 
 
 def _products(out, rep, png, report, layout) -> None:
-    """The quicklook PNG and the seams/residuals picture."""
+    """The quicklook PNG, the seams/residuals picture and the HTML report."""
     stem = os.path.splitext(os.fspath(out))[0]
     t1 = time.perf_counter()
     if png:
@@ -182,4 +182,6 @@ def _products(out, rep, png, report, layout) -> None:
     if report and "overlaps" in rep:
         from swathflow.mosaicking.report import seams_picture
         seams_picture(out, rep, layout, stem + ".report.png")
+        from swathflow.mosaicking.report_html import mosaic_report_html
+        mosaic_report_html(out, rep, layout, stem + ".html")
     rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)
