@@ -60,12 +60,14 @@ def _check_catalog(result: dict):
     from pystac.validation import validate_dict
     from shapely.geometry import shape
     from shapely.ops import transform
+    from stac_schemas import validate_extensions
     cat = pystac.Catalog.from_file(result["catalog"])
     items = {i.id: i for i in cat.get_items()}
     products = {Path(p).stem: p for p in result["rectified"]} | {"mosaic": result["mosaic"]}
     assert set(items) == set(products)
     for iid, path in products.items():
         validate_dict(items[iid].to_dict(), extensions=[])
+        validate_extensions(items[iid].to_dict())     # extension schemas, held offline
         with rasterio.open(path) as src:
             valid = float((src.dataset_mask() > 0).sum()) * abs(src.transform.a * src.transform.e)
             to = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
