@@ -5,9 +5,10 @@ Each item carries the projection extension (code, shape, transform, native bbox)
 extension on its data asset (per band: nodata, data type, resolution), the eo extension where
 wavelengths are known, and the processing extension v1.0.0 (software, level, lineage; the
 processing time is the core ``created`` field); the calibration and its report are assets.
-Footprints are polygons of the valid data (the nodata mask traced with ``rasterio.features.shapes`` on a decimated mask, simplified to about one
-decimated pixel, in EPSG:4326), not bounding boxes. The catalogue folder is written beside
-the products and swapped in whole, so readers never see half of it.
+Footprints are polygons of the valid data (the nodata mask traced with
+``rasterio.features.shapes`` on a decimated mask, simplified to about one decimated pixel,
+in EPSG:4326), not bounding boxes. The catalogue folder is written beside the products and
+swapped in whole, so readers never see half of it.
 """
 from __future__ import annotations
 
