@@ -12,12 +12,13 @@ from swathflow.formats.pos import Trajectory, interpolate_pos, read_pos
 from swathflow._version import __version__
 
 __all__ = ["FormatError", "Mission", "OutOfRangeError", "PosFormat", "SwathflowError",
-           "Trajectory", "interpolate_pos", "load_mission", "mosaic", "open_mission",
-           "read_pos", "rectify", "validate_mission", "__version__"]
+           "Trajectory", "geolocation", "interpolate_pos", "load_mission", "mosaic",
+           "open_mission", "read_pos", "rectify", "to_cog", "validate_mission", "__version__"]
 
 # the xarray API (README "Python API"), imported on first use: rioxarray and the engines
 # stay out of ``import swathflow``
 _LAZY = {"open_mission": "swathflow.ingest.api", "rectify": "swathflow.rectification.api",
+         "to_cog": "swathflow.rectification.api", "geolocation": "swathflow.rectification.api",
          "mosaic": "swathflow.mosaicking.api"}
 
 
