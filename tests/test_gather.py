@@ -32,12 +32,12 @@ def _coords(h=9, w=40):
     return np.stack([pl, pe]).astype(np.float32)
 
 
-def _truth_bilinear(cube, co):
+def _truth_bilinear(cube, co, nl=NL, ne=NE):
     """Bilinear by the textbook formula (taps clamped to the image), float64."""
-    pl = np.clip(np.nan_to_num(co[0].astype(float)), 0, NL - 1)
-    pe = np.clip(np.nan_to_num(co[1].astype(float)), 0, NE - 1)
-    i0 = np.minimum(np.floor(pl).astype(int), NL - 2)
-    j0 = np.minimum(np.floor(pe).astype(int), NE - 2)
+    pl = np.clip(np.nan_to_num(co[0].astype(float)), 0, nl - 1)
+    pe = np.clip(np.nan_to_num(co[1].astype(float)), 0, ne - 1)
+    i0 = np.minimum(np.floor(pl).astype(int), nl - 2)
+    j0 = np.minimum(np.floor(pe).astype(int), ne - 2)
     p, q = pl - i0, pe - j0
     c = cube.astype(float)
     return ((1 - p) * (1 - q) * c[:, i0, j0] + (1 - p) * q * c[:, i0, j0 + 1]
@@ -117,7 +117,17 @@ def test_envi_window_read_keeps_interleave_and_selects_bands(layout, tmp_path):
     w = img.read(3, 17, 5, 29)
     assert w.shape == (NB, 14, 24) and w.dtype == np.dtype("=u2")
     assert (w == cube[:, 3:17, 5:29]).all()
-    if layout != "bsq":                         # the copy is in the file's own order
-        assert not w.flags.c_contiguous
     sub = img.select("2,5-6").read(3, 17, 5, 29)
     assert (sub == cube[[1, 4, 5], 3:17, 5:29]).all()
+    # little-endian files: consecutive bands are a view of the memory map, no copy
+    path.write_bytes(np.ascontiguousarray(cube.transpose(LAYOUTS[layout])).astype("<u2")
+                     .tobytes())
+    (tmp_path / f"cube.{layout}.hdr").write_text(
+        (tmp_path / f"cube.{layout}.hdr").read_text().replace("byte order = 1", "byte order = 0"))
+    img = open_raw_image(path)
+    w = img.select("3-5").read(3, 17, 5, 29)
+    assert np.shares_memory(w, img.data) and (w == cube[2:5, 3:17, 5:29]).all()
+    co = np.stack(np.meshgrid(np.arange(14.0), np.arange(24.0), indexing="ij")).astype(np.float32)
+    v, ok = K.resample_window(w, co + 0.25, "bilinear", None, np.float64, np.nan)
+    assert ok.all() and np.abs(v - _truth_bilinear(cube[2:5, 3:17, 5:29], co + 0.25,
+                                                   14, 24)).max() < 1e-9

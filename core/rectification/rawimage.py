@@ -253,17 +253,17 @@ class RawImage:
 
 
 def _native_window(data: np.ndarray, sel: list, l0, l1, e0, e1) -> np.ndarray:
-    """A window of a ``(bands, lines, elements)`` numpy view of any axis order, copied in
-    that order (no transposing copy: a BIL window is read line by line with its bands
-    side by side), native byte order. Returned as a ``(bands, lines, elements)`` view of
-    the copy; only the selected bands are copied."""
+    """A window of a ``(bands, lines, elements)`` numpy view of any axis order (an ENVI
+    memmap: BSQ, BIL or BIP) as a ``(bands, lines, elements)`` array in that order.
+
+    Native byte order and a run of consecutive bands: a view, no copy at all (the kernels
+    address it through its strides, :func:`.gather.storage_view`). Otherwise a copy in
+    the file's own order (no transposing copy), of the selected bands only."""
+    if sel == list(range(sel[0], sel[-1] + 1)) and data.dtype.isnative:
+        return data[sel[0]:sel[-1] + 1, l0:l1, e0:e1]
     v = data[:, l0:l1, e0:e1]
     order = sorted(range(3), key=lambda a: -v.strides[a])     # storage order of the axes
-    st = v.transpose(order)
-    if sel != list(range(data.shape[0])):
-        st = np.take(st, sel, axis=order.index(0))             # C-ordered in storage order
-    else:
-        st = np.array(st, order="C")
+    st = np.take(v.transpose(order), sel, axis=order.index(0))  # C-ordered, storage order
     if not st.dtype.isnative:
         st = st.astype(st.dtype.newbyteorder("="))
     return st.transpose(np.argsort(order))
