@@ -106,6 +106,23 @@ def _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata):
 BLOCK_ROWS, BLOCK_COLS = 8, 64
 
 
+#: output block of the cube kernels (rows, columns): its taps stay in L1, and neighbouring
+#: rows of a block read the same raw cache lines band after band
+BLOCK_ROWS, BLOCK_COLS = 8, 64
+
+
+@njit(cache=True, nogil=True)
+def _fill_bad(out, r0, nr, c0, nc, bc, ok, out_nodata):
+    """``out_nodata`` into every band of a block's pixels without a coordinate (band
+    loop outside: contiguous writes)."""
+    for b in range(out.shape[0]):
+        for rr in range(nr):
+            o = out[b, r0 + rr]
+            for cc in range(nc):
+                if not ok[rr * bc + cc]:
+                    o[c0 + cc] = out_nodata
+
+
 @njit(cache=True, nogil=True)
 def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, valid):
     """:func:`gather_bands` for the common cube case, bilinear, written as one loop nest
@@ -134,7 +151,7 @@ def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, va
                     t = rr * bc + cc
                     li = coords[0, r0 + rr, c0 + cc]
                     ei = coords[1, r0 + rr, c0 + cc]
-                    if math.isnan(li) or math.isnan(ei):
+                    if math.isnan(li + ei):
                         bad += 1
                         ok[t] = False
                         valid[r0 + rr, c0 + cc] = 0
@@ -160,13 +177,7 @@ def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, va
                     wts[1, t] = (1 - p) * q
                     wts[2, t] = p * (1 - q)
                     wts[3, t] = p * q
-            if bad == nr * nc:
-                for b in range(nb):
-                    for rr in range(nr):
-                        for cc in range(nc):
-                            out[b, r0 + rr, c0 + cc] = out_nodata
-                continue
-            for b in range(nb):
+            for b in range(nb if bad < nr * nc else 0):     # none: every pixel is nodata
                 base = b * sb
                 for rr in range(nr):
                     o = out[b, r0 + rr]
@@ -181,11 +192,7 @@ def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, va
                             acc = acc + 1
                         o[c0 + cc] = acc
             if bad:
-                for rr in range(nr):
-                    for cc in range(nc):
-                        if not ok[rr * bc + cc]:
-                            for b in range(nb):
-                                out[b, r0 + rr, c0 + cc] = out_nodata
+                _fill_bad(out, r0, nr, c0, nc, bc, ok, out_nodata)
     return out
 
 
@@ -300,10 +307,11 @@ def gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodat
             for b in range(nb):
                 _band_row(flat, b * sb, offs, wts, out[b, r])
         if bad:
-            for c in range(w):
-                if not has[c]:
-                    for b in range(nb):
-                        out[b, r, c] = out_nodata
+            for b in range(nb):
+                o = out[b, r]
+                for c in range(w):
+                    if not has[c]:
+                        o[c] = out_nodata
     return out
 
 
