@@ -122,10 +122,13 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
 
 @task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
 def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
-    """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration."""
+    """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration:
+    every band of the raw image, or those of ``[rectify] bands`` in mission.toml."""
     from swathflow.formats.calibfile import calibration_priors, read_calibration
     from swathflow.cache import file_digest
     from swathflow.geometry.grid import footprint_grid
+    from swathflow.rectification.mission import mission_bands
+    from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.rectify import rectify_image
     m = _load(mission_path)
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
@@ -136,7 +139,8 @@ def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) ->
     model = m.model(image_id, params)
     grid = footprint_grid(model, m.terrain, m.gsd, m.crs)
     t0 = time.perf_counter()
-    rectify_image(model, m.image(image_id), m.terrain, out, grid=grid,
+    rectify_image(model, open_raw_image(m.images[image_id].file), m.terrain, out, grid=grid,
+                  bands=mission_bands(m, image_id),
                   tags={"image_id": image_id, "strip": m.images[image_id].strip,
                         "direction": m.images[image_id].direction, "mission": m.name,
                         "calibration": f"{calibration} (sha256 {file_digest(calibration)[:16]})",
