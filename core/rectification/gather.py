@@ -354,23 +354,76 @@ def storage_view(raw: np.ndarray):
     return flat, tuple(int(s // isz) if n > 1 else 0 for s, n in zip(raw.strides, raw.shape))
 
 
+#: a memory-mapped window larger than this is resampled in output sub-tiles of
+#: :data:`SUBTILE` pixels, its pages dropped after each (resident memory bounded)
+MAPPED_WINDOW_BYTES, SUBTILE = 64 << 20, 128
+
+
 def gather(raw, coords, nearest: bool, has_nodata: bool, nodata: float, out, out_nodata: float,
            lo: float, hi: float, is_int: bool, avoid: bool, valid) -> None:
     """Nearest or bilinear resampling of ``raw`` ``(bands, lines, elements)`` (any axis
     order in memory) at ``coords`` into ``out`` (arguments as
-    :func:`.kernel.resample_bands`): the compiled kernel that fits the case."""
+    :func:`.kernel.resample_bands`): the compiled kernel that fits the case. A large
+    window of a memory-mapped file goes sub-tile by sub-tile, its pages released after
+    each (:func:`release_pages`)."""
     flat, (sb, sl, se) = storage_view(raw)
-    nb, nl, ne = raw.shape
     raw_int = raw.dtype.kind in "ui"
     clamp = is_int and not (raw_int and lo <= np.iinfo(raw.dtype).min
                             and hi >= np.iinfo(raw.dtype).max)
     check = has_nodata or raw.dtype.kind == "f"
+    mapped = _memmap_of(raw) is not None
+    h, w = coords.shape[1:]
+    step = SUBTILE if mapped and flat.nbytes > MAPPED_WINDOW_BYTES else max(h, w, 1)
+    for r0 in range(0, h, step):
+        for c0 in range(0, w, step):
+            part = (slice(r0, r0 + step), slice(c0, c0 + step))
+            _gather(flat, (sb, sl, se), raw.shape, coords[(slice(None),) + part],
+                    nearest, check, clamp, has_nodata, nodata, out[(slice(None),) + part],
+                    out_nodata, lo, hi, is_int, avoid, valid[part])
+            if mapped:
+                release_pages(raw)
+
+
+def _gather(flat, strides, shape, coords, nearest, check, clamp, has_nodata, nodata, out,
+            out_nodata, lo, hi, is_int, avoid, valid):
+    sb, sl, se = strides
+    nb, nl, ne = shape
     if not nearest and is_int and not (clamp or check) and not (avoid and out_nodata >= hi):
         cmp = out_nodata if avoid else np.nan
         if sb == 1 and nb > 1:
             gather_int_bip(flat, nb, sl, se, nl, ne, coords, out, out_nodata, cmp, valid)
         else:
             gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, cmp, valid)
+    else:
+        gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodata,
+                     nodata, out, out_nodata, lo, hi, is_int, clamp, avoid, valid,
+                     sb == 1 and nb > 1)
+
+
+def _memmap_of(a):
+    """The :class:`numpy.memmap` (with its open mmap) an array is a view of, or None."""
+    while a is not None:
+        if isinstance(a, np.memmap) and getattr(a, "_mmap", None) is not None:
+            return a
+        a = a.base
+    return None
+
+
+def release_pages(window: np.ndarray) -> None:
+    """Drop the pages of a memory-mapped window from the process (``madvise`` with
+    ``MADV_DONTNEED``; the file's data stay in the page cache and a later read maps them
+    again). Without it every page a tile touched stays mapped, so the resident memory of
+    a rectification grows with the swing (an 8 GB ENVI cube: 8 GB), not with the tile."""
+    import mmap
+    mm = _memmap_of(window)
+    if mm is None or not hasattr(mmap, "MADV_DONTNEED") or window.size == 0 or \
+            min(window.strides) < 0:
         return
-    gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodata, nodata,
-                 out, out_nodata, lo, hi, is_int, clamp, avoid, valid, sb == 1 and nb > 1)
+    nbytes = window.itemsize + sum((n - 1) * st for n, st in zip(window.shape, window.strides))
+    base = mm.ctypes.data - (mm.offset % mmap.ALLOCATIONGRANULARITY)
+    start = window.__array_interface__["data"][0] - base
+    page = mmap.PAGESIZE
+    lo = max(start // page * page, 0)
+    hi = min(-(-(start + nbytes) // page) * page, len(mm._mmap))
+    if hi > lo:
+        mm._mmap.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
