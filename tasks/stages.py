@@ -122,15 +122,18 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
 @task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
 def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
     """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration:
-    ``to_cog(rectify(...))`` of the Python API, band 1 in the raw image's dtype."""
+    ``to_cog(rectify(...))`` of the Python API in the raw image's dtype: every band of the
+    raw image, or those of ``[rectify] bands`` in mission.toml."""
     from swathflow.rectification.api import rectify as rectified, to_cog
+    from swathflow.rectification.mission import mission_bands
     m = _load(mission_path)
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
     key = stage_key("rectify", _mission_files(m) + _image_files(m, image_id) + [calibration])
     if is_fresh(out, key):
         return str(out)
     t0 = time.perf_counter()
-    to_cog(rectified(m, image_id, calibration, bands="1", dtype=None), out)
+    to_cog(rectified(m, image_id, calibration, bands=mission_bands(m, image_id), dtype=None),
+           out)
     mark_done(out, key, seconds=round(time.perf_counter() - t0, 3))
     return str(out)
 

@@ -105,7 +105,7 @@ def test_multiband_image_warned(m, capsys):
         for b in (1, 2, 3):
             dst.write(a, b)
     code, text = _run(capsys, "validate", m)
-    assert code == 0 and "warning" in text and "band 1 is used" in text
+    assert code == 0 and "warning" in text and "every band is rectified" in text
 
 
 def test_simulated_pos_is_continuous(base):

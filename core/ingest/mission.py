@@ -128,8 +128,8 @@ def raster_check(path) -> tuple[int, int, int, str]:
                              f"{str(exc).splitlines()[0][:200]}") from None
     except (OSError, ValueError) as exc:
         raise SwathflowError(f"{path}: cannot read image: {exc}") from None
-    note = (f"the image has {bands} bands; band 1 is used by the flow (swathflow run), the "
-            f"others are ignored there" if bands > 1 else "")
+    note = (f"the image has {bands} bands; every band is rectified, the mosaic uses band 1"
+            if bands > 1 else "")
     return rows, cols, bands, note
 
 

@@ -29,7 +29,8 @@ from swathflow.geometry.terrain import DEM, ConstantHeight
 
 #: the keys of each mission.toml table that swathflow reads (spec/mission-format.md)
 KNOWN_KEYS = {
-    "": ("mission", "sensor", "pos", "terrain", "gcp", "images", "calibration", "ties"),
+    "": ("mission", "sensor", "pos", "terrain", "gcp", "images", "calibration", "ties",
+         "rectify"),
     "mission": ("name", "crs", "gsd", "max_pixels", "description"),
     "pos": ("file", "format", "max_gap"),
     "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
@@ -392,8 +393,9 @@ def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
               "write the image as GeoTIFF or ENVI")
         return None
     if note:
-        c.warn(ip, where, note, "'swathflow rectify' rectifies every band (--bands selects "
-               "some); for the flow, write one band per image file")
+        c.warn(ip, where, note, "[rectify] bands = \"1,4-6\" in mission.toml (or --bands of "
+               "'swathflow rectify') selects some; for a mosaic of each band, write one band "
+               "per image file")
     parts["image_shapes"][entry.id] = (rows, cols)
     n_el = parts.get("n_elements")
     if n_el is not None and cols != n_el:

@@ -104,9 +104,7 @@ def _grid_places(heads):
 
 
 def _swing(k, head, r, c, strips) -> Swing:
-    p, _, _, h, w, nod, dt, tags, count = head
-    if count != 1:
-        raise FormatError(f"{p}: has {count} bands; rectified swings are single-band")
+    p, _, _, h, w, nod, dt, tags, _count = head     # multi-band swings: band 1 is mosaicked
     iid = str(_tag(tags, TAG_IMAGE, "IMAGE_ID",
                    default=os.path.splitext(os.path.basename(p))[0]))
     strip = strips.get(iid) if strips else None

@@ -9,9 +9,11 @@ Two passes per output tile, no ``(rows, cols, 2)`` float64 temporary:
    (finer) ones overwriting the shared edges of coarser ones. Coordinates are stored as
    float32 relative to the raw window read for the tile (a few hundred pixels: 3e-5 px
    resolution), NaN off the raw image.
-2. :func:`resample_bands` resamples every band of the raw window at those coordinates
+2. :func:`resample_window` resamples every band of the raw window at those coordinates
    (nearest, bilinear, Keys cubic), nodata-aware, into the output dtype: the mapping is
-   computed once per tile and applied to every band.
+   computed once per tile and applied to every band. Nearest and bilinear go through the
+   gather kernels of :mod:`.gather` (taps once per output row, the window in its file's
+   interleave); cubic through :func:`resample_bands`.
 
 Why numba: it installs as a wheel (no compiler on the machine), compiles plain loops over
 numpy arrays for any dtype, and caches the machine code on disk (``cache=True``) so the
@@ -220,54 +222,6 @@ def resample_bands(raw, coords, kernel, has_nodata, nodata, out, out_nodata, lo,
     return out
 
 
-@njit(cache=True, nogil=True)
-def bilinear_int_bands(raw, coords, out, out_nodata, lo, hi, is_int, avoid, valid):
-    """:func:`resample_bands` for bilinear resampling of an integer raw window that has no
-    nodata value (every tap valid): the same values, taps and weights computed once per
-    pixel for all bands."""
-    nb, nl, ne = raw.shape
-    _, h, w = coords.shape
-    n = h * w
-    i0 = np.empty(n, np.int64)
-    i1 = np.empty(n, np.int64)
-    j0 = np.empty(n, np.int64)
-    j1 = np.empty(n, np.int64)
-    fl = np.empty(n, np.float64)
-    fe = np.empty(n, np.float64)
-    for r in range(h):
-        for c in range(w):
-            k = r * w + c
-            li = coords[0, r, c]
-            ei = coords[1, r, c]
-            if math.isnan(li) or math.isnan(ei):
-                valid[r, c] = 0
-                i0[k] = -1
-                continue
-            valid[r, c] = 255
-            a = math.floor(li)
-            b = math.floor(ei)
-            fl[k] = li - a
-            fe[k] = ei - b
-            i0[k] = min(max(a, 0), nl - 1)
-            i1[k] = min(max(a + 1, 0), nl - 1)
-            j0[k] = min(max(b, 0), ne - 1)
-            j1[k] = min(max(b + 1, 0), ne - 1)
-    for band in range(nb):
-        for r in range(h):
-            for c in range(w):
-                k = r * w + c
-                if i0[k] < 0:
-                    out[band, r, c] = out_nodata
-                    continue
-                p, q = fl[k], fe[k]
-                acc = ((1 - p) * ((1 - q) * raw[band, i0[k], j0[k]] + q * raw[band, i0[k], j1[k]])
-                       + p * ((1 - q) * raw[band, i1[k], j0[k]] + q * raw[band, i1[k], j1[k]]))
-                if is_int:
-                    acc = _to_int(acc, lo, hi, avoid, out_nodata)
-                out[band, r, c] = acc
-    return out
-
-
 def resample_window(raw, coords, kernel: str, nodata, out_dtype, out_nodata):
     """Python front of :func:`resample_bands`: ``raw`` ``(bands, lines, elements)`` or 2-D,
     returns ``(values (bands, h, w) out_dtype, valid (h, w) bool)``."""
@@ -295,11 +249,15 @@ def resample_window(raw, coords, kernel: str, nodata, out_dtype, out_nodata):
     else:
         ond = float(out_nodata)
         avoid = is_int
-    if kernel == "bilinear" and raw.dtype.kind in "ui" and not has_nodata:
-        # integer cube without nodata (the usual hyperspectral case): taps and weights
-        # once per pixel, then a plain gather per band
-        bilinear_int_bands(raw, coords, out, ond, lo, hi, is_int, avoid, valid)
+    if kernel in ("nearest", "bilinear"):
+        # taps and weights once per output row, applied to every band, reading the window
+        # in its file's interleave (no transposing copy): see :mod:`.gather`
+        from swathflow.rectification.gather import gather
+        gather(raw, coords, kernel == "nearest", has_nodata, nd, out, ond, lo, hi, is_int,
+               avoid, valid)
     else:
-        resample_bands(raw, coords, KERNEL_CODES[kernel], has_nodata, nd, out, ond, lo, hi,
-                       is_int, avoid, valid)
+        from swathflow.rectification.gather import release_pages
+        resample_bands(np.ascontiguousarray(raw), coords, KERNEL_CODES[kernel], has_nodata,
+                       nd, out, ond, lo, hi, is_int, avoid, valid)
+        release_pages(raw)
     return out, valid.view(bool)

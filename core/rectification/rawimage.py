@@ -221,7 +221,9 @@ class RawImage:
 
     # --- reads ------------------------------------------------------------------------
     def read(self, l0: int, l1: int, e0: int, e1: int) -> np.ndarray:
-        """``(bands, l1 - l0, e1 - e0)`` in the native dtype (native byte order)."""
+        """``(bands, l1 - l0, e1 - e0)`` in the native dtype (native byte order). A numpy
+        (memory-mapped) source is copied in its own interleave: the result's memory is
+        BIL / BIP ordered for a BIL / BIP file (see :func:`_native_window`)."""
         if self.data is None:
             from rasterio.windows import Window
             with _open_raw(self.path) as src:
@@ -229,13 +231,14 @@ class RawImage:
                              window=Window(e0, l0, e1 - e0, l1 - l0))
             return a
         sel = list(self.selected)
+        if isinstance(self.data, np.ndarray):
+            return _native_window(self.data, sel, l0, l1, e0, e1)
         if sel == list(range(self.shape3[0])):
             a = self.data[:, l0:l1, e0:e1]
         elif len(sel) == 1:
             a = self.data[sel[0]:sel[0] + 1, l0:l1, e0:e1]
         else:
-            a = self.data[:, l0:l1, e0:e1][sel] if self.interleave == "bip" else \
-                np.stack([self.data[i, l0:l1, e0:e1] for i in sel])
+            a = np.stack([self.data[i, l0:l1, e0:e1] for i in sel])
         if hasattr(a, "compute"):
             import dask
             with dask.config.set(scheduler="sync"):
@@ -247,6 +250,23 @@ class RawImage:
 
     def token(self):
         return (self.path or id(self.data), self.selected, str(self.dtype), self.nodata)
+
+
+def _native_window(data: np.ndarray, sel: list, l0, l1, e0, e1) -> np.ndarray:
+    """A window of a ``(bands, lines, elements)`` numpy view of any axis order (an ENVI
+    memmap: BSQ, BIL or BIP) as a ``(bands, lines, elements)`` array in that order.
+
+    Native byte order and a run of consecutive bands: a view, no copy at all (the kernels
+    address it through its strides, :func:`.gather.storage_view`). Otherwise a copy in
+    the file's own order (no transposing copy), of the selected bands only."""
+    if sel == list(range(sel[0], sel[-1] + 1)) and data.dtype.isnative:
+        return data[sel[0]:sel[-1] + 1, l0:l1, e0:e1]
+    v = data[:, l0:l1, e0:e1]
+    order = sorted(range(3), key=lambda a: -v.strides[a])     # storage order of the axes
+    st = np.take(v.transpose(order), sel, axis=order.index(0))  # C-ordered, storage order
+    if not st.dtype.isnative:
+        st = st.astype(st.dtype.newbyteorder("="))
+    return st.transpose(np.argsort(order))
 
 
 def _with_rasterio(img: RawImage, sel) -> RawImage:
