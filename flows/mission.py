@@ -92,10 +92,11 @@ def _warm(mission: str) -> None:
 def rectify_swings(client, mission: str, ids: list, calibration: str, out: str,
                    progress=None) -> list[str]:
     """Every swing rectified by the Dask workers, one task per swing (a lost worker's
-    task is run again by Dask on another); the finished paths in ``ids`` order."""
+    task is run again by Dask on another; a failed one is retried once); the finished
+    paths in ``ids`` order."""
     from distributed import as_completed
     futures = client.map(_rectify_one, list(ids), mission=mission, calibration=calibration,
-                         out=out, pure=False)
+                         out=out, pure=False, retries=1)
     done = 0
     for _ in as_completed(futures):
         done += 1
