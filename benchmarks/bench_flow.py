@@ -1,21 +1,45 @@
-"""End-to-end mission flow: wall time with 1 and 2 Dask workers, stage by stage, a re-run
-with nothing to recompute, and the orchestration overhead of Prefect against calling the
-same stage functions directly.
+"""End-to-end mission flow: the whole run in a fresh process (imports, Prefect's ephemeral
+server and the local Dask cluster included) with 1 and 2 Dask workers side by side, stage
+by stage; a re-run with nothing to recompute (the `swathflow run` command itself); and,
+optionally, the same stage functions called directly (no Prefect, no Dask).
 
-Reproduce:  python benchmarks/bench_flow.py --preset demo   (and --preset area, survey)
-The survey preset (papers.md section 3, 240 swings) skips the direct runs unless --direct.
+Reproduce:  python benchmarks/bench_flow.py --preset survey --workers 1,2
+            (also --preset demo, area; --direct adds the direct in-process run)
 The mission is simulated once into --work (default: a temporary folder); the truth
 calibration is passed so every run does the same work (ingest, POS, rectify, mosaic).
+CPU seconds are the run's process and its reaped children (the Dask workers).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import resource
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+_RUN = ("import json, sys\nfrom swathflow.flows.mission import run\n"
+        "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
+        "print('TIMINGS', json.dumps(r['timings']))\n")
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _timed(cmd: list[str]) -> tuple[float, float, str]:
+    """Wall and CPU seconds of a command in a fresh process, and its stdout."""
+    c0, t0 = _children_cpu(), time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200)
+    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+    if r.returncode:
+        sys.exit(f"failed ({r.returncode}): {' '.join(cmd)}\n{r.stdout[-2000:]}{r.stderr[-3000:]}")
+    return wall, cpu, r.stdout
 
 
 def main(argv=None) -> int:
@@ -23,65 +47,63 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="demo")
     ap.add_argument("--workers", default="1,2")
     ap.add_argument("--work", help="folder for the mission and outputs (kept)")
-    ap.add_argument("--direct", action="store_true", default=None,
-                    help="also call the stage functions directly (default: not for survey)")
+    ap.add_argument("--direct", action="store_true",
+                    help="also call the stage functions directly in this process")
     args = ap.parse_args(argv)
-    if args.direct is None:
-        args.direct = args.preset != "survey"
     work = Path(args.work or tempfile.mkdtemp(prefix="swathflow-bench-"))
     mission = work / f"{args.preset}-mission"
-    from swathflow.sensors.pendulum.simulate import simulate
     if not (mission / "mission.toml").exists():
+        from swathflow.simulation import simulate
         t = time.perf_counter()
         simulate(mission, preset=args.preset, seed=0)
         print(f"simulated {args.preset} in {time.perf_counter() - t:.1f} s")
     cal = str(mission / "truth" / "calibration.json")
-
-    from distributed import Client, LocalCluster
-    from swathflow.flows.mission import run
-    from swathflow.ingest.mission import load_mission
-    from swathflow.tasks import stages
-
+    cli = str(Path(sys.executable).with_name("swathflow"))
     rows = []
     for n in [int(x) for x in args.workers.split(",")]:
-        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                          dashboard_address=None, silence_logs=40) as cluster, \
-                Client(cluster):
-            out = work / f"out-flow-{n}"
-            shutil.rmtree(out, ignore_errors=True)
-            t = time.perf_counter()
-            res = run(mission, out, calibration=cal, dask_address=cluster.scheduler_address)
-            flow_s = time.perf_counter() - t
-            t = time.perf_counter()
-            run(mission, out, calibration=cal, dask_address=cluster.scheduler_address)
-            rerun_s = time.perf_counter() - t
-            direct_s = float("nan")
-            if args.direct:
-                direct_s = _direct(stages, load_mission, mission, cal, work / f"out-direct-{n}")
-        rows.append((n, flow_s, rerun_s, direct_s, res["timings"]))
-    print(f"swathflow flow benchmark: preset {args.preset}, {os.cpu_count()} cores")
-    print(f"  {'workers':>7} {'flow s':>8} {'re-run s':>9} {'direct s':>9} {'overhead s':>10}"
-          f"   stages (flow)")
-    for n, f, rr, d, tm in rows:
-        stages_txt = ", ".join(f"{k} {v:.1f}" for k, v in tm.items())
-        print(f"  {n:>7} {f:8.1f} {rr:9.1f} {d:9.1f} {f - d:10.1f}   {stages_txt}")
+        out = work / f"out-flow-{n}"
+        shutil.rmtree(out, ignore_errors=True)
+        wall, cpu, text = _timed([sys.executable, "-c", _RUN, str(mission), str(out), cal,
+                                  str(n)])
+        stages = json.loads(text.split("TIMINGS", 1)[1])
+        r_wall, r_cpu, r_text = _timed([cli, "run", str(mission), "--out", str(out),
+                                        "--calibration", cal])
+        assert "nothing to recompute" in r_text, r_text
+        rows.append((n, wall, cpu, r_wall, r_cpu, stages))
+    direct = _direct(mission, cal, work / "out-direct") if args.direct else None
+    print(f"swathflow flow benchmark: preset {args.preset}, {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.1f}")
+    names = list(rows[0][5])
+    print(f"  {'workers':>7} {'run wall s':>10} {'run CPU s':>9} {'no-op wall':>10} "
+          f"{'no-op CPU':>9}  " + " ".join(f"{k:>15}" for k in names))
+    for n, wall, cpu, rw, rc, st in rows:
+        print(f"  {n:>7} {wall:10.1f} {cpu:9.1f} {rw:10.2f} {rc:9.2f}  "
+              + " ".join(f"{st.get(k, float('nan')):15.1f}" for k in names))
     if len(rows) > 1:
-        print(f"  scaling 1 -> {rows[-1][0]} workers: {rows[0][1] / rows[-1][1]:.2f}x (flow)")
+        print(f"  1 -> {rows[-1][0]} workers: {rows[0][1] / rows[-1][1]:.2f}x (run wall), "
+              + ", ".join(f"{k} {rows[0][5][k] / max(rows[-1][5].get(k, 0), 1e-9):.2f}x"
+                          for k in names))
+    if direct is not None:
+        print(f"  direct (stage functions in one process, no Prefect/Dask): {direct:.1f} s")
     print(f"reproduce: python benchmarks/bench_flow.py --preset {args.preset} "
           f"--workers {args.workers}" + (" --direct" if args.direct else ""))
     return 0
 
 
-def _direct(stages, load_mission, mission, cal, out) -> float:
-    """The same stages called as plain functions (no Prefect), in this process."""
+def _direct(mission, cal, out) -> float:
+    """The same stages called as plain functions (no Prefect, no Dask), in this process."""
+    import dask
+    from swathflow.ingest.mission import load_mission
+    from swathflow.tasks import stages
     shutil.rmtree(out, ignore_errors=True)
     t = time.perf_counter()
-    stages.ingest.fn(str(mission))
-    stages.interpolate_pos.fn(str(mission), str(out))
-    c = stages.calibrate.fn(str(mission), str(out), cal)
-    rect = [stages.rectify.fn(str(mission), iid, c, str(out))
-            for iid in load_mission(mission).images]
-    stages.mosaic.fn(rect, str(out), str(mission), c)
+    with dask.config.set(scheduler="sync"):
+        stages.ingest.fn(str(mission))
+        stages.interpolate_pos.fn(str(mission), str(out))
+        c = stages.calibrate.fn(str(mission), str(out), cal)
+        rect = [stages.rectify.fn(str(mission), iid, c, str(out))
+                for iid in load_mission(mission).images]
+        stages.mosaic.fn(rect, str(out), str(mission), c)
     return time.perf_counter() - t
 
 

@@ -61,3 +61,28 @@ def is_fresh(output, key: str) -> bool:
 def mark_done(output, key: str, **info: Any) -> None:
     """Record that ``output`` is complete for ``key`` (call after writing the output)."""
     write_text(manifest_path(output), json.dumps({"key": key, **info}, indent=2, default=str))
+
+
+def fingerprints(paths: Iterable) -> dict[str, list]:
+    """``{path: [size, mtime_ns, sha256]}`` of existing files (absolute paths)."""
+    out = {}
+    for p in paths:
+        p = os.path.abspath(os.fspath(p))
+        st = os.stat(p)
+        out[p] = [st.st_size, st.st_mtime_ns, _file_digest(p, st.st_size, st.st_mtime_ns)]
+    return out
+
+
+def unchanged(recorded: dict[str, list]) -> bool:
+    """True when every file of :func:`fingerprints` still has the same content: the stamp
+    (size, mtime) is trusted when equal; a file touched but not changed hashes equal."""
+    for p, (size, mtime_ns, digest) in recorded.items():
+        try:
+            st = os.stat(p)
+        except OSError:
+            return False
+        if (st.st_size, st.st_mtime_ns) == (size, mtime_ns):
+            continue
+        if st.st_size != size or _file_digest(p, st.st_size, st.st_mtime_ns) != digest:
+            return False
+    return True

@@ -174,3 +174,19 @@ def explain_os_error(exc: BaseException, out=None) -> str | None:
         return (f"cannot write a raster: {texts.splitlines()[0][:200]}: check the output "
                 f"folder (space, permissions) and re-run")
     return None
+
+
+def check_run_inputs(mission, calibration=None):
+    """``swathflow run``'s inputs, checked before Prefect or Dask start: the mission (every
+    problem listed at once) and the calibration file (readable, for the mission's
+    sensor). Returns the loaded mission."""
+    from swathflow.ingest.mission import load_mission
+    m = load_mission(mission)
+    if calibration:
+        from swathflow.formats.calibfile import read_calibration
+        doc = read_calibration(calibration)
+        if doc.get("sensor") not in (None, m.sensor.get("model")):
+            raise SwathflowError(f"{calibration}: calibration is for sensor {doc['sensor']!r}, "
+                                 f"the mission uses {m.sensor.get('model')!r}: pass the "
+                                 f"calibration of this mission's sensor")
+    return m

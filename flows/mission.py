@@ -36,14 +36,17 @@ from swathflow.tasks import stages  # noqa: E402
 @flow(name="swathflow-mission", log_prints=False)
 def mission_flow(mission: str, out: str, calibration: str | None = None,
                  dask_address: str | None = None, cluster: str = "local",
-                 jobs: int | None = None) -> dict:
+                 jobs: int | None = None, workers: int | None = None) -> dict:
     """Process one mission folder into ``out``; returns the paths of every product and the
     stage timings. Finished outputs whose inputs are unchanged are reused. The Dask work
     runs on ``dask_address``, or on ``jobs`` SLURM worker jobs (``cluster="slurm"``), or on
-    a local cluster."""
+    a local cluster (``workers`` processes; default: one per core, at most 4)."""
     mission = str(Path(mission).resolve())
     out = str(Path(out).resolve())
-    with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs):
+    with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs,
+                                            n_workers=workers) as client:
+        warm = [client.submit(_warm, mission, workers=[w], pure=False)
+                for w in client.scheduler_info()["workers"]]
         prog.start("ingest")
         info = stages.ingest(mission)
         prog.finish("ingest")
@@ -55,12 +58,10 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         cal = stages.calibrate(mission, out, calibration)
         prog.finish("calibrate")
         prog.start("rectify", len(ids))
-        futures = [stages.rectify.submit(mission, iid, cal, out) for iid in ids]
-        rectified = []
-        for i, fut in enumerate(futures):
-            rectified.append(fut.result())
-            prog.update("rectify", i + 1, len(ids))
+        rectified = rectify_swings(client, mission, ids, cal, out,
+                                   lambda done: prog.update("rectify", done, len(ids)))
         prog.finish("rectify", len(ids))
+        del warm
         prog.start("mosaic")
         mos = stages.mosaic(rectified, out, mission, cal)
         prog.finish("mosaic")
@@ -73,12 +74,54 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
 
 
-def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs=None) -> dict:
-    """Run the flow without the heartbeat overhead (DESIGN.md) and return its result."""
+def _rectify_one(image_id: str, mission: str, calibration: str, out: str) -> str:
+    """One swing, rectified and written INSIDE a Dask worker process: only paths travel
+    (the mission is loaded once per worker process and memoised; the tiles are computed
+    by the worker's own thread, so no pixels or models cross processes)."""
+    import dask
+    with dask.config.set(scheduler="sync"):
+        return stages.rectify.fn(mission, image_id, calibration, out)
+
+
+def _warm(mission: str) -> None:
+    """Load (and memoise) the mission in a worker process while the client does the
+    first stages."""
+    stages._load(mission)
+
+
+def rectify_swings(client, mission: str, ids: list, calibration: str, out: str,
+                   progress=None) -> list[str]:
+    """Every swing rectified by the Dask workers, one task per swing (a lost worker's
+    task is run again by Dask on another; a failed one is retried once); the finished
+    paths in ``ids`` order."""
+    from distributed import as_completed
+    futures = client.map(_rectify_one, list(ids), mission=mission, calibration=calibration,
+                         out=out, pure=False, retries=1)
+    done = 0
+    for _ in as_completed(futures):
+        done += 1
+        if progress is not None:
+            progress(done)
+    return [f.result() for f in futures]
+
+
+def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs=None,
+        workers=None) -> dict:
+    """Run the flow without the heartbeat overhead (DESIGN.md) and return its result;
+    when nothing is to be recomputed (:mod:`swathflow.flows.fresh`), the recorded result
+    at once (``result["fresh"]``), without starting Prefect or Dask."""
+    from swathflow.flows import fresh
+    hit = fresh.fresh_result(mission, out, calibration)
+    if hit is not None:
+        return hit
+    fresh.forget(out)
     from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
     try:
         ctx = temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None})
     except Exception:  # older settings objects reject None: keep the default
         ctx = contextlib.nullcontext()
     with ctx:
-        return mission_flow(str(mission), str(out), calibration, dask_address, cluster, jobs)
+        result = mission_flow(str(mission), str(out), calibration, dask_address, cluster,
+                              jobs, workers)
+    fresh.record(mission, out, calibration, result)
+    return result

@@ -441,3 +441,26 @@ def test_sigterm_during_run_stops_the_prefect_server(base, tmp_path):
         except ProcessLookupError:
             pass
     assert not alive, f"left running: {alive}"
+
+
+@pytest.mark.parametrize("content, words", [
+    ('{"format": "swathflow-calibration", "sensor": "another-scanner", '
+     '"parameters": {"a": {"value": [1.0]}}}', ("another-scanner", "sensor")),
+    ("{not json", ("not valid JSON",))])
+def test_run_checks_the_calibration_before_starting_prefect(m, tmp_path, content, words):
+    """A calibration file that is not JSON, or is for another sensor, is reported (file
+    named, exit 2) before the flow (Prefect) or Dask is imported (fresh interpreter)."""
+    from swathflow.formats.calibfile import FORMAT
+    cal = tmp_path / "cal.json"
+    cal.write_text(content.replace("swathflow-calibration", FORMAT))
+    code = ("import sys\nfrom swathflow.flows.cli import main\n"
+            f"rc = main(['run', {str(m)!r}, '--out', {str(tmp_path / 'o')!r}, "
+            f"'--calibration', {str(cal)!r}])\n"
+            "print('RC', rc, 'flow' if 'swathflow.flows.mission' in sys.modules else '-', "
+            "'dask' if 'distributed' in sys.modules else '-')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    text = r.stdout + r.stderr
+    assert "RC 2 - -" in r.stdout, text
+    assert str(cal) in text and all(w in text for w in words), text
+    assert "Traceback" not in text

@@ -199,3 +199,69 @@ def test_flow_calibrates_and_maps_a_pushbroom_mission(tmp_path):
     doc = read_calibration(result["calibration"])
     assert doc["sensor"] == "pushbroom" and result["report"]
     _check_against_truth(mission, result, tol_px=0.5)
+
+
+def _files(out: Path) -> dict:
+    """Every file of a run's output folder (the lock aside): bytes and modification time."""
+    return {str(p.relative_to(out)): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".swathflow.lock"}
+
+
+def test_nothing_to_recompute_exits_before_prefect_and_dask(tiny_mission, tmp_path):
+    """A second `swathflow run` on unchanged inputs says so and exits 0 without importing
+    Prefect or Dask (fresh interpreter); every output keeps its bytes and its mtime. A
+    touched but unchanged input is still fresh (its content is compared)."""
+    from swathflow.flows.mission import run
+    mission = tmp_path / "mission"
+    shutil.copytree(tiny_mission, mission)
+    out = tmp_path / "out"
+    cal = str(mission / "truth" / "calibration.json")
+    first = run(mission, out, calibration=cal)
+    assert not first.get("fresh")
+    os.utime(mission / "pos.sbet")         # same content, new stamp
+    before = _files(out)
+    code = ("import sys\nfrom swathflow.flows.cli import main\n"
+            f"rc = main(['run', {str(mission)!r}, '--out', {str(out)!r}, '--calibration', "
+            f"{cal!r}])\n"
+            "print('RC', rc, 'prefect' if 'prefect' in sys.modules else '-', "
+            "'dask' if 'distributed' in sys.modules else '-')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert "RC 0 - -" in r.stdout, r.stdout + r.stderr
+    assert "nothing to recompute" in r.stdout
+    assert _files(out) == before, "a run with nothing to recompute changed its outputs"
+    again = run(mission, out, calibration=cal)
+    assert again["fresh"] and again["rectified"] == first["rectified"]
+    assert again["mosaic"] == first["mosaic"]
+
+
+def test_changed_image_recomputes_exactly_what_depends_on_it(tiny_mission, tmp_path):
+    """One raw image changed: its swing, the mosaic and the catalogue are redone; the other
+    swing and every POS product (they do not read pixels) keep their bytes and mtimes;
+    a deleted output is written again; then the run is fresh again."""
+    from swathflow.flows.mission import run
+    mission = tmp_path / "mission"
+    shutil.copytree(tiny_mission, mission)
+    out = tmp_path / "out"
+    cal = str(mission / "truth" / "calibration.json")
+    first = run(mission, out, calibration=cal)
+    before = _files(out)
+    changed = Path(first["rectified"][0]).stem
+    with rasterio.open(mission / "images" / f"{changed}.tif", "r+") as src:
+        block = src.read(1, window=((0, 8), (0, 8)))
+        src.write(block + 1, 1, window=((0, 8), (0, 8)))
+    second = run(mission, out, calibration=cal)
+    assert not second.get("fresh")
+    after = _files(out)
+    redone = {k for k in before if after.get(k) != before[k]}
+    rect = {k for k in before if k.startswith("rectified/") and k.endswith(".tif")}
+    assert f"rectified/{changed}.tif" in redone
+    assert rect - {f"rectified/{changed}.tif"} and not (rect - {f"rectified/{changed}.tif"}) & redone
+    assert "mosaic.tif" in redone
+    assert not {k for k in redone if k.startswith("pos/")}, "POS products were redone"
+    assert run(mission, out, calibration=cal)["fresh"]
+    os.remove(out / "mosaic.tif")
+    third = run(mission, out, calibration=cal)
+    assert not third.get("fresh") and (out / "mosaic.tif").exists()
+    kept = _files(out)
+    assert all(kept[k] == after[k] for k in rect), "swings redone for a lost mosaic"

@@ -203,8 +203,14 @@ def _print_summary(result: dict, args=None) -> None:
 
 def run(args) -> int:
     """``swathflow run MISSION --out DIR``: the whole flow."""
-    from swathflow.ingest.mission import load_mission
-    load_mission(args.mission)      # bad input reported before Prefect and Dask start
+    from swathflow.flows.fresh import fresh_result
+    done = fresh_result(args.mission, args.out, args.calibration)   # no Prefect, no Dask
+    if done is not None:
+        _echo(args, f"mission {done['mission']}: up to date, nothing to recompute "
+              f"(products in {os.path.abspath(args.out)})")
+        return 0
+    from swathflow.flows.guard import check_run_inputs
+    check_run_inputs(args.mission, args.calibration)   # bad input: before Prefect and Dask
     from swathflow.flows.mission import run as run_flow
     _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
                             args.cluster, args.jobs), args)
