@@ -32,6 +32,7 @@ class CalibrationOptions:
     reference: str | None = None               # reference orthophoto: automatic control
     reference_dem: str | None = None           # heights of the reference's points
     max_rounds: int = 4                        # match / adjust rounds with a reference
+    ties: bool = False                         # with a reference: tie points L <-> R swings
     extra: Mapping[str, Any] = field(default_factory=dict)
 
 
@@ -77,6 +78,7 @@ class ReferenceCalibration:
         from swathflow.calibration.autocontrol import calibrate_mission_from_reference
         return calibrate_mission_from_reference(
             mission, self.ortho, self.dem, max_rounds=options.max_rounds, progress=progress,
+            ties=options.ties,
             shared_boresight=options.shared_boresight, fixed=list(options.fixed),
             drift=options.drift, robust=options.robust, vce=options.vce,
             vce_priors=options.vce_priors)
