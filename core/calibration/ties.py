@@ -70,8 +70,8 @@ def _common_grid(a, b, models, terrain, ref, res: float) -> Grid | None:
     c0, c1 = max(wa[1][0], wb[1][0]), min(wa[1][1], wb[1][1])
     if r1 <= r0 or c1 <= c0:
         return None
-    x0, y0 = ref.grid.transform * (c0, r0)
-    x1, y1 = ref.grid.transform * (c1, r1)
+    x0, y0 = ref.grid.xy(r0, c0, offset="ul")
+    x1, y1 = ref.grid.xy(r1, c1, offset="ul")
     return Grid.from_bounds(ref.grid.crs, (x0, y1, x1, y0), res, snap=True)
 
 
