@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from test_reference_calibration import AUTZEN, _mission, _truth, needs_autzen
+from test_reference_calibration import _mission, _truth, needs_autzen
 
 pytestmark = pytest.mark.usefixtures("prefect_harness")
 
