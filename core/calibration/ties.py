@@ -19,6 +19,8 @@ coarse.
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pandas as pd
 
@@ -177,7 +179,9 @@ def match_ties(models, sources, terrain, ref, settings: MatchSettings,
     n = 0
     for a, b in overlapping_pairs(models, terrain, ref):
         st = {"pair": f"{a}-{b}", "blocks": 0, "matched": 0, "kept": 0, "reasons": {}}
+        t0 = time.perf_counter()
         t = match_pair(a, b, models, sources, terrain, ref, settings, raw_gsd, n, st)
+        st["seconds"] = round(time.perf_counter() - t0, 3)
         n += t["tie_id"].nunique()
         tables.append(t)
         if stats is not None:
