@@ -194,12 +194,6 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
             tables.append(pts)
             stats.append(st)
         obs = pd.concat([t for t in tables if len(t)] or tables, ignore_index=True)
-        if ties:
-            tie_stats = []
-            tie_obs = match_ties(current, srcs, terrain, reference, settings, raw_gsd,
-                                 tie_stats)
-            say(f"round {k}: {tie_obs['tie_id'].nunique()} tie points "
-                f"({', '.join(t['pair'] + ' ' + str(t['kept']) for t in tie_stats)})")
         t_match = time.perf_counter() - t0
         say(f"round {k}: {len(obs)} automatic control points "
             f"({', '.join(str(s['image_id']) + ' ' + str(s['matched']) for s in stats)}) "
@@ -209,13 +203,23 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
                 f"{reference.path}: no automatic control point matched (statuses: "
                 f"{', '.join(sorted({s['status'] for s in stats}))}); check that the "
                 f"reference covers the flight, is north-up and has texture")
+        t_ties = 0.0
+        if ties:
+            t0, tie_stats = time.perf_counter(), []
+            tie_obs = match_ties(current, srcs, terrain, reference, settings, raw_gsd,
+                                 tie_stats)
+            t_ties = time.perf_counter() - t0
+            say(f"round {k}: {tie_obs['tie_id'].nunique()} tie points "
+                f"({', '.join(t['pair'] + ' ' + str(t['kept']) for t in tie_stats)}) "
+                f"in {t_ties:.1f} s")
         res, warning = _adjust_round(models, obs, priors, {**calibrate_options,
                                                            "ties": tie_obs})
         change = _change_in_sigmas(prev, res)
         rounds.append({"round": k, "points": int(len(obs)), "rejected": int(len(res.rejected)),
                        "sigma0": float(res.sigma0), "max_change_sigma": change,
                        "matching_s": round(t_match, 3), "design_warning": warning,
-                       "ties": (res.options.get("ties") or {}).get("points", 0)})
+                       "ties": (res.options.get("ties") or {}).get("points", 0),
+                       "tie_matching_s": round(t_ties, 3)})
         rounds[-1]["converged"] = bool(change < tol_sigma)
         current = {iid: models[iid].with_vector(res.image_vectors[iid]) for iid in models}
         if change < tol_sigma:

@@ -135,10 +135,11 @@ def tie_section(ties: pd.DataFrame, matching: list[dict]) -> str:
     if len(m):
         out.append(_table(m, 3, left=("pair", "dropped")))
     if len(ties):
-        summ = (ties.groupby(["image_id", "rejected"])
+        summ = (ties.assign(rejected=ties["rejected"].map({True: "yes", False: "no"}))
+                .groupby(["image_id", "rejected"])
                 .agg(n=("x", "size"), rms_x=("x", lambda v: float(np.sqrt(np.mean(v ** 2)))),
                      rms_y=("y", lambda v: float(np.sqrt(np.mean(v ** 2))))).reset_index())
-        out.append(_table(summ, 3, left=("image_id",)))
+        out.append(_table(summ, 3, left=("image_id", "rejected")))
     if len(rej):
         out.append("<h4>Rejected tie points</h4>")
         out.append(_table(rej[["tie_id", "image_id", "line", "element", "x", "y"]], 3,
