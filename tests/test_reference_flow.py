@@ -5,7 +5,6 @@ flow never sees."""
 from __future__ import annotations
 
 import json
-import re
 
 import numpy as np
 import pytest
@@ -57,21 +56,3 @@ def test_flow_calibrates_from_mission_reference(tmp_path):
                              np.where(ok, win, np.nanmean(win[ok])))
         print(path, round(dx, 3), round(dy, 3))
         assert np.hypot(dx, dy) < 0.3, (path, dx, dy)
-
-
-def test_reference_table_ties_must_be_boolean(tmp_path):
-    from swathflow.calibration.strategy import CalibrationOptions, reference_strategy
-    from swathflow.calibration.unknowns import CalibrationError
-    from swathflow.ingest.mission import load_mission
-    from swathflow.simulation import simulate
-    out = tmp_path / "m"
-    simulate(out, "tiny", seed=1, render=False)
-    (out / "gcp.csv").unlink()
-    toml = out / "mission.toml"
-    text = re.sub(r"\[gcp\]\n[^\[]*", "", toml.read_text())
-    toml.write_text(text + '\n[reference]\northo = "ortho.tif"\nties = true\n')
-    s = reference_strategy(load_mission(out), CalibrationOptions())
-    assert s is not None and s.ties is True
-    toml.write_text(text + '\n[reference]\northo = "ortho.tif"\nties = "yes"\n')
-    with pytest.raises(CalibrationError, match=r"mission.toml: \[reference\] ties"):
-        reference_strategy(load_mission(out), CalibrationOptions())

@@ -10,6 +10,7 @@ left/right boresight difference poorly known.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -142,3 +143,21 @@ def test_ties_separate_direction_dependent_boresight(overlap_mission, tmp_path):
     assert doc["reference"]["ties"]["rejected"] == len(
         set(rc.ties.loc[rc.ties["rejected"], "tie_id"]))
     assert "tie_x" in doc["variance_components"]
+
+
+def test_reference_table_ties_must_be_boolean(tmp_path):
+    from swathflow.calibration.strategy import CalibrationOptions, reference_strategy
+    from swathflow.calibration.unknowns import CalibrationError
+    from swathflow.ingest.mission import load_mission
+    from swathflow.simulation import simulate
+    out = tmp_path / "m"
+    simulate(out, "tiny", seed=1, render=False)
+    (out / "gcp.csv").unlink()
+    toml = out / "mission.toml"
+    text = re.sub(r"\[gcp\]\n[^\[]*", "", toml.read_text())
+    toml.write_text(text + '\n[reference]\northo = "ortho.tif"\nties = true\n')
+    s = reference_strategy(load_mission(out), CalibrationOptions())
+    assert s is not None and s.ties is True
+    toml.write_text(text + '\n[reference]\northo = "ortho.tif"\nties = "yes"\n')
+    with pytest.raises(CalibrationError, match=r"mission.toml: \[reference\] ties"):
+        reference_strategy(load_mission(out), CalibrationOptions())
