@@ -151,8 +151,9 @@ def calibrate(models: Mapping[str, object], obs: pd.DataFrame, priors=None, *,
         pseudo-observations, can tighten a prior that is off by two of its sigmas until it
         biases the estimate. Its estimate is reported either way (``components``).
     ties: optional tie observations (:data:`swathflow.calibration.ties.TIE_COLUMNS`): image
-        points of one ground point in several images, whose ground coordinates are extra
-        unknowns (started at X, Y, Z); summarised in ``options["ties"]``.
+        points of one ground point in several images, whose ground position is three extra
+        unknowns (east, north, up corrections from X, Y, Z; the up one with a 1 m prior)
+        with their own variance components; summarised in ``options["ties"]``.
     """
     if not models:
         raise CalibrationError("no images")

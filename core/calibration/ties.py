@@ -2,16 +2,19 @@
 whose ground coordinates are unknowns of the adjustment.
 
 Matching: both swings are rectified with the current parameters onto one grid over their
-common footprint (the reference's pixel size), the second is histogram-matched to the
-first, and well-textured blocks are matched with the mosaic's block matcher
+common footprint at the raw pixel size (not the reference's: image-to-image matching does
+not depend on how coarse the reference is), the second is histogram-matched to the first,
+and well-textured blocks are matched with the mosaic's block matcher
 (:func:`swathflow.mosaicking.matching.match_block`). A block centred at ``p`` in the first
 swing's rendering is found at ``q`` in the second's; both are carried back to raw (line,
 element) through their own model and terrain, and the ground point at ``p`` (on the terrain)
-is the start value of the tie point's unknown ground coordinates.
+is the start value of the tie point's unknown ground coordinates. At most
+``settings.tie_max`` per pair are kept, spread along the overlap.
 
 Adjustment: :func:`tie_group` gives the observation group (observed minus computed image
 coordinates of every tie observation, the partials with respect to the calibration unknowns
-and to the tie point's own three ground-coordinate corrections, metres in ECEF) that
+and to the tie point's own east, north, up corrections in metres, the up one with the
+terrain's height as a prior: the two rays are nearly parallel) that
 :func:`swathflow.calibration.control.calibrate` adds beside the control points when it is
 given ``ties``. Left and right swings then see the same ground point through their own
 boresights, which separates the direction-dependent boresight where control is sparse or
