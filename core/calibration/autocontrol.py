@@ -23,6 +23,7 @@ from swathflow.calibration.control import calibrate
 from swathflow.calibration.reference import (DEFAULT_SETTINGS, MatchSettings, Reference,
                                              match_swing, open_reference)
 from swathflow.calibration.result import CalibrationResult
+from swathflow.calibration.ties import match_ties
 from swathflow.calibration.unknowns import CalibrationError
 
 
@@ -38,6 +39,8 @@ class ReferenceCalibrationResult:
     reference: Reference
     settings: MatchSettings
     timings: dict = field(default_factory=dict)
+    ties: pd.DataFrame | None = None     # last round's tie observations + residuals, rejected
+    tie_matching: list[dict] = field(default_factory=list)     # per pair of swings
 
     @property
     def parameters(self):
@@ -56,7 +59,9 @@ class ReferenceCalibrationResult:
                 "settings": {k: getattr(self.settings, k)
                              for k in self.settings.__dataclass_fields__},
                 "points": int(len(p)), "rejected": int(p["rejected"].sum()) if len(p) else 0,
-                "rounds": self.rounds, "matching": self.matching, "timings_s": self.timings}
+                "rounds": self.rounds, "matching": self.matching, "timings_s": self.timings,
+                **({"ties": _tie_summary(self.ties, self.tie_matching)}
+                   if self.ties is not None else {})}
 
     def summary_lines(self) -> list[str]:
         p = self.points
@@ -67,6 +72,12 @@ class ReferenceCalibrationResult:
                    f"{len(self.rounds)} rounds, matching "
                    f"{self.timings.get('matching', 0.0):.1f} s, total "
                    f"{self.timings.get('total', 0.0):.1f} s")
+        if self.ties is not None:
+            t = _tie_summary(self.ties, self.tie_matching)
+            out.append(f"tie points between left and right swings: {t['points']} "
+                       f"({t['rejected']} rejected{': ' if t['rejected'] else ''}"
+                       f"{', '.join(t['rejected_ids'])}), residual RMS "
+                       f"{t['rms_px'] if t['rms_px'] is not None else float('nan'):.3f} px")
         return out
 
     def write(self, out_dir) -> dict[str, str]:
@@ -87,7 +98,31 @@ class ReferenceCalibrationResult:
         write_text(rep, html)
         pts = os.path.join(out_dir, "reference_points.csv")
         write_text(pts, self.points.to_csv(index=False, float_format="%.6f"))
-        return {"calibration": cal, "report": rep, "points": pts}
+        out = {"calibration": cal, "report": rep, "points": pts}
+        if self.ties is not None:
+            out["ties"] = os.path.join(out_dir, "tie_points.csv")
+            write_text(out["ties"], self.ties.to_csv(index=False, float_format="%.6f"))
+        return out
+
+
+def _tie_summary(ties: pd.DataFrame, matching: list[dict]) -> dict:
+    ok = ~ties["rejected"].to_numpy(bool) if len(ties) else np.zeros(0, bool)
+    r = ties.loc[ok, ["x", "y"]].to_numpy(float) if len(ties) else np.zeros((0, 2))
+    rej = sorted(set(ties.loc[~ok, "tie_id"])) if len(ties) else []
+    return {"points": int(ties["tie_id"].nunique()) if len(ties) else 0,
+            "observations": int(len(ties)), "rejected": len(rej), "rejected_ids": rej,
+            "rms_px": float(np.sqrt(np.mean(r ** 2))) if r.size else None,
+            "pairs": matching}
+
+
+def _ties_with_residuals(ties: pd.DataFrame, res: CalibrationResult) -> pd.DataFrame:
+    info = res.options.get("ties") or {}
+    out = ties.reset_index(drop=True).copy()
+    r = info.pop("residuals", None)
+    r = np.full((len(out), 2), np.nan) if r is None else np.asarray(r).reshape(-1, 2)
+    out["y"], out["x"] = r[:, 0], r[:, 1]
+    out["rejected"] = out["tie_id"].isin(set(info.get("rejected_names", [])))
+    return out
 
 
 def _change_in_sigmas(prev: CalibrationResult | None, res: CalibrationResult) -> float:
@@ -125,7 +160,7 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
                              terrain, reference: Reference, priors=None, *,
                              settings: MatchSettings = DEFAULT_SETTINGS,
                              raw_gsd: float | None = None, max_rounds: int = 4,
-                             tol_sigma: float = 0.25,
+                             tol_sigma: float = 0.25, ties: bool = False,
                              progress: Callable[[str], None] | None = None,
                              **calibrate_options) -> ReferenceCalibrationResult:
     """Calibrate ``models`` (image id -> SensorModel, at their prior parameters) from
@@ -136,6 +171,9 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
         reference has no DEM). raw_gsd: the raw pixel's ground size (sets the rendering's
         supersampling). calibrate_options: passed to
         :func:`~swathflow.calibration.control.calibrate` (shared_boresight, fixed, robust...).
+    ties: also match overlapping left and right swings with each other
+        (:mod:`swathflow.calibration.ties`): tie points with unknown ground in the same
+        adjustment.
     """
     from swathflow.rectification.rectify import RawSource
     say = progress or (lambda _line: None)
@@ -145,6 +183,7 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
     rounds: list[dict] = []
     prev = res = None
     t_match = 0.0
+    tie_obs, tie_stats = None, []
     for k in range(1, max(int(max_rounds), 1) + 1):
         t0 = time.perf_counter()
         tables, stats = [], []
@@ -164,11 +203,23 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
                 f"{reference.path}: no automatic control point matched (statuses: "
                 f"{', '.join(sorted({s['status'] for s in stats}))}); check that the "
                 f"reference covers the flight, is north-up and has texture")
-        res, warning = _adjust_round(models, obs, priors, calibrate_options)
+        t_ties = 0.0
+        if ties:
+            t0, tie_stats = time.perf_counter(), []
+            tie_obs = match_ties(current, srcs, terrain, reference, settings, raw_gsd,
+                                 tie_stats)
+            t_ties = time.perf_counter() - t0
+            say(f"round {k}: {tie_obs['tie_id'].nunique()} tie points "
+                f"({', '.join(t['pair'] + ' ' + str(t['kept']) for t in tie_stats)}) "
+                f"in {t_ties:.1f} s")
+        res, warning = _adjust_round(models, obs, priors, {**calibrate_options,
+                                                           "ties": tie_obs})
         change = _change_in_sigmas(prev, res)
         rounds.append({"round": k, "points": int(len(obs)), "rejected": int(len(res.rejected)),
                        "sigma0": float(res.sigma0), "max_change_sigma": change,
-                       "matching_s": round(t_match, 3), "design_warning": warning})
+                       "matching_s": round(t_match, 3), "design_warning": warning,
+                       "ties": (res.options.get("ties") or {}).get("points", 0),
+                       "tie_matching_s": round(t_ties, 3)})
         rounds[-1]["converged"] = bool(change < tol_sigma)
         current = {iid: models[iid].with_vector(res.image_vectors[iid]) for iid in models}
         if change < tol_sigma:
@@ -177,7 +228,8 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
     assert res is not None
     return ReferenceCalibrationResult(
         res, _with_residuals(obs, res), rounds, stats, reference, settings,
-        {"matching": round(t_match, 3), "total": round(time.perf_counter() - t_start, 3)})
+        {"matching": round(t_match, 3), "total": round(time.perf_counter() - t_start, 3)},
+        _ties_with_residuals(tie_obs, res) if tie_obs is not None else None, tie_stats)
 
 
 # --- the mission-level entry point ------------------------------------------------------------
@@ -201,7 +253,7 @@ def reference_paths(mission, ortho: str | None = None,
 
 def calibrate_mission_from_reference(mission, ortho: str, dem: str | None = None, *,
                                      settings: MatchSettings = DEFAULT_SETTINGS,
-                                     max_rounds: int = 4,
+                                     max_rounds: int = 4, ties: bool = False,
                                      progress: Callable[[str], None] | None = None,
                                      **calibrate_options) -> ReferenceCalibrationResult:
     """:func:`calibrate_from_reference` over a loaded mission's images."""
@@ -210,5 +262,5 @@ def calibrate_mission_from_reference(mission, ortho: str, dem: str | None = None
     sources = {iid: mission.image(iid).load() for iid in mission.image_ids}   # read once
     return calibrate_from_reference(models, sources, mission.terrain, ref, mission.priors,
                                     settings=settings, raw_gsd=float(mission.gsd),
-                                    max_rounds=max_rounds, progress=progress,
+                                    max_rounds=max_rounds, progress=progress, ties=ties,
                                     **calibrate_options)

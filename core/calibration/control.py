@@ -135,7 +135,8 @@ def calibrate(models: Mapping[str, object], obs: pd.DataFrame, priors=None, *,
               robust: bool = True, vce: bool = True, vce_priors: bool = False,
               obs_sigma_px: float = 1.0,
               alpha: float = 0.001, calibration_images: Sequence[str] | None = None,
-              t_ref: float | None = None, check_design: bool = True) -> CalibrationResult:
+              t_ref: float | None = None, check_design: bool = True,
+              ties: pd.DataFrame | None = None) -> CalibrationResult:
     """Calibrate from control points.
 
     models: image id -> SensorModel (one per swing); their parameters are replaced.
@@ -149,6 +150,10 @@ def calibrate(models: Mapping[str, object], obs: pd.DataFrame, priors=None, *,
         boresight to 5 deg), and one factor for all of them, estimated from about 15
         pseudo-observations, can tighten a prior that is off by two of its sigmas until it
         biases the estimate. Its estimate is reported either way (``components``).
+    ties: optional tie observations (:data:`swathflow.calibration.ties.TIE_COLUMNS`): image
+        points of one ground point in several images, whose ground position is three extra
+        unknowns (east, north, up corrections from X, Y, Z; the up one with a 1 m prior)
+        with their own variance components; summarised in ``options["ties"]``.
     """
     if not models:
         raise CalibrationError("no images")
@@ -169,7 +174,9 @@ def calibrate(models: Mapping[str, object], obs: pd.DataFrame, priors=None, *,
     order = {iid: k for k, iid in enumerate(calibration_images)}
     cal_obs = cal_obs.iloc[np.argsort(cal_obs["image_id"].map(order).to_numpy(),
                                       kind="stable")]
-    sol = _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, alpha)
+    sol = _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, alpha,
+                  ties)
+    sol, tie_info = _split_ties(sol, len(unk.names))
     params, cov_ref = _model_parameters(first, unk, sol)
     vec_after = {iid: mats[iid] @ sol.x for iid in models}
     residuals = _residuals(models, obs, mats, unk, vec_after, first.parameters)
@@ -183,7 +190,7 @@ def calibrate(models: Mapping[str, object], obs: pd.DataFrame, priors=None, *,
                               "drift": drift if isinstance(drift, bool) else list(drift),
                               "robust": robust, "vce": vce, "vce_priors": vce_priors,
                               "obs_sigma_px": obs_sigma_px,
-                              "alpha": alpha},
+                              "alpha": alpha, "ties": tie_info},
                              t_ref if drift else None)
 
 
@@ -255,9 +262,45 @@ def _observation_sigmas(cal_obs: pd.DataFrame, obs_sigma_px: float) -> np.ndarra
     return np.full(2 * n, float(obs_sigma_px))
 
 
-def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, alpha):
+def _split_ties(sol, n: int):
+    """The solution restricted to the calibration unknowns, and a summary of the tie
+    points (their ground corrections are nuisance unknowns)."""
+    import dataclasses
+    if len(sol.names) == n:
+        return sol, None
+    rej = [r for r in sol.rejected if r["group"] == "tie"]
+    res = sol.residuals.get("tie", np.zeros(0)).reshape(-1, 2)
+    used = sol.used.get("tie", np.ones(2 * len(res), bool)).reshape(-1, 2).all(axis=1)
+    info = {"observations": int(len(res)), "points": int((len(sol.names) - n) // 3),
+            "rejected": len(rej), "rms_px": float(np.sqrt(np.nanmean(res[used] ** 2)))
+            if used.any() else None, "rejected_names": [r["name"] for r in rej],
+            "components": {k: v for k, v in sol.components.items() if k.startswith("tie")},
+            "residuals": res}
+    keep = dataclasses.replace(
+        sol, names=sol.names[:n], units=sol.units[:n], x=sol.x[:n], x0=sol.x0[:n],
+        fixed=sol.fixed[:n], cov=sol.cov[:n, :n],
+        rejected=[r for r in sol.rejected if r["group"] != "tie"],
+        remaining=None if sol.remaining is None else sol.remaining[:n])
+    return keep, info
+
+
+def _padded(fn, n: int, n_total: int):
+    """A group function of the first ``n`` unknowns as one of ``n_total``."""
+    def wrapped(x, jacobian=True):
+        r, J = fn(x[:n], jacobian)
+        if J is None:
+            return r, None
+        out = np.zeros((J.shape[0], n_total))
+        out[:, :n] = J
+        return r, out
+    return wrapped
+
+
+def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, alpha,
+            ties=None):
     """The adjustment: one group of image observations, rows (line, element) per point,
-    and the priors as pseudo-observations."""
+    and the priors as pseudo-observations; with ``ties`` a group of tie observations whose
+    ground corrections are extra unknowns."""
     spans = []
     k = 0
     for iid, g in cal_obs.groupby("image_id", sort=False):
@@ -267,16 +310,44 @@ def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, a
     n_obs = k
     point_names = np.array([f"{g}@{i}" for i, g in zip(cal_obs["image_id"], cal_obs["gcp_id"])],
                            dtype=object)
-    P = Problem(unk.names, unk.value, unk.units)
-    P.fix(unk.fixed)
-    P.add_observations("image", _residual_function(models, mats, unk, spans, n_obs),
+    n = len(unk.names)
+    tie_names, tie_prior, tg = [], np.zeros(0), None
+    if ties is not None and len(ties):
+        from swathflow.calibration.ties import tie_group
+        ties = ties.reset_index(drop=True)
+        tie_names, tie_prior, *tg = tie_group(models, mats, unk, ties,
+                                              n + 3 * ties["tie_id"].nunique())
+    n_total = n + len(tie_names)
+    zeros = np.zeros(len(tie_names))
+    P = Problem(list(unk.names) + tie_names, np.concatenate([unk.value, zeros]),
+                list(unk.units) + ["m"] * len(tie_names))
+    P.fix(np.concatenate([unk.fixed, zeros.astype(bool)]))
+    P.add_observations("image", _padded(_residual_function(models, mats, unk, spans, n_obs),
+                                        n, n_total),
                        _observation_sigmas(cal_obs, obs_sigma_px),
                        component=np.tile(np.array(["y", "x"], dtype=object), n_obs),
                        point=np.repeat(np.arange(n_obs), 2), point_names=point_names,
                        robust=True)
-    P.add_priors(unk.value, np.where(unk.fixed, np.inf, unk.sigma), name="priors")
+    P.add_priors(np.concatenate([unk.value, zeros]),
+                 np.concatenate([np.where(unk.fixed, np.inf, unk.sigma),
+                                 np.full(len(tie_names), np.inf)]), name="priors")
+    if tg:
+        fn, sigma, point, pnames = tg
+        # their own variance components: image-to-image matches and POS noise between
+        # two swings, not the reference's accuracy
+        P.add_observations("tie", fn, sigma,
+                           component=np.tile(np.array(["tie_y", "tie_x"], object),
+                                             sigma.size // 2),
+                           point=point, point_names=pnames, robust=True)
+        # the tie points' heights from the terrain; a weak horizontal prior only keeps a
+        # point whose observations were rejected determined (not counted)
+        P.add_priors(np.zeros(n_total),
+                     np.concatenate([np.full(n, np.inf),
+                                     np.where(np.isfinite(tie_prior), tie_prior, 1e3)]),
+                     name="tie_ground", counted=False)
     try:
-        comps = (["x", "y"] + (["priors"] if vce_priors else [])) if vce else False
+        comps = (["x", "y"] + (["tie_x", "tie_y"] if tg else [])
+                 + (["priors"] if vce_priors else [])) if vce else False
         return solve(P, vce=comps, robust=robust, alpha=alpha)
     except RankDeficiencyError as exc:
         raise CalibrationError(

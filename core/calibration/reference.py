@@ -54,6 +54,10 @@ class MatchSettings:
     min_valid: float = 0.6          # fraction of the block's search window the swing covers
     sigma_floor: float = 0.05       # reference px, added in quadrature to the formal sigma
     accuracy_m: float | None = None  # the reference's absolute accuracy (default 0.25 px)
+    tie_block: int = 16             # tie points (swing to swing): block side, raw pixels
+    tie_search: int = 6             # tie points: search radius, raw pixels
+    tie_max: int = 12               # tie points per pair of swings at most (spread along the
+    #                                 overlap; each adds 3 unknowns to the adjustment)
 
 
 DEFAULT_SETTINGS = MatchSettings()

@@ -114,4 +114,34 @@ def reference_section(rc) -> str:
                      median_sigma_line=("sigma_line", "median"),
                      median_sigma_element=("sigma_element", "median")).reset_index())
         out.append(_table(summ, 3, left=("image_id",)))
+    if getattr(rc, "ties", None) is not None:
+        out.append(tie_section(rc.ties, rc.tie_matching))
+    return "\n".join(out)
+
+
+def tie_section(ties: pd.DataFrame, matching: list[dict]) -> str:
+    """Tie points between left and right swings: matching per pair, residuals, and every
+    rejected tie point with its residuals."""
+    rej = ties[ties["rejected"]] if len(ties) else ties
+    out = ["<h3>Tie points between left and right swings (last round)</h3>",
+           f"<p>{ties['tie_id'].nunique() if len(ties) else 0} tie points, "
+           f"{rej['tie_id'].nunique() if len(rej) else 0} rejected by data snooping (a tie "
+           f"point is tested whole, in both swings). Their ground positions are unknowns of "
+           f"the adjustment, their heights from the terrain.</p>"]
+    m = pd.DataFrame([{"pair": t["pair"], "blocks": t["blocks"], "matched": t["matched"],
+                       "kept": t.get("kept", t["matched"]),
+                       "dropped": ", ".join(f"{k} {v}" for k, v in t["reasons"].items())}
+                      for t in matching])
+    if len(m):
+        out.append(_table(m, 3, left=("pair", "dropped")))
+    if len(ties):
+        summ = (ties.assign(rejected=ties["rejected"].map({True: "yes", False: "no"}))
+                .groupby(["image_id", "rejected"])
+                .agg(n=("x", "size"), rms_x=("x", lambda v: float(np.sqrt(np.mean(v ** 2)))),
+                     rms_y=("y", lambda v: float(np.sqrt(np.mean(v ** 2))))).reset_index())
+        out.append(_table(summ, 3, left=("image_id", "rejected")))
+    if len(rej):
+        out.append("<h4>Rejected tie points</h4>")
+        out.append(_table(rej[["tie_id", "image_id", "line", "element", "x", "y"]], 3,
+                          left=("tie_id", "image_id")))
     return "\n".join(out)

@@ -32,6 +32,7 @@ class CalibrationOptions:
     reference: str | None = None               # reference orthophoto: automatic control
     reference_dem: str | None = None           # heights of the reference's points
     max_rounds: int = 4                        # match / adjust rounds with a reference
+    ties: bool = False                         # with a reference: tie points L <-> R swings
     extra: Mapping[str, Any] = field(default_factory=dict)
 
 
@@ -70,13 +71,14 @@ class ReferenceCalibration:
     (:mod:`swathflow.calibration.autocontrol`), in the generic control-point adjustment;
     for every sensor plugin (it uses only the sensor-model interface)."""
 
-    def __init__(self, ortho: str, dem: str | None = None):
-        self.ortho, self.dem = ortho, dem
+    def __init__(self, ortho: str, dem: str | None = None, ties: bool = False):
+        self.ortho, self.dem, self.ties = ortho, dem, bool(ties)
 
     def calibrate(self, mission, options: CalibrationOptions, progress=None):
         from swathflow.calibration.autocontrol import calibrate_mission_from_reference
         return calibrate_mission_from_reference(
             mission, self.ortho, self.dem, max_rounds=options.max_rounds, progress=progress,
+            ties=options.ties or self.ties,
             shared_boresight=options.shared_boresight, fixed=list(options.fixed),
             drift=options.drift, robust=options.robust, vce=options.vce,
             vce_priors=options.vce_priors)
@@ -91,7 +93,13 @@ def reference_strategy(mission, options: CalibrationOptions) -> ReferenceCalibra
     if mission.gcps is not None and len(mission.gcps):
         return None
     paths = reference_paths(mission)
-    return ReferenceCalibration(*paths) if paths else None
+    if not paths:
+        return None
+    ties = ((mission.config or {}).get("reference") or {}).get("ties", False)
+    if not isinstance(ties, bool):
+        raise CalibrationError(f"{mission.path}/mission.toml: [reference] ties must be true "
+                               f"or false, got {ties!r}")
+    return ReferenceCalibration(*paths, ties=ties)
 
 
 def calibrate_mission(mission, options: CalibrationOptions | None = None, progress=None):

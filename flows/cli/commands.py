@@ -104,6 +104,7 @@ def calibrate(args) -> int:
         vce=not args.no_vce, vce_priors=args.vce_priors, sigma_px=args.sigma_px,
         shared_boresight=(args.model == "12"), drift=args.drift,
         reference=args.reference, reference_dem=args.reference_dem, max_rounds=args.rounds,
+        ties=args.ties,
         extra={"method": args.method, "max_rounds": args.max_rounds})
     result = calibrate_mission(mission, options, progress=_say(args))
     paths = result.write(args.out)

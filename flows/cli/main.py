@@ -182,6 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "[reference] when it has no gcp.csv)")
     s.add_argument("--reference-dem", metavar="DEM",
                    help="heights of the reference's points (default: the mission's terrain)")
+    s.add_argument("--ties", action="store_true",
+                   help="with a reference: also match overlapping swings of opposite "
+                        "directions with each other (tie points, ground unknown)")
     s.add_argument("--rounds", type=int, default=4,
                    help="with a reference: at most this many match / adjust rounds (default 4)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:calibrate"))

@@ -79,10 +79,11 @@ class _Points:
 
 
 def simulate(out, preset: str = "pushbroom", seed: int = 0, progress=None,
-             **overrides) -> dict:
-    """Write a simulated push-broom mission to ``out``; returns the truth summary."""
+             texture: str | None = None, **overrides) -> dict:
+    """Write a simulated push-broom mission to ``out``; returns the truth summary.
+    ``texture``: an image to render (e.g. a real orthophoto; procedural without)."""
     from swathflow.formats.calibfile import write_calibration
-    from swathflow.simulation.texture import ProceduralTexture
+    from swathflow.simulation.texture import ImageTexture, ProceduralTexture
     say = progress or (lambda msg: None)
     clock = time.perf_counter()
     cfg = preset_config(preset, **overrides)
@@ -95,7 +96,10 @@ def simulate(out, preset: str = "pushbroom", seed: int = 0, progress=None,
     pos_ds, strips = make_trajectory(cfg, plan, terrain_mean, rng)
     cam = _camera(cfg, plan, strips, Trajectory.from_dataset(pos_ds), rng)
     pts = _ground_points(cfg, plan, strips, cam.models, terrain, rng)
-    tex = ProceduralTexture(seed, pts.nadir_gsd, plan.centre).with_targets(pts.g_en, pts.radius)
+    tex0 = (ImageTexture(texture, plan.centre, rotation_deg=float(
+        np.random.default_rng([int(seed), 85]).uniform(0, 360))) if texture
+        else ProceduralTexture(seed, pts.nadir_gsd, plan.centre))
+    tex = tex0.with_targets(pts.g_en, pts.radius)
     say(f"rendering {len(cam.models)} push-broom images of {plan.lines_per_swing} x "
         f"{cfg.n_elements}" + ("" if cfg.render else " (geometry only: blank images)"))
     entries = []
@@ -113,6 +117,8 @@ def simulate(out, preset: str = "pushbroom", seed: int = 0, progress=None,
                       note=f"simulation truth: preset {cfg.preset}, seed {seed}")
     priors = prior_table(cfg, cam.fix_t.size)
     truth = _truth(cfg, seed, plan, strips, cam, pts, gobs, tobs, priors, ortho, terrain_mean)
+    if texture:
+        truth["texture"] = {"source": str(texture), "pixel_size_m": tex0.pixel_size}
     truth["seconds"] = round(time.perf_counter() - clock, 3)
     write_text(out / "truth" / "truth.json", json.dumps(truth, indent=2) + "\n")
     _write_toml(out, cfg, plan, pos_name, entries, cam.sensor, priors)
