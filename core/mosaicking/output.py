@@ -90,6 +90,19 @@ def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers)
             f.result()
 
 
+def _tile_order(layout: Layout, tile: int):
+    """The tiles, down the columns when the swings are taller than wide (strips flown
+    along the rows), else along the rows: consecutive tiles then share their swings, so
+    the swing cache holds the few swings of one band instead of a whole row of strips."""
+    H, W = layout.shape
+    rows, cols = range(0, H, tile), range(0, W, tile)
+    tall = np.median([s.height for s in layout.swings]) > \
+        np.median([s.width for s in layout.swings])
+    order = [(r, c) for c in cols for r in rows] if tall else \
+        [(r, c) for r in rows for c in cols]
+    return [(r, c, min(H, r + tile), min(W, c + tile)) for r, c in order]
+
+
 def _stage_path(final, nbytes, cog, limit=256 * 2 ** 20):
     """Where the tiles are written before the COG copy: in memory (GDAL /vsimem) when the
     mosaic is small, else an uncompressed file beside the output; the output itself
@@ -124,8 +137,7 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     radiometric = np.asarray(radiometric, float)
     handles = _Handles()
     cache = swing_cache(layout, offsets, radiometric, feather, handles)
-    tiles = [(r, c, min(H, r + tile), min(W, c + tile)) for r in range(0, H, tile)
-             for c in range(0, W, tile)]
+    tiles = _tile_order(layout, tile)
     profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=dtype.name,
                    crs=layout.crs, transform=layout.transform, nodata=nodata, tiled=True,
                    blockxsize=blocksize, blockysize=blocksize, BIGTIFF="IF_SAFER")
