@@ -35,6 +35,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
+from bench_regional import fast_texture  # noqa: E402
 from mosaic_synth import make_swings, random_shifts  # noqa: E402
 
 SWING_ROWS = 512
@@ -47,7 +48,7 @@ def generate(folder, n_strips, length, swath=180, overlap=0.2, seed=1, swing_row
     paths, _, shape = make_swings(folder, n_strips=n_strips, swath=swath, length=length,
                                   overlap=overlap, n_swings=n_sw, swing_overlap=24,
                                   shifts=shifts, rads=rads, drift=3.0, noise=0.5,
-                                  footprints=False, seed=seed)
+                                  footprints=False, seed=seed, truth=fast_texture)
     return dict(paths=paths, shape=shape, shifts=shifts, rads=rads,
                 seconds=time.perf_counter() - t0)
 

@@ -82,6 +82,15 @@ def _compile():
                       + 150.0 * noise(r[k], c[k], 4.0, seed + 1))
 
     @njit(parallel=True)
+    def tex(r, c, seed, out):
+        for k in prange(r.size):
+            v = 100.0
+            for q, (sc, amp) in enumerate(((96.0, 40.0), (48.0, 30.0), (24.0, 20.0),
+                                           (12.0, 14.0), (6.0, 10.0), (4.0, 5.0))):
+                v += amp * noise(r[k], c[k], sc, seed + q)
+            out[k] = v + 30 * np.tanh((noise(r[k], c[k], 40.0, seed + 99) - 0.5) * 25)
+
+    @njit(parallel=True)
     def swing(r0, r1, c0, c1, k, step, swath, t0, t1, b, sigma, seed, out):
         """One uint16 swing of tests/mosaic_synth.make_swings (its footprint, shift,
         radiometric offset and noise; no drift) with the texture above."""
@@ -99,7 +108,18 @@ def _compile():
                      + 150.0 * noise(rr - t0, cc - t1, 4.0, 1) + b
                      + sigma * np.random.standard_normal())
                 out[i, j] = min(max(np.round(v), 1.0), 65535.0)
-    return kern, swing
+    return kern, swing, tex
+
+
+def fast_texture(r, c, seed: int = 0):
+    """tests/mosaic_synth.texture compiled (the benchmarks' truth; same values to 1e-12)."""
+    if not _KERNEL:
+        _KERNEL.append(_compile())
+    r = np.ascontiguousarray(np.broadcast_to(r, np.broadcast(r, c).shape), float)
+    c = np.ascontiguousarray(np.broadcast_to(c, r.shape), float)
+    out = np.empty(r.shape)
+    _KERNEL[0][2](r.ravel(), c.ravel(), seed, out.ravel())
+    return out
 
 
 def regional_swings(folder, n_strips, swath, length, overlap, n_swings, swing_overlap,
@@ -192,8 +212,15 @@ def bench_regional(work, gpx: float = 1.0, workers: int = 2):
     d = os.path.join(work, "regional")
     shifts, rads = random_shifts(n_strips, seed=3)
     t0 = time.perf_counter()
-    paths, (H, W) = regional_swings(d, n_strips, SWATH, length, 0.2, length // ROWS, 32,
-                                    shifts, rads)
+    done = os.path.join(d, "swings.json")
+    if os.path.exists(done):        # a kept work folder (--work): the swings are there
+        with open(done) as f:
+            paths, (H, W) = (lambda j: (j["paths"], j["shape"]))(json.load(f))
+    else:
+        paths, (H, W) = regional_swings(d, n_strips, SWATH, length, 0.2, length // ROWS, 32,
+                                        shifts, rads)
+        with open(done, "w") as f:
+            json.dump({"paths": paths, "shape": [H, W]}, f)
     print(f"simulated {len(paths)} swings, grid {H} x {W} = {H * W / 1e9:.3f} Gpx in "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
     whole = os.path.join(work, "regional.tif")
