@@ -1,16 +1,20 @@
 """Mosaic benchmark: memory versus area, peers side by side, and the paper's job.
 
     python benchmarks/bench_mosaic.py --memory --peers --paper [--peers16] [--regional 1.0]
+    python benchmarks/bench_mosaic.py --regional 1.0 --work DIR   # keeps/reuses the swings
 
 --memory  mosaics synthetic areas of 1x, 4x and 16x the base area in fresh subprocesses
           and prints each one's peak RSS (the mosaic is streamed tile by tile, so the peak
           should not grow with the area).
---peers   on the 4x area, one run each of: swathflow as the CLI runs it (overlaps matched
-          on a local Dask cluster; its RSS is the main process's only), swathflow in one
-          process (threads; match + network + feathering + COG), swathflow without
-          matching (blending only), gdalbuildvrt + gdal_translate,
-          gdalwarp, and rasterio.merge.merge (the last three do no blending); prints time,
-          output megapixels per second and the time ratio to swathflow.
+--peers   on the 4x area (48 swings, 3.63 Mpx), one run each, every one a whole command
+          timed from start to exit (wall, CPU = user + sys of it and its children, peak RSS)
+          and, where it can be timed inside, the call alone ("in-process"): `swathflow
+          mosaic` (the CLI: match + network + feather, COG + PNG + report), swathflow's
+          mosaic() in one process (threads; the same work), swathflow blending only
+          (feather + COG), `rio merge`, gdalbuildvrt + gdal_translate -of COG, gdalwarp -of
+          COG, gdal_merge.py, and rasterio.merge.merge + a tiled GTiff write in `python -c`
+          (the reference of the ratios; the peers do no blending).
+--peers16 the same on 16x the area (768 swings, 58 Mpx).
 --paper   You & Li's job (papers.md section 3): 24 strips of 6 km at 2 m pixels, swath of
           a 30 degree field of view from 650 m (348 m = 174 px), 20 % overlap, about 40 km2,
           strips displaced by 1-5 px; simulated as rectified swings and mosaicked end to end.
