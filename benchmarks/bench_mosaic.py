@@ -250,6 +250,8 @@ def main(argv=None):
                     help="the regional case: a mosaic of GPX gigapixels (cheap texture), "
                          "wall time and peak RSS, and four quarter runs compared pixel "
                          "for pixel with the whole")
+    ap.add_argument("--quarters-at-once", type=int, default=1, choices=(1, 2, 4),
+                    help="regional case: quarter runs started together (default 1)")
     ap.add_argument("--work", help="work folder (default: a temp folder)")
     ap.add_argument("--keep", action="store_true", help="keep the work folder")
     a = ap.parse_args(argv)
@@ -272,7 +274,7 @@ def main(argv=None):
             bench_peers(work, n_strips=48, length=8192, label="16x area, 768 swings")
         if a.regional:
             from bench_regional import bench_regional
-            bench_regional(work, a.regional)
+            bench_regional(work, a.regional, at_once=a.quarters_at_once)
     finally:
         if not a.keep and not a.work:
             shutil.rmtree(work, ignore_errors=True)
