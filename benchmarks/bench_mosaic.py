@@ -79,12 +79,25 @@ print(json.dumps({k: rep[k] for k in ("seconds", "mpx_per_s", "shape")} |
 def _measured(argv, env=None):
     """(wall, cpu, peak RSS MB, stdout) of one whole command (rusage of the children)."""
     import resource
+    # the peak RSS through GNU time: a child forked from this (large) process would report
+    # this process's size as its own peak
+    timer = "/usr/bin/time" if os.path.exists("/usr/bin/time") else None
+    fd, rss_file = tempfile.mkstemp(suffix=".rss")
+    os.close(fd)
+    if timer:
+        argv = [timer, "-f", "%M", "-o", rss_file, *argv]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env=env)
     _, status, ru = os.wait4(p.pid, 0)
     wall = time.perf_counter() - t0
+    rss = ru.ru_maxrss / 1024.0
+    if timer:
+        with open(rss_file) as f:
+            lines = f.read().split()
+        rss = float(lines[-1]) / 1024.0 if lines and lines[-1].isdigit() else float("nan")
+    os.remove(rss_file)
     out, err = p.stdout.read(), p.stderr.read()
     p.stdout.close()
     p.stderr.close()
@@ -93,7 +106,7 @@ def _measured(argv, env=None):
         raise RuntimeError(f"{' '.join(argv[:3])}: {err[-3000:]}")
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return wall, cpu, ru.ru_maxrss / 1024.0, out
+    return wall, cpu, rss, out
 
 
 def mosaic_subprocess(paths, out, **opts):
