@@ -1,16 +1,20 @@
 """Mosaic benchmark: memory versus area, peers side by side, and the paper's job.
 
     python benchmarks/bench_mosaic.py --memory --peers --paper [--peers16] [--regional 1.0]
+    python benchmarks/bench_mosaic.py --regional 1.0 --work DIR   # keeps/reuses the swings
 
 --memory  mosaics synthetic areas of 1x, 4x and 16x the base area in fresh subprocesses
           and prints each one's peak RSS (the mosaic is streamed tile by tile, so the peak
           should not grow with the area).
---peers   on the 4x area, one run each of: swathflow as the CLI runs it (overlaps matched
-          on a local Dask cluster; its RSS is the main process's only), swathflow in one
-          process (threads; match + network + feathering + COG), swathflow without
-          matching (blending only), gdalbuildvrt + gdal_translate,
-          gdalwarp, and rasterio.merge.merge (the last three do no blending); prints time,
-          output megapixels per second and the time ratio to swathflow.
+--peers   on the 4x area (48 swings, 3.63 Mpx), one run each, every one a whole command
+          timed from start to exit (wall, CPU = user + sys of it and its children, peak RSS)
+          and, where it can be timed inside, the call alone ("in-process"): `swathflow
+          mosaic` (the CLI: match + network + feather, COG + PNG + report), swathflow's
+          mosaic() in one process (threads; the same work), swathflow blending only
+          (feather + COG), `rio merge`, gdalbuildvrt + gdal_translate -of COG, gdalwarp -of
+          COG, gdal_merge.py, and rasterio.merge.merge + a tiled GTiff write in `python -c`
+          (the reference of the ratios; the peers do no blending).
+--peers16 the same on 16x the area (768 swings, 58 Mpx).
 --paper   You & Li's job (papers.md section 3): 24 strips of 6 km at 2 m pixels, swath of
           a 30 degree field of view from 650 m (348 m = 174 px), 20 % overlap, about 40 km2,
           strips displaced by 1-5 px; simulated as rectified swings and mosaicked end to end.
@@ -35,6 +39,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
+from bench_regional import fast_texture  # noqa: E402
 from mosaic_synth import make_swings, random_shifts  # noqa: E402
 
 SWING_ROWS = 512
@@ -47,7 +52,7 @@ def generate(folder, n_strips, length, swath=180, overlap=0.2, seed=1, swing_row
     paths, _, shape = make_swings(folder, n_strips=n_strips, swath=swath, length=length,
                                   overlap=overlap, n_swings=n_sw, swing_overlap=24,
                                   shifts=shifts, rads=rads, drift=3.0, noise=0.5,
-                                  footprints=False, seed=seed)
+                                  footprints=False, seed=seed, truth=fast_texture)
     return dict(paths=paths, shape=shape, shifts=shifts, rads=rads,
                 seconds=time.perf_counter() - t0)
 
@@ -63,24 +68,54 @@ with ctx:
     rep = mosaic(a["paths"], a["out"], anchors=a.get("anchors", ["0"]),
                  match=a.get("match", True), png=a.get("png", True), workers=a.get("workers"))
 print(json.dumps({k: rep[k] for k in ("seconds", "mpx_per_s", "shape")} |
-                 {"nodes": rep.get("nodes"), "skipped": len(rep.get("skipped", []))}))
+                 {"nodes": rep.get("nodes"), "skipped": len(rep.get("skipped", [])),
+                  "seconds_match": rep.get("seconds_match", 0.0),
+                  "seconds_render": rep.get("seconds_render"),
+                  "seconds_total": rep.get("seconds_total"),
+                  "seconds_quicklook": rep.get("seconds_quicklook")}))
 """
 
 
-def mosaic_subprocess(paths, out, **opts):
-    """swathflow mosaic in a fresh interpreter, measuring its own peak RSS."""
-    code = ("import os, resource, runpy, sys\n" + _CHILD +
-            "\nprint('RSS', [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM')]"
-            "[0].split()[1])\n")
-    arg = json.dumps(dict(paths=paths, out=out, **opts))
+def _measured(argv, env=None):
+    """(wall, cpu, peak RSS MB, stdout) of one whole command (rusage of the children)."""
+    import resource
+    # the peak RSS through GNU time: a child forked from this (large) process would report
+    # this process's size as its own peak
+    timer = "/usr/bin/time" if os.path.exists("/usr/bin/time") else None
+    fd, rss_file = tempfile.mkstemp(suffix=".rss")
+    os.close(fd)
+    if timer:
+        argv = [timer, "-f", "%M", "-o", rss_file, *argv]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", code, arg], capture_output=True, text=True)
-    sec = time.perf_counter() - t0
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=env)
+    _, status, ru = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+    rss = ru.ru_maxrss / 1024.0
+    if timer:
+        with open(rss_file) as f:
+            lines = f.read().split()
+        rss = float(lines[-1]) / 1024.0 if lines and lines[-1].isdigit() else float("nan")
+    os.remove(rss_file)
+    out, err = p.stdout.read(), p.stderr.read()
+    p.stdout.close()
+    p.stderr.close()
+    p.returncode = os.waitstatus_to_exitcode(status)
     if p.returncode != 0:
-        raise RuntimeError(p.stderr[-3000:])
-    lines = p.stdout.strip().splitlines()
-    rss = float(lines[-1].split()[1]) / 1024.0
-    rep = json.loads(lines[-2])
+        raise RuntimeError(f"{' '.join(argv[:3])}: {err[-3000:]}")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, rss, out
+
+
+def mosaic_subprocess(paths, out, **opts):
+    """swathflow mosaic in a fresh interpreter: (wall s, peak RSS MB, report) where the
+    report also holds ``cpu`` (s, whole process) and ``seconds`` (in-process)."""
+    arg = json.dumps(dict(paths=paths, out=out, **opts))
+    sec, cpu, rss, stdout = _measured([sys.executable, "-c", _CHILD, arg])
+    rep = json.loads(stdout.strip().splitlines()[-1])
+    rep["cpu"] = cpu
     return sec, rss, rep
 
 
@@ -107,6 +142,47 @@ def bench_memory(work, base_strips=6, base_rows=1024):
     return rows
 
 
+_MERGE = (
+    "import sys, json, time, rasterio\nfrom rasterio.merge import merge\n"
+    "p = json.loads(sys.argv[1]); t0 = time.perf_counter(); c0 = time.process_time()\n"
+    "arr, tr = merge(p['paths'])\n"
+    "with rasterio.open(p['paths'][0]) as s: prof = s.profile\n"
+    "prof.update(height=arr.shape[1], width=arr.shape[2], transform=tr, tiled=True, "
+    "blockxsize=512, blockysize=512, compress='deflate')\n"
+    "with rasterio.open(p['out'], 'w', **prof) as d: d.write(arr)\n"
+    "print(json.dumps({'seconds': time.perf_counter() - t0, "
+    "'cpu': time.process_time() - c0}))\n")
+
+
+def _peer_commands(work, folder, paths):
+    """The peers as whole commands: (name, argv list run one after the other)."""
+    rio = os.path.join(os.path.dirname(sys.executable), "rio")
+    out = []
+    if os.path.exists(rio):
+        out.append(("rio merge (GTiff, deflate)", [[rio, "merge", "--overwrite", "--co",
+                    "compress=deflate", "--co", "tiled=true", "--co", "blockxsize=512",
+                    "--co", "blockysize=512", *paths,
+                    os.path.join(work, "rio.tif")]]))
+    if shutil.which("gdalbuildvrt") and shutil.which("gdal_translate"):
+        vrt = os.path.join(work, "m.vrt")
+        out.append(("gdalbuildvrt + gdal_translate -of COG", [
+            ["gdalbuildvrt", "-q", "-overwrite", "-srcnodata", "-9999", "-vrtnodata",
+             "-9999", vrt, *paths],
+            ["gdal_translate", "-q", "-of", "COG", "-co", "COMPRESS=DEFLATE", "-co",
+             "NUM_THREADS=2", vrt, os.path.join(work, "vrt.tif")]]))
+    if shutil.which("gdalwarp"):
+        out.append(("gdalwarp -of COG (2 threads)", [
+            ["gdalwarp", "-q", "-overwrite", "-srcnodata", "-9999", "-dstnodata", "-9999",
+             "-multi", "-wo", "NUM_THREADS=2", "-of", "COG", "-co", "COMPRESS=DEFLATE",
+             *paths, os.path.join(work, "warp.tif")]]))
+    gm = shutil.which("gdal_merge.py") or shutil.which("gdal_merge")
+    if gm:
+        out.append(("gdal_merge.py (GTiff, deflate)", [
+            [gm, "-q", "-o", os.path.join(work, "gm.tif"), "-n", "-9999", "-a_nodata",
+             "-9999", "-co", "COMPRESS=DEFLATE", "-co", "TILED=YES", *paths]]))
+    return out
+
+
 def bench_peers(work, n_strips=12, length=2048, label="48 swings"):
     print(f"\n== side by side, same inputs ({label}), one run each ==")
     d = os.path.join(work, f"peers{n_strips}")
@@ -114,57 +190,45 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings"):
     H, W = g["shape"]
     mpx = H * W / 1e6
     paths = g["paths"]
-    results = []
-    sec, rss, rep = mosaic_subprocess(paths, os.path.join(work, "sf.tif"), cluster=True)
-    results.append(("swathflow CLI (local cluster: match+network+feather, COG+PNG)", sec, rss))
-    sec1, rss1, _ = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"))
-    results.append(("swathflow, one process (threads)", sec1, rss1))
-    sec2, rss2, _ = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), match=False,
-                                      png=False)
-    results.append(("swathflow blend only (feather, COG)", sec2, rss2))
     env = dict(os.environ, GDAL_NUM_THREADS="2")
-    if shutil.which("gdalbuildvrt") and shutil.which("gdal_translate"):
-        vrt = os.path.join(work, "m.vrt")
-        t0 = time.perf_counter()
-        subprocess.run(["gdalbuildvrt", "-q", "-srcnodata", "-9999", "-vrtnodata", "-9999",
-                        vrt, *paths], check=True, env=env)
-        subprocess.run(["gdal_translate", "-q", "-of", "COG", "-co", "COMPRESS=DEFLATE",
-                        "-co", "NUM_THREADS=2", vrt, os.path.join(work, "vrt.tif")],
-                       check=True, env=env)
-        results.append(("gdalbuildvrt + gdal_translate -of COG", time.perf_counter() - t0, None))
-    else:
-        print("  gdalbuildvrt not found (apt-get install gdal-bin): skipped")
-    if shutil.which("gdalwarp"):
-        t0 = time.perf_counter()
-        subprocess.run(["gdalwarp", "-q", "-overwrite", "-srcnodata", "-9999", "-dstnodata",
-                        "-9999", "-multi", "-wo", "NUM_THREADS=2", "-of", "COG", "-co",
-                        "COMPRESS=DEFLATE", *paths, os.path.join(work, "warp.tif")],
-                       check=True, env=env)
-        results.append(("gdalwarp -of COG", time.perf_counter() - t0, None))
-    else:
-        print("  gdalwarp not found (apt-get install gdal-bin): skipped")
-    code = (
-        "import sys, json, time, rasterio\nfrom rasterio.merge import merge\n"
-        "p = json.loads(sys.argv[1]); t0 = time.perf_counter()\n"
-        "arr, tr = merge(p['paths'])\n"
-        "with rasterio.open(p['paths'][0]) as s: prof = s.profile\n"
-        "prof.update(height=arr.shape[1], width=arr.shape[2], transform=tr, tiled=True, "
-        "blockxsize=512, blockysize=512, compress='deflate')\n"
-        "with rasterio.open(p['out'], 'w', **prof) as d: d.write(arr)\n"
-        "print([ln for ln in open('/proc/self/status') if ln.startswith('VmHWM')][0].split()[1])\n")
-    t0 = time.perf_counter()
-    pr = subprocess.run([sys.executable, "-c", code,
-                         json.dumps(dict(paths=paths, out=os.path.join(work, "merge.tif")))],
-                        capture_output=True, text=True, check=True)
-    results.append(("rasterio.merge.merge (GTiff, in memory)", time.perf_counter() - t0,
-                    float(pr.stdout.split()[-1]) / 1024))
-    print(f"grid {H} x {W} = {mpx:.2f} Mpx, {len(paths)} swings")
-    print(f"{'tool':<62} {'seconds':>8} {'Mpx/s':>7} {'time / swathflow':>17} {'peak RSS MB':>12}")
-    for name, s, r in results:
-        print(f"{name:<62} {s:>8.2f} {mpx / s:>7.2f} {s / sec:>17.2f} "
-              f"{'' if r is None else f'{r:.0f}':>12}")
+    sf = os.path.join(os.path.dirname(sys.executable), "swathflow")
+    rows = []       # (name, whole wall, whole cpu, in-process s, rss)
+    w, c, r, _ = _measured([sf, "mosaic", d, "--out", os.path.join(work, "cli.tif"),
+                            "--anchor", "0", "-q"], env)
+    rows.append(("swathflow mosaic (CLI: match+network+feather, COG+PNG)", w, c, None, r))
+    w, r, rep = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"))
+    err = offset_errors(rep, g["shifts"]).max()
+    rows.append(("swathflow mosaic() one process, threads (same work)", w, rep["cpu"],
+                 rep["seconds"], r))
+    w, r, rb = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), match=False,
+                                 png=False)
+    rows.append(("swathflow blend only (feather, COG)", w, rb["cpu"], rb["seconds"], r))
+    for name, cmds in _peer_commands(work, d, paths):
+        w = c = r = 0.0
+        for argv in cmds:
+            w1, c1, r1, _ = _measured(argv, env)
+            w, c, r = w + w1, c + c1, max(r, r1)
+        rows.append((name, w, c, None, r))
+    w, c, r, out = _measured([sys.executable, "-c", _MERGE, json.dumps(dict(
+        paths=paths, out=os.path.join(work, "merge.tif")))], env)
+    rows.append(("rasterio.merge.merge + write (python -c)", w, c,
+                 json.loads(out)["seconds"], r))
+    ref = rows[-1]
+    print(f"grid {H} x {W} = {mpx:.2f} Mpx, {len(paths)} swings; strip offsets recovered to "
+          f"{err:.3f} px (max); in one process: match {rep['seconds_match']:.2f} s, render "
+          f"{rep['seconds_render']:.2f} s, COG {rep['seconds_total'] - rep['seconds_render']:.2f}"
+          f" s, PNGs {rep['seconds_quicklook']:.2f} s")
+    print("whole = the command from start to exit (interpreter start-up and imports "
+          "included); in-process = the call alone, timed inside; CPU = user + sys of the "
+          "process and its children")
+    print(f"{'tool':<56} {'whole s':>8} {'CPU s':>7} {'in-proc s':>9} {'RSS MB':>7} "
+          f"{'whole/merge':>11} {'in-proc/merge':>13}")
+    for name, w, c, ip, r in rows:
+        ipr = "" if ip is None else f"{ip / ref[3]:.2f}"
+        print(f"{name:<56} {w:>8.2f} {c:>7.2f} {'' if ip is None else f'{ip:.2f}':>9} "
+              f"{r:>7.0f} {w / ref[1]:>11.2f} {ipr:>13}")
     shutil.rmtree(d, ignore_errors=True)
-    return results
+    return rows
 
 
 def bench_paper(work):
@@ -199,6 +263,8 @@ def main(argv=None):
                     help="the regional case: a mosaic of GPX gigapixels (cheap texture), "
                          "wall time and peak RSS, and four quarter runs compared pixel "
                          "for pixel with the whole")
+    ap.add_argument("--quarters-at-once", type=int, default=1, choices=(1, 2, 4),
+                    help="regional case: quarter runs started together (default 1)")
     ap.add_argument("--work", help="work folder (default: a temp folder)")
     ap.add_argument("--keep", action="store_true", help="keep the work folder")
     a = ap.parse_args(argv)
@@ -221,7 +287,7 @@ def main(argv=None):
             bench_peers(work, n_strips=48, length=8192, label="16x area, 768 swings")
         if a.regional:
             from bench_regional import bench_regional
-            bench_regional(work, a.regional)
+            bench_regional(work, a.regional, at_once=a.quarters_at_once)
     finally:
         if not a.keep and not a.work:
             shutil.rmtree(work, ignore_errors=True)

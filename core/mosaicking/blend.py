@@ -35,29 +35,6 @@ class Corrected:
         return self.values.nbytes + self.weight.nbytes
 
 
-def _fill_rows(val, ok):
-    """Invalid pixels take the nearest valid value along their row (the previous one, else
-    the next); rows with no valid pixel take the nearest filled row. Only the spline
-    prefilter sees these values: it needs no jump at the footprint's edges."""
-    if ok.all() or not ok.any():
-        return val
-    h, w = ok.shape
-    j = np.arange(w)
-    prev = np.maximum.accumulate(np.where(ok, j, -1), axis=1)
-    nxt = np.minimum.accumulate(np.where(ok, j, w)[:, ::-1], axis=1)[:, ::-1]
-    use = np.where(prev >= 0, prev, nxt)
-    rows = ok.any(axis=1)
-    use[~rows] = 0
-    out = np.take_along_axis(val, np.clip(use, 0, w - 1), axis=1)
-    if not rows.all():
-        i = np.arange(h)
-        pr = np.maximum.accumulate(np.where(rows, i, -1))
-        nx = np.minimum.accumulate(np.where(rows, i, h)[::-1])[::-1]
-        src = np.where(pr >= 0, pr, nx)
-        out = out[src]
-    return out
-
-
 def _b3(x):
     x = np.abs(x)
     return np.where(x < 1, 2 / 3 - x ** 2 + x ** 3 / 2, np.where(x < 2, (2 - x) ** 3 / 6, 0.0))
@@ -85,29 +62,25 @@ def corrected_swing(val, ok, row: int, col: int, offset, radiometric: float,
     """``val``/``ok``: the whole swing (grid origin ``row, col``). Returns it corrected by
     ``offset`` ``t``: ``out[x] = image[x + t] - radiometric`` (cubic spline), valid where
     every pixel the interpolation leans on was valid, weighted by the capped distance to
-    the nearest invalid pixel."""
+    the nearest invalid pixel (compiled kernels, swathflow.mosaicking.kernels)."""
+    from swathflow.mosaicking import kernels as K
     t = np.asarray(offset, float)
     a = np.floor(t).astype(int)
     f = t - a
+    ok = np.ascontiguousarray(ok, bool)
     if f[0] < 1e-6 and f[1] < 1e-6:
-        out, m = val, ok
+        m = ok
+        vals = np.where(ok, val - radiometric, 0.0).astype(np.float32)
     else:
-        filled = _fill_rows(val, ok)
-        out = shift_cubic(filled, f)
-        # a cubic spline rings at steps (the outer edge of a swing, saturated targets): keep
-        # each pixel within the values of its 4 x 4 spline support (issue 13)
-        lo = ndimage.minimum_filter(filled, size=4, origin=-1, mode="nearest")
-        hi = ndimage.maximum_filter(filled, size=4, origin=-1, mode="nearest")
-        out = np.clip(out, lo, hi)
-        # out[i] reads val[i + f]: valid where the pixels on both sides were valid
-        m = np.pad(ok, ((0, 1), (0, 1)))
-        m = m[:-1] & m[1:] if f[0] >= 1e-6 else m[:-1]
-        m = m[:, :-1] & m[:, 1:] if f[1] >= 1e-6 else m[:, :-1]
-    dist = ndimage.distance_transform_edt(np.pad(m, 1))[1:-1, 1:-1]
-    wt = np.minimum(dist, float(feather)).astype(np.float32) if feather > 0 else \
-        m.astype(np.float32)
-    vals = (out - radiometric).astype(np.float32)
-    vals[~m] = 0.0
+        pad = 12
+        val = np.asarray(val, float)
+        filled = val if ok.all() or not ok.any() else K.fill_rows(val, ok)
+        coef = ndimage.spline_filter(np.pad(filled, pad, mode="edge"), order=3, mode="mirror")
+        # a cubic spline rings at steps (the outer edge of a swing, saturated targets): each
+        # pixel is kept within the values of its 4 x 4 spline support (issue 13)
+        vals, m = K.sample_clip(coef, np.ascontiguousarray(filled), ok, pad, float(f[0]),
+                                float(f[1]), float(radiometric))
+    wt = K.capped_distance(m, float(feather)) if feather > 0 else m.astype(np.float32)
     return Corrected(int(row - a[0]), int(col - a[1]), vals, wt)
 
 
@@ -151,12 +124,14 @@ class SwingCache:
 
 def blend_tile(swings, r0: int, c0: int, r1: int, c1: int, mode: str = "feather"):
     """Blend corrected swings (:class:`Corrected`, in input order) on grid window
-    ``[r0, r1) x [c0, c1)``. ``mode``: ``"feather"`` (weighted mean), ``"cut"`` (each pixel
-    from the swing with the largest weight: hard seams) or ``"first"`` (first valid swing
-    wins, like rasterio.merge). Returns ``(values float64 with NaN, valid)``."""
+    ``[r0, r1) x [c0, c1)``. ``mode``: ``"feather"`` (weighted mean, compiled, float32),
+    ``"cut"`` (each pixel from the swing with the largest weight: hard seams) or
+    ``"first"`` (first valid swing wins, like rasterio.merge). Returns ``(values float32
+    with NaN, valid)``."""
+    from swathflow.mosaicking import kernels as K
     h, w = r1 - r0, c1 - c0
-    acc = np.zeros((h, w))
-    wsum = np.zeros((h, w))
+    acc = np.zeros((h, w), np.float32)
+    wsum = np.zeros((h, w), np.float32)
     best = np.zeros((h, w), np.float32)
     for s in swings:
         hh, ww = s.values.shape
@@ -164,13 +139,13 @@ def blend_tile(swings, r0: int, c0: int, r1: int, c1: int, mode: str = "feather"
         i1, j1 = min(r1, s.row + hh), min(c1, s.col + ww)
         if i1 <= i0 or j1 <= j0:
             continue
+        if mode == "feather":
+            K.accumulate(acc, wsum, s.values, s.weight, i0 - r0, j0 - c0, i0 - s.row,
+                         j0 - s.col, i1 - i0, j1 - j0)
+            continue
         v = s.values[i0 - s.row:i1 - s.row, j0 - s.col:j1 - s.col]
         wt = s.weight[i0 - s.row:i1 - s.row, j0 - s.col:j1 - s.col]
         ta, tb = slice(i0 - r0, i1 - r0), slice(j0 - c0, j1 - c0)
-        if mode == "feather":
-            acc[ta, tb] += wt * v
-            wsum[ta, tb] += wt
-            continue
         if mode == "first":
             take = (wt > 0) & (wsum[ta, tb] == 0)
         else:
@@ -179,6 +154,4 @@ def blend_tile(swings, r0: int, c0: int, r1: int, c1: int, mode: str = "feather"
         acc[ta, tb][take] = v[take]
         wsum[ta, tb][take] = 1.0
     valid = wsum > 0
-    out = np.full((h, w), np.nan)
-    np.divide(acc, wsum, out=out, where=valid)
-    return out, valid
+    return K.normalise(acc, wsum), valid

@@ -75,32 +75,14 @@ def mmgd_search(ref, ref_ok, mov, mov_ok, max_shift: int, min_pixels: int = 64):
     ``S = max_shift`` pixels on each side. For every candidate shift ``s`` the mean absolute
     difference ``|ref[x] - mov[x + s] - median(...)|`` is taken over the jointly valid
     pixels (the median removes a radiometric offset). Returns ``(s, cost_map)``; ``s`` is
-    None when no shift leaves ``min_pixels`` common pixels. The shifts of one row whose
-    windows are entirely valid are evaluated together (one partition for all of them).
+    None when no shift leaves ``min_pixels`` common pixels. Compiled
+    (swathflow.mosaicking.match_kernels: no GIL held, so overlaps match on threads).
     """
-    from numpy.lib.stride_tricks import sliding_window_view
+    from swathflow.mosaicking.match_kernels import mmgd_costs
     S = int(max_shift)
-    h, w = ref.shape
-    cost = np.full((2 * S + 1, 2 * S + 1), np.inf)
-    ref_full = bool(ref_ok.all()) and h * w >= min_pixels
-    for i, dr in enumerate(range(-S, S + 1)):
-        rows = mov[S + dr:S + dr + h]
-        rows_ok = mov_ok[S + dr:S + dr + h]
-        full = []
-        for j in range(2 * S + 1):
-            okw = rows_ok[:, j:j + w]
-            if ref_full and okw.all():
-                full.append(j)
-                continue
-            ok = ref_ok & okw
-            if int(ok.sum()) < min_pixels:
-                continue
-            diff = ref[ok] - rows[:, j:j + w][ok]
-            cost[i, j] = _mean_abs_from_median(diff[None])[0]
-        if full:
-            win = sliding_window_view(rows, w, axis=1)[:, full, :]       # (h, k, w)
-            diff = (ref[:, None, :] - win).transpose(1, 0, 2).reshape(len(full), -1)
-            cost[i, full] = _mean_abs_from_median(diff)
+    cost = mmgd_costs(np.ascontiguousarray(ref, float), np.ascontiguousarray(ref_ok, bool),
+                      np.ascontiguousarray(mov, float), np.ascontiguousarray(mov_ok, bool),
+                      S, int(min_pixels))
     if not np.isfinite(cost).any():
         return None, cost
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
@@ -205,11 +187,38 @@ def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 1
 
 
 # --- least-squares polish ----------------------------------------------------------------
+class _Shifter:
+    """``out[x] = img[x - d]`` (cubic spline, edges extended: ``ndimage.shift(img, d,
+    order=3, mode="nearest")``) for many ``d`` of one image: the B-spline prefilter is
+    computed once, and each shift is one 4-tap correlation per axis over just the rows and
+    columns it reads (the recipe of swathflow.mosaicking.blend.shift_cubic, same values)."""
+
+    def __init__(self, img, pad: int = 12):
+        self.img, self.pad = img, int(pad)
+        self.coef = None
+
+    def __call__(self, d):
+        from swathflow.mosaicking.blend import _b3
+        f = -np.asarray(d, float)
+        a = np.floor(f).astype(int)
+        if np.any(np.abs(a) > self.pad - 3):
+            return ndimage.shift(self.img, -f, order=3, mode="nearest")
+        if self.coef is None:
+            self.coef = ndimage.spline_filter(np.pad(self.img, self.pad, mode="edge"),
+                                              order=3, mode="mirror")
+        h, w = self.img.shape
+        p = self.pad
+        c = self.coef[p + a[0] - 1:p + a[0] + h + 2, p + a[1] - 1:p + a[1] + w + 2]
+        for axis in (0, 1):
+            k = _b3(float(f[axis] - a[axis]) - (np.arange(4) - 1))
+            c = ndimage.correlate1d(c, k, axis=axis, mode="mirror", origin=-1)
+        return c[1:h + 1, 1:w + 1]
+
+
 def _shift(img, d):
     """``out[x] = img[x - d]`` (cubic spline, edges extended: ``ndimage.shift(img, d,
     order=3, mode="nearest")``, computed as one 4-tap correlation per axis)."""
-    from swathflow.mosaicking.blend import shift_cubic
-    return shift_cubic(img, -np.asarray(d, float))
+    return _Shifter(img)(d)
 
 
 def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-4,
@@ -225,6 +234,7 @@ def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: flo
     ref = np.asarray(ref, float)
     mov = np.asarray(mov, float)
     d = np.array(d0, float)
+    shift = _Shifter(ref)
     y = mov[mask]
     rr, cc = np.nonzero(mask)
     rr = (rr - rr.mean()) / max(mask.shape[0], 1)
@@ -235,7 +245,7 @@ def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: flo
     o = np.zeros(rad.shape[1])
     cov = None
     for _ in range(iterations):
-        rw = _shift(ref, d)
+        rw = shift(d)
         gr, gc = np.gradient(rw)
         a = np.column_stack([-g * gr[mask], -g * gc[mask], rw[mask], rad])
         r = y - (g * rw[mask] + rad @ o)
@@ -250,7 +260,7 @@ def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: flo
         o += dx[3:]
         if np.all(np.abs(dx[:2]) < tol):
             break
-    rw = _shift(ref, d)
+    rw = shift(d)
     r = y - (g * rw[mask] + rad @ o)
     dof = max(y.size - a.shape[1], 1)
     rms = float(np.sqrt(r @ r / dof))
@@ -312,7 +322,8 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
         pr, pc = 0.0, 0.0          # a wild peak: start the polish from the integer shift
     dres, sig, g, o, rms = gradient_refine(fill_r, fill_m, inner, (pr, pc))
     # noise: the high-passed difference of the aligned images (slow radiometric trends out)
-    diff = fill_m - g * _shift(fill_r, dres)
+    aligned = _shift(fill_r, dres)
+    diff = fill_m - g * aligned
     diff = diff - ndimage.gaussian_filter(np.where(inner, diff, np.median(diff[inner])), 3.0)
     noise = max(_noise(diff[inner]), abs_floor * (np.ptp(ref[ref_ok]) + 1.0))
     tex = texture_measure(fill_r, joint, noise)
@@ -324,7 +335,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     if not np.all(np.isfinite(dres)) or np.max(np.abs(dres)) > 2.0 or not (0.2 < g < 5.0):
         return BlockMatch(False, "diverged", **common)
     # radiometric offset at the mean level of the block (gain ~ 1 for offset-only data)
-    rad = float(np.median(m[inner] - _shift(fill_r, dres)[inner]))
+    rad = float(np.median(m[inner] - aligned[inner]))
     return BlockMatch(True, "", offset=(s[0] + float(dres[0]), s[1] + float(dres[1])),
                       sigma=sig, radiometric=rad, gain=g, **common)
 

@@ -69,6 +69,8 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
     """
     import rasterio
     t0 = time.perf_counter()
+    if report and match:
+        _preload_matplotlib()
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
         plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
                             max_shift, block, min_texture, workers, strips, log, control)
@@ -124,6 +126,26 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
     if report:
         write_text(os.path.splitext(os.fspath(out))[0] + ".json", json.dumps(rep, indent=1))
     return rep
+
+
+def _preload_matplotlib() -> None:
+    """Import matplotlib (the report picture's, half a second) on a side thread while the
+    overlaps are matched: the matching's compiled kernels and GDAL's reads leave the GIL
+    free most of the time, so the import mostly fills idle core time."""
+    import sys
+    import threading
+    if "matplotlib.figure" in sys.modules:
+        return
+
+    def load():
+        try:
+            import matplotlib
+            matplotlib.use("Agg", force=False)
+            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.figure  # noqa: F401
+        except ImportError:
+            pass
+    threading.Thread(target=load, name="swathflow-preload-matplotlib", daemon=True).start()
 
 
 def _header(layout: Layout, per_image, mode, feather) -> dict:

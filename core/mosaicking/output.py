@@ -1,5 +1,6 @@
-"""Writing the mosaic: tiles blended from the corrected swings over dask threads, streamed
-into a tiled GeoTIFF, converted to a COG with overviews; the PNG quicklook."""
+"""Writing the mosaic: tiles blended from the corrected swings on threads (compiled kernels
+that release the GIL), streamed into a tiled GeoTIFF (in memory when small), converted to a
+COG with overviews; the PNG quicklook."""
 from __future__ import annotations
 
 import os
@@ -45,30 +46,6 @@ def render_tile(layout: Layout, r0, c0, r1, c1, offsets, cache, mode: str = "fea
     if sel is not None:
         hit &= sel
     return blend_tile([cache.get(int(k)) for k in np.nonzero(hit)[0]], r0, c0, r1, c1, mode)
-
-
-class _Writer:
-    """A dask ``store`` target writing windows into an open rasterio dataset."""
-
-    def __init__(self, ds, nodata, dtype):
-        self.ds, self.nodata, self.dtype = ds, nodata, np.dtype(dtype)
-
-    def __setitem__(self, key, block):
-        from rasterio.windows import Window
-        rs, cs = key
-        out = block
-        if self.dtype.kind in "ui":
-            info = np.iinfo(self.dtype)
-            bad = ~np.isfinite(out)
-            out = np.clip(np.round(np.where(bad, 0, out)), info.min, info.max)
-            out = out.astype(self.dtype)
-            out[bad] = self.nodata
-        else:
-            out = out.astype(self.dtype)
-            if self.nodata is not None and not np.isnan(self.nodata):
-                out[~np.isfinite(out)] = self.nodata
-        self.ds.write(out, 1, window=Window(cs.start, rs.start, cs.stop - cs.start,
-                                            rs.stop - rs.start))
 
 
 class _Blender:
@@ -125,14 +102,81 @@ def mosaic_array(layout: Layout, offsets, radiometric, feather: int = 64,
     return arr, blender
 
 
+def _to_dtype(block, dtype, nodata):
+    """A float32 tile with NaN for no data, cast to the output dtype with ``nodata``."""
+    if dtype.kind in "ui":
+        info = np.iinfo(dtype)
+        bad = ~np.isfinite(block)
+        out = np.clip(np.round(np.where(bad, 0, block)), info.min, info.max).astype(dtype)
+        out[bad] = nodata
+        return out
+    out = block.astype(dtype)
+    if nodata is not None and not np.isnan(nodata):
+        out[~np.isfinite(out)] = nodata
+    return out
+
+
+def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers):
+    """Render ``tiles`` (r0, c0, r1, c1) on ``workers`` threads (the kernels release the
+    GIL) and write each into ``ds`` as it is done; at most two tiles per thread are in
+    flight, so memory is bounded by the threads, not by the mosaic."""
+    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+    from rasterio.windows import Window
+    lock = threading.Lock()
+
+    def job(t):
+        r0, c0, r1, c1 = t
+        v, _ = render_tile(layout, r0, c0, r1, c1, offsets, cache, mode)
+        out = _to_dtype(v, dtype, nodata)
+        with lock:
+            ds.write(out, 1, window=Window(c0, r0, c1 - c0, r1 - r0))
+
+    n = max(1, int(workers or os.cpu_count() or 1))
+    with ThreadPoolExecutor(n) as ex:
+        pending = set()
+        for t in tiles:
+            if len(pending) >= 2 * n:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    f.result()
+            pending.add(ex.submit(job, t))
+        for f in pending:
+            f.result()
+
+
+def _tile_order(layout: Layout, tile: int):
+    """The tiles, down the columns when the swings are taller than wide (strips flown
+    along the rows), else along the rows: consecutive tiles then share their swings, so
+    the swing cache holds the few swings of one band instead of a whole row of strips."""
+    H, W = layout.shape
+    rows, cols = range(0, H, tile), range(0, W, tile)
+    tall = np.median([s.height for s in layout.swings]) > \
+        np.median([s.width for s in layout.swings])
+    order = [(r, c) for c in cols for r in rows] if tall else \
+        [(r, c) for r in rows for c in cols]
+    return [(r, c, min(H, r + tile), min(W, c + tile)) for r, c in order]
+
+
+def _stage_path(final, nbytes, cog, limit=256 * 2 ** 20):
+    """Where the tiles are written before the COG copy: in memory (GDAL /vsimem) when the
+    mosaic is small, else an uncompressed file beside the output; the output itself
+    without ``cog``."""
+    if not cog:
+        return final
+    if nbytes <= limit:
+        return f"/vsimem/swathflow-mosaic-{os.getpid()}-{threading.get_ident()}.tif"
+    return final + ".stage.tif"
+
+
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                  mode: str = "feather", tile: int = 1024, workers: int | None = None,
                  dtype=None, nodata=None, cog: bool = True, blocksize: int = 512) -> dict:
-    """Render the mosaic tile by tile over dask (threads) into ``out`` (a COG with
-    overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles."""
-    import dask.array as da
+    """Render the mosaic tile by tile on ``workers`` threads into ``out`` (a COG with
+    overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles and the
+    swing cache."""
     import rasterio
     from rasterio.shutil import copy as rio_copy
+    from rasterio.shutil import delete as rio_delete
     dtypes = {s.dtype for s in layout.swings}
     if dtype is None:
         dtype = "float32" if len(dtypes) != 1 or next(iter(dtypes)).startswith("float") \
@@ -145,32 +189,37 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     H, W = layout.shape
     offsets = np.asarray(offsets, float)
     radiometric = np.asarray(radiometric, float)
-    arr, blender = mosaic_array(layout, offsets, radiometric, feather, mode, tile)
+    handles = _Handles()
+    cache = swing_cache(layout, offsets, radiometric, feather, handles)
+    tiles = _tile_order(layout, tile)
     profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=dtype.name,
                    crs=layout.crs, transform=layout.transform, nodata=nodata, tiled=True,
-                   blockxsize=blocksize, blockysize=blocksize, compress="deflate",
-                   BIGTIFF="IF_SAFER")
+                   blockxsize=blocksize, blockysize=blocksize, BIGTIFF="IF_SAFER")
+    if not cog:
+        profile["compress"] = "deflate"
+    n = max(1, int(workers or os.cpu_count() or 1))
     t0 = time.perf_counter()
     out = os.fspath(out)
     try:
         with atomic_path(out, suffix=".tif") as final:
-            tmp = final + ".stage.tif" if cog else final
+            tmp = _stage_path(final, H * W * dtype.itemsize, cog)
             try:
                 with rasterio.open(tmp, "w", **profile) as ds:
-                    da.store(arr, _Writer(ds, nodata, dtype), lock=threading.Lock(),
-                             scheduler="threads", num_workers=workers)
+                    _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n)
                     ds.update_tags(product="mosaic", blend=mode, software="swathflow")
                 t_render = time.perf_counter() - t0
                 if cog:
-                    with rasterio.Env(GDAL_NUM_THREADS=str(workers or os.cpu_count() or 1)):
+                    with rasterio.Env(GDAL_NUM_THREADS=str(n)):
                         rio_copy(tmp, final, driver="COG", COMPRESS="DEFLATE",
                                  BLOCKSIZE=blocksize, OVERVIEW_RESAMPLING="AVERAGE",
-                                 PREDICTOR="YES", BIGTIFF="IF_SAFER")
+                                 PREDICTOR="YES", BIGTIFF="IF_SAFER", NUM_THREADS=str(n))
             finally:
-                if cog and os.path.exists(tmp):
+                if cog and tmp.startswith("/vsimem/"):
+                    rio_delete(tmp)
+                elif cog and os.path.exists(tmp):
                     os.remove(tmp)
     finally:
-        blender.close()
+        handles.close()
     return {"seconds_render": t_render, "seconds_total": time.perf_counter() - t0,
             "shape": [H, W], "dtype": dtype.name}
 

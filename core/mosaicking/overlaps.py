@@ -144,7 +144,11 @@ def _resolve_anchors(layout, keys, nodes, anchors):
 
 
 def _active_client():
-    """The Dask distributed client of this context (the mission flow's cluster), if any."""
+    """The Dask distributed client of this context (the mission flow's cluster), if any.
+    Without ``distributed`` imported there is none (importing it costs half a second)."""
+    import sys
+    if "distributed" not in sys.modules:
+        return None
     try:
         from distributed import get_client
         return get_client()

@@ -1,0 +1,213 @@
+"""Compiled kernels of the feathered blend (numba, ``nogil``, ``cache=True``).
+
+* :func:`fill_rows`: invalid pixels take the nearest valid value of their row (the spline
+  prefilter then sees no jump at the footprint's edges).
+* :func:`sample_clip`: one pass per swing over the cubic B-spline coefficients: the
+  separable 4 x 4 tap sum at a fractional shift ``f`` (the same weights at every pixel),
+  clipped to the values of the pixel's 4 x 4 support (no ringing at steps), the validity of
+  the shifted pixel (every pixel the interpolation leans on valid along each shifted axis)
+  and the radiometric offset removed; float32 out.
+* :func:`capped_distance`: the exact Euclidean distance of every valid pixel to the nearest
+  invalid one (the frame outside the array counts as invalid), capped at ``cap``: one pass
+  along the columns (two sweeps), one lower envelope of parabolas per row
+  (Felzenszwalb & Huttenlocher 2012). Capping the column distances at ``cap`` does not
+  change any result below ``cap``. Same values as scipy's ``distance_transform_edt`` on
+  the mask padded by one invalid pixel, at a fraction of its cost (no feature transform).
+* :func:`accumulate`: ``acc += w * v``, ``wsum += w`` of one corrected swing into a tile,
+  float32.
+
+All release the GIL, so the tiles of a mosaic render on every core through threads.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["fill_rows", "sample_clip", "capped_distance", "accumulate"]
+
+
+@njit(cache=True, nogil=True)
+def fill_rows(val, ok):
+    """A copy of ``val`` (float64) where each invalid pixel takes the previous valid value
+    of its row, else the next; rows without a valid pixel take the nearest such row."""
+    h, w = val.shape
+    out = np.empty((h, w))
+    has = np.zeros(h, np.bool_)
+    for i in range(h):
+        last = -1
+        for j in range(w):
+            if ok[i, j]:
+                last = j
+                out[i, j] = val[i, j]
+            elif last >= 0:
+                out[i, j] = val[i, last]
+            else:
+                out[i, j] = np.nan
+        if last < 0:
+            continue
+        has[i] = True
+        nxt = -1
+        for j in range(w - 1, -1, -1):          # leading invalid pixels: the next valid
+            if ok[i, j]:
+                nxt = j
+            elif np.isnan(out[i, j]):
+                out[i, j] = val[i, nxt]
+    if h == 0:
+        return out
+    # rows with no valid pixel: the previous filled row, else the next
+    prev = -1
+    for i in range(h):
+        if has[i]:
+            prev = i
+        elif prev >= 0:
+            out[i, :] = out[prev, :]
+    nxt = -1
+    for i in range(h - 1, -1, -1):
+        if has[i]:
+            nxt = i
+        elif not np.isnan(out[i, 0]) or nxt < 0:
+            continue
+        else:
+            out[i, :] = out[nxt, :]
+    if nxt < 0 and prev < 0:
+        out[:, :] = 0.0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _b3(x):
+    x = abs(x)
+    if x < 1.0:
+        return 2.0 / 3.0 - x * x + x * x * x / 2.0
+    if x < 2.0:
+        return (2.0 - x) ** 3 / 6.0
+    return 0.0
+
+
+@njit(cache=True, nogil=True)
+def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
+    """Shifted values ``out[x] = image(x + f) - radiometric`` (``0 <= f < 1`` per axis) and
+    their validity, from ``coef`` (B-spline coefficients of ``filled`` padded by ``pad``
+    edge pixels), clipped to the min/max of ``filled`` over the 4 x 4 support (rows and
+    columns ``x - 1 .. x + 2``, edge-extended). Returns ``(values float32 (0 where
+    invalid), valid)``."""
+    h, w = filled.shape
+    wr = np.empty(4)
+    wc = np.empty(4)
+    for k in range(4):
+        wr[k] = _b3(fr - (k - 1))
+        wc[k] = _b3(fc - (k - 1))
+    sr, sc = fr >= 1e-6, fc >= 1e-6
+    out = np.zeros((h, w), np.float32)
+    valid = np.zeros((h, w), np.bool_)
+    tmp = np.empty(w + 3)
+    for i in range(h):
+        empty = True
+        for j in range(w):
+            m = ok[i, j]
+            if m and sc:
+                m = j + 1 < w and ok[i, j + 1]
+            if m and sr:
+                m = i + 1 < h and ok[i + 1, j] and (not sc or ok[i + 1, j + 1])
+            valid[i, j] = m
+            empty = empty and not m
+        if empty:
+            continue
+        # rows of the spline sum first (4 taps), then columns
+        for jj in range(w + 3):
+            s = 0.0
+            for k in range(4):
+                s += wr[k] * coef[pad + i + k - 1, pad + jj - 1]
+            tmp[jj] = s
+        for j in range(w):
+            if not valid[i, j]:
+                continue
+            v = wc[0] * tmp[j] + wc[1] * tmp[j + 1] + wc[2] * tmp[j + 2] + wc[3] * tmp[j + 3]
+            lo, hi = np.inf, -np.inf
+            for a in range(i - 1, i + 3):
+                aa = min(max(a, 0), h - 1)
+                for b in range(j - 1, j + 3):
+                    x = filled[aa, min(max(b, 0), w - 1)]
+                    lo = min(lo, x)
+                    hi = max(hi, x)
+            v = min(max(v, lo), hi)
+            out[i, j] = v - radiometric
+    return out, valid
+
+
+@njit(cache=True, nogil=True)
+def _envelope(f, n, d, v, z):
+    """Squared distance transform of one line ``f`` (length ``n``) into ``d``."""
+    k = 0
+    v[0] = 0
+    z[0] = -np.inf
+    z[1] = np.inf
+    for q in range(1, n):
+        s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
+        while s <= z[k]:
+            k -= 1
+            s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
+        k += 1
+        v[k] = q
+        z[k] = s
+        z[k + 1] = np.inf
+    k = 0
+    for q in range(n):
+        while z[k + 1] < q:
+            k += 1
+        d[q] = (q - v[k]) ** 2 + f[v[k]]
+
+
+@njit(cache=True, nogil=True)
+def capped_distance(ok, cap):
+    """``min(edt, cap)`` as float32: the distance of each valid pixel of ``ok`` to the
+    nearest invalid pixel (outside the array: invalid); 0 where invalid."""
+    h, w = ok.shape
+    g = np.empty((h, w))
+    c = float(cap)
+    for j in range(w):
+        run = 0.0
+        for i in range(h):
+            run = min(run + 1.0, c) if ok[i, j] else 0.0
+            g[i, j] = run
+        run = 0.0
+        for i in range(h - 1, -1, -1):
+            run = min(run + 1.0, c) if ok[i, j] else 0.0
+            g[i, j] = min(g[i, j], run)
+    out = np.zeros((h, w), np.float32)
+    f = np.empty(w)
+    d = np.empty(w)
+    v = np.empty(w, np.int64)
+    z = np.empty(w + 1)
+    for i in range(h):
+        for j in range(w):
+            f[j] = g[i, j] * g[i, j]
+        _envelope(f, w, d, v, z)
+        for j in range(w):
+            if not ok[i, j]:
+                continue
+            e = min(d[j], float(j + 1) ** 2, float(w - j) ** 2)
+            out[i, j] = min(np.sqrt(e), c)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def accumulate(acc, wsum, values, weight, ta, tb, sa, sb, hh, ww):
+    """``acc[ta:ta+hh, tb:tb+ww] += weight * values`` and ``wsum += weight`` over the
+    swing's window starting at ``(sa, sb)``."""
+    for i in range(hh):
+        for j in range(ww):
+            wt = weight[sa + i, sb + j]
+            if wt > 0:
+                acc[ta + i, tb + j] += wt * values[sa + i, sb + j]
+                wsum[ta + i, tb + j] += wt
+
+
+@njit(cache=True, nogil=True)
+def normalise(acc, wsum):
+    """``acc / wsum`` where ``wsum > 0``, NaN elsewhere (float32, in place in ``acc``)."""
+    h, w = acc.shape
+    for i in range(h):
+        for j in range(w):
+            acc[i, j] = acc[i, j] / wsum[i, j] if wsum[i, j] > 0 else np.nan
+    return acc

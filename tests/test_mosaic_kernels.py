@@ -1,0 +1,129 @@
+"""The compiled mosaic kernels against independent references: scipy's exact Euclidean
+distance transform, scipy's spline shift, and the minimum-mean-grey-difference cost
+written out shift by shift with numpy's median."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from swathflow.mosaicking import kernels as K
+from swathflow.mosaicking.match_kernels import mmgd_costs
+
+
+def _masks():
+    rng = np.random.default_rng(5)
+    yield np.ones((40, 30), bool)
+    yield np.zeros((12, 9), bool)
+    yield np.ones((1, 17), bool)
+    yield np.ones((23, 1), bool)
+    for _ in range(6):
+        h, w = rng.integers(2, 90, 2)
+        m = ndimage.binary_opening(rng.random((h, w)) > 0.15)
+        yield m
+    m = np.zeros((120, 70), bool)
+    m[10:110, 5:60] = True
+    m[40:50, 20:24] = False
+    yield m
+
+
+@pytest.mark.parametrize("cap", [3.0, 6.5, 64.0])
+def test_capped_distance_is_scipys_exact_edt(cap):
+    for m in _masks():
+        want = np.minimum(ndimage.distance_transform_edt(np.pad(m, 1))[1:-1, 1:-1], cap)
+        got = K.capped_distance(m, cap)
+        assert got.dtype == np.float32
+        assert np.allclose(got, want, atol=1e-5, rtol=0), np.abs(got - want).max()
+
+
+@pytest.mark.parametrize("f", [(0.3, 0.7), (0.0, 0.45), (0.6, 0.0), (0.999, 0.001)])
+def test_sample_clip_is_the_spline_shift_and_its_validity(f):
+    """A smooth image (no clipping): the values are scipy's cubic spline shift, less the
+    radiometric offset; valid where both neighbours along each shifted axis are."""
+    rr, cc = np.mgrid[0:50, 0:40].astype(float)
+    img = 0.5 * rr + 0.2 * cc + 3 * np.sin(rr / 9.0) * np.cos(cc / 11.0)
+    ok = np.ones(img.shape, bool)
+    ok[20:24, 10:13] = False
+    pad = 12
+    coef = ndimage.spline_filter(np.pad(img, pad, mode="edge"), order=3, mode="mirror")
+    vals, valid = K.sample_clip(coef, img, ok, pad, f[0], f[1], 2.5)
+    want = ndimage.shift(img, (-f[0], -f[1]), order=3, mode="nearest") - 2.5
+    p = np.pad(ok, ((0, 1), (0, 1)))       # outside the image: invalid
+    m = p[:-1, :-1].copy()
+    if f[0] >= 1e-6:
+        m &= p[1:, :-1]
+    if f[1] >= 1e-6:
+        m &= p[:-1, 1:]
+    if f[0] >= 1e-6 and f[1] >= 1e-6:
+        m &= p[1:, 1:]
+    assert np.array_equal(valid, m)
+    inner = valid.copy()
+    inner[:3] = inner[-3:] = False
+    inner[:, :3] = inner[:, -3:] = False
+    assert np.abs(vals[inner] - want[inner]).max() < 1e-4
+    assert np.all(vals[~valid] == 0)
+
+
+def test_sample_clip_keeps_a_step_within_its_support():
+    img = np.zeros((20, 20))
+    img[:, 10:] = 100.0
+    ok = np.ones(img.shape, bool)
+    pad = 12
+    coef = ndimage.spline_filter(np.pad(img, pad, mode="edge"), order=3, mode="mirror")
+    vals, _ = K.sample_clip(coef, img, ok, pad, 0.0, 0.5, 0.0)
+    assert vals.min() >= 0.0 and vals.max() <= 100.0
+    # far from the step the spline is exact
+    assert np.all(vals[:, :6] == 0.0) and np.all(vals[:, 14:19] == 100.0)
+
+
+def test_fill_rows_takes_the_nearest_valid_value_of_the_row():
+    val = np.arange(24, dtype=float).reshape(4, 6)
+    ok = np.array([[0, 1, 0, 0, 1, 0],
+                   [0, 0, 0, 0, 0, 0],
+                   [1, 1, 1, 1, 1, 1],
+                   [0, 0, 0, 0, 0, 1]], bool)
+    out = K.fill_rows(val, ok)
+    assert out[0].tolist() == [1, 1, 1, 1, 4, 4]      # previous valid, else the next
+    assert out[1].tolist() == out[0].tolist()        # an empty row: the nearest filled one
+    assert out[2].tolist() == val[2].tolist()
+    assert out[3].tolist() == [23] * 6
+
+
+def _mmgd_reference(ref, ref_ok, mov, mov_ok, S, min_pixels):
+    h, w = ref.shape
+    cost = np.full((2 * S + 1, 2 * S + 1), np.inf)
+    for i in range(2 * S + 1):
+        for j in range(2 * S + 1):
+            ok = ref_ok & mov_ok[i:i + h, j:j + w]
+            if ok.sum() < max(min_pixels, 1):
+                continue
+            d = ref[ok] - mov[i:i + h, j:j + w][ok]
+            cost[i, j] = np.mean(np.abs(d - np.median(d)))
+    return cost
+
+
+def test_mmgd_costs_are_the_mean_deviation_from_the_median():
+    rng = np.random.default_rng(8)
+    for S, (h, w) in ((2, (17, 23)), (4, (40, 31)), (1, (6, 5))):
+        ref = rng.normal(size=(h, w)) * 20
+        mov = rng.normal(size=(h + 2 * S, w + 2 * S)) * 20
+        rok = rng.random((h, w)) > 0.2
+        mok = rng.random(mov.shape) > 0.2
+        want = _mmgd_reference(ref, rok, mov, mok, S, 10)
+        got = mmgd_costs(ref, rok, mov, mok, S, 10)
+        assert np.array_equal(np.isfinite(got), np.isfinite(want))
+        f = np.isfinite(want)
+        assert np.allclose(got[f], want[f], rtol=1e-12)
+
+
+def test_mmgd_finds_a_known_shift():
+    rng = np.random.default_rng(9)
+    base = ndimage.gaussian_filter(rng.normal(size=(80, 80)), 1.2)
+    S = 5
+    ref = base[20:60, 20:60]
+    # mov[x + s] == ref[x] + 9 for s = (2, -3)
+    mov = base[20 - S - 2:60 + S - 2, 20 - S + 3:60 + S + 3] + 9.0
+    cost = mmgd_costs(ref, np.ones(ref.shape, bool), mov, np.ones(mov.shape, bool), S, 64)
+    i, j = np.unravel_index(np.argmin(cost), cost.shape)
+    assert (i - S, j - S) == (2, -3)
+    assert cost[i, j] < 1e-9
