@@ -5,9 +5,6 @@ in :mod:`swathflow.sensors`, Prefect tasks in :mod:`swathflow.tasks`, flows in
 :mod:`swathflow.flows`.
 """
 from swathflow.errors import FormatError, OutOfRangeError, SwathflowError
-from swathflow.ingest.mission import Mission, load_mission, validate_mission
-from swathflow.formats.navigation import PosFormat
-from swathflow.formats.pos import Trajectory, interpolate_pos, read_pos
 
 from swathflow._version import __version__
 
@@ -15,10 +12,14 @@ __all__ = ["FormatError", "Mission", "OutOfRangeError", "PosFormat", "SwathflowE
            "Trajectory", "interpolate_pos", "load_mission", "mosaic", "open_mission",
            "read_pos", "rectify", "validate_mission", "__version__"]
 
-# the xarray API (README "Python API"), imported on first use: rioxarray and the engines
-# stay out of ``import swathflow``
+# imported on first use, so ``import swathflow`` (and so the command line's start-up)
+# stays free of pandas, xarray, rioxarray and the engines
 _LAZY = {"open_mission": "swathflow.ingest.api", "rectify": "swathflow.rectification.api",
-         "mosaic": "swathflow.mosaicking.api"}
+         "mosaic": "swathflow.mosaicking.api", "Mission": "swathflow.ingest.mission",
+         "load_mission": "swathflow.ingest.mission",
+         "validate_mission": "swathflow.ingest.mission",
+         "PosFormat": "swathflow.formats.navigation", "Trajectory": "swathflow.formats.pos",
+         "interpolate_pos": "swathflow.formats.pos", "read_pos": "swathflow.formats.pos"}
 
 
 def __getattr__(name):
