@@ -23,6 +23,8 @@ import numpy as np
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
 TOLERANCE_PX = 0.05
+#: least distance (raw pixels) beyond the raw image's edge of a cell left unrefined
+OFF_MARGIN_PX = 4.0
 
 
 def exact_raw(model, grid, terrain, rows, cols) -> np.ndarray:
@@ -76,7 +78,9 @@ class _Exact:
         c = np.asarray(c, np.intp)
         need = ~self.known[r, c]
         if need.any():
-            key = np.unique(r[need] * self.W + c[need])
+            mark = np.zeros(self.known.size, bool)      # sorted, unique: as np.unique,
+            mark[r[need] * self.W + c[need]] = True      # without its hash table
+            key = np.flatnonzero(mark)
             rr, cc = key // self.W, key % self.W
             self.values[rr, cc] = exact_raw(self.model, self.grid, self.terrain, rr, cc)
             self.known[rr, cc] = True
@@ -84,8 +88,23 @@ class _Exact:
         return self.values[r, c]
 
 
-def _level(exact, cells, s, H, W):
-    """One level of refinement: (good leaves' cells and corners, cells to split)."""
+def _off_image(points, err, raw_shape):
+    """Cells whose test points and corners ``points`` ``(k, n, 2)`` all lie beyond one edge
+    of the raw image (``raw_shape`` lines x elements) by more than ``OFF_MARGIN_PX`` plus
+    twice the cell's interpolation error there: every pixel of such a cell is off the
+    image (NaN), however its coordinates are interpolated. NaN points never qualify."""
+    nl, ne = raw_shape
+    m = OFF_MARGIN_PX + 2 * np.where(np.isfinite(err), err, np.inf)
+    lo = points.min(axis=1)                      # NaN propagates: never off
+    hi = points.max(axis=1)
+    with np.errstate(invalid="ignore"):
+        return ((lo[:, 0] > nl - 0.5 + m) | (hi[:, 0] < -0.5 - m)
+                | (lo[:, 1] > ne - 0.5 + m) | (hi[:, 1] < -0.5 - m))
+
+
+def _level(exact, cells, s, H, W, raw_shape=None):
+    """One level of refinement: (error at the test points, all-NaN cells, corners, cells
+    off the raw image (with ``raw_shape``, else None))."""
     hs = s // 2
     v = exact.values
     r, c = cells[:, 0], cells[:, 1]
@@ -98,12 +117,18 @@ def _level(exact, cells, s, H, W):
           np.concatenate([t[1] for t in tests]))
     err = np.zeros(len(cells))
     all_nan = np.isnan(np.stack([q00, q01, q10, q11])).all(axis=(0, 2))
+    exs = []
     for tr, tc, interp in tests:
         ex = v[tr, tc]
+        exs.append(ex)
         d = np.abs(ex - interp).max(axis=-1)
         err = np.maximum(err, np.where(np.isnan(d), np.inf, d))
         all_nan &= np.isnan(ex).all(axis=-1)
-    return err, all_nan, np.stack([q00, q01, q10, q11], axis=1)
+    q = np.stack([q00, q01, q10, q11], axis=1)
+    off = None
+    if raw_shape is not None:
+        off = _off_image(np.concatenate([q, np.stack(exs, axis=1)], axis=1), err, raw_shape)
+    return err, all_nan, q, off
 
 
 def _children_leaves(v, parents, hs, out_cells, out_corners) -> None:
@@ -117,11 +142,15 @@ def _children_leaves(v, parents, hs, out_cells, out_corners) -> None:
 
 
 def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
-           smooth: bool | None = None) -> Leaves:
+           smooth: bool | None = None, raw_shape: tuple[int, int] | None = None) -> Leaves:
     """The adaptive lattice of ``grid`` (a tile's own grid) as :class:`Leaves`.
 
     ``smooth`` (default: the terrain is a constant height, so the mapping is analytic)
-    lets cells whose parent missed by less than ``tol`` skip their own tests."""
+    lets cells whose parent missed by less than ``tol`` skip their own tests. With
+    ``raw_shape`` (lines, elements) cells clearly off the raw image are not refined
+    (:func:`_off_image`): their pixels are nodata whatever the interpolation, so the
+    bound holds where the image is seen (the GLT and the rectified pixels), not on the
+    coordinates of pixels off the image."""
     from swathflow.geometry.terrain import ConstantHeight
     if smooth is None:
         smooth = isinstance(terrain, ConstantHeight)
@@ -139,8 +168,10 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     s = step
     while s > 1 and cells.size:
         hs = s // 2
-        err, all_nan, q = _level(exact, cells, s, H, W)
+        err, all_nan, q, off = _level(exact, cells, s, H, W, raw_shape)
         good = err < tol / 2        # half the bound at the test points
+        if off is not None:
+            good |= off
         bad = ~good & ~all_nan
         if good.any():
             g = cells[good]

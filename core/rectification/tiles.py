@@ -75,11 +75,11 @@ def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_P
                 stats=None):
     """(window-relative coordinates ``(2, h, w)`` float32, window ``(l0, l1, e0, e1)`` or
     None) of one output tile."""
-    lv = leaves(model, grid, terrain, tol, step)
+    nl, ne = source.shape
+    lv = leaves(model, grid, terrain, tol, step, raw_shape=(nl, ne))
     if stats is not None:
         stats["exact_evaluations"] = stats.get("exact_evaluations", 0) + lv.exact_evaluations
         stats["pixels"] = stats.get("pixels", 0) + grid.shape[0] * grid.shape[1]
-    nl, ne = source.shape
     win = _window(lv, kernel, nl, ne)
     h, w = grid.shape
     if win is None:
