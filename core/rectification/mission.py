@@ -124,7 +124,27 @@ def _run(jobs, processes: int):
                 yield _one(k)
             return
         import multiprocessing as mp
+        _warm(jobs[0])
         with mp.get_context("fork").Pool(processes) as pool:
             yield from pool.imap(_one_synchronous, range(len(jobs)))
     finally:
         _JOBS = []
+
+
+def _warm(job) -> None:
+    """Import the engine and load its compiled kernels for the first job's types once,
+    before the workers fork (each would otherwise load them again)."""
+    import dask.array  # noqa: F401
+    import numpy as np
+    import rasterio  # noqa: F401
+    from swathflow.rectification.kernel import resample_window
+    from swathflow.rectification.paint import paint_window
+    from swathflow.rectification.tiles import output_plan
+    _, _, image, _, _, kw = job
+    if kw["method"] != "exact":
+        return
+    src = open_raw_image(image, bands=kw["bands"])
+    dt, ond, _ = output_plan(src, kw["dtype"], kw["mask_band"])
+    paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
+    resample_window(np.zeros((src.count, 4, 4), src.dtype), np.zeros((2, 2, 2), np.float32),
+                    kw["kernel"], src.nodata, dt, ond)
