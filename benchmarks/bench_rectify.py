@@ -9,6 +9,8 @@ texture at the output pixel centres) over the whole footprint and per 128-px til
 
     .venv/bin/python benchmarks/bench_rectify.py                  # side by side, 5x and 1x grids
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m  # whole command vs GDAL
+    .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.11,0.4 \
+        --baseline /work/main/.venv/bin/swathflow        # output sizes; another build beside
     .venv/bin/python benchmarks/bench_rectify.py --startup         # start-up, numba cache warm/cold
     .venv/bin/python benchmarks/bench_rectify.py --cube 100        # 100-band uint16 cube
     .venv/bin/python benchmarks/bench_rectify.py --igm             # image_to_ground on a DEM
@@ -274,6 +276,12 @@ def main():
                     help="the whole swathflow rectify command vs GDAL on a mission folder "
                          "(simulated with --preset when absent)")
     ap.add_argument("--preset", default="demo", help="simulator preset for --command")
+    ap.add_argument("--command-gsd", default="",
+                    help="output pixel sizes for --command, comma separated (default the "
+                         "mission's)")
+    ap.add_argument("--baseline", metavar="EXE",
+                    help="another swathflow executable run beside ours in --command")
+    ap.add_argument("--no-peers", action="store_true", help="--command without GDAL")
     ap.add_argument("--cube", type=int, metavar="BANDS", help="a uint16 cube of BANDS bands")
     ap.add_argument("--igm", action="store_true", help="image_to_ground on a DEM, points/s")
     ap.add_argument("--ratios", default="5,1",
@@ -303,7 +311,11 @@ def main():
     elif args.startup:
         X.main("startup")
     elif args.command:
-        X.main("command", mission_dir=args.command, preset=args.preset, threads=args.threads)
+        for gsd in ([float(g) for g in args.command_gsd.split(",")] if args.command_gsd
+                    else [None]):
+            X.main("command", mission_dir=args.command, preset=args.preset,
+                   threads=args.threads, gsd=gsd, baseline=args.baseline,
+                   peers=not args.no_peers)
     elif args.cube:
         for nw in (1, args.threads):
             X.main("cube", bands=args.cube, threads=nw)

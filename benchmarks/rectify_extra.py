@@ -45,7 +45,8 @@ ENGINE_READY = (
     "from swathflow.rectification import kernel as K\n"
     "K.resample_window(np.zeros((1, 8, 8), np.uint16), np.zeros((2, 4, 4), np.float32),"
     " 'bilinear', None, np.uint16, None)\n"
-    "K.lattice_coords(np.zeros((1, 3), np.int64) + 1, np.zeros((1, 4, 2)), 4, 4, 0, 0, 8, 8)\n"
+    "from swathflow.rectification import paint as P\n"
+    "P.paint_window(np.zeros((1, 4), np.int64) + 1, np.zeros((1, 4, 2)), 4, 4, 0, 0, 8, 8)\n"
     "print(time.perf_counter() - t0, time.process_time() - c0)\n")
 
 
@@ -107,88 +108,145 @@ def _geoloc(model, terrain, crs):
     return X, Y
 
 
-def _shift(path_or_array, transform, truth):
-    import rasterio
-    from truth_ortho import overlap_with_truth
+def _at_gsd(mission_dir: Path, gsd: float | None) -> Path:
+    """The mission itself, or a copy (links to its files) whose mission.toml asks for
+    ``gsd``."""
+    import re
+    if gsd is None:
+        return mission_dir
+    out = Path(f"{mission_dir}-gsd{gsd:g}")
+    if not out.exists():
+        out.mkdir()
+        for f in mission_dir.iterdir():
+            if f.name != "mission.toml":
+                (out / f.name).symlink_to(f.resolve())
+        text = (mission_dir / "mission.toml").read_text()
+        (out / "mission.toml").write_text(re.sub(r"(?m)^gsd\s*=.*$", f"gsd = {gsd!r}", text,
+                                                 count=1))
+    return out
 
+
+def _truth_on(grid, truth) -> np.ndarray:
+    """The truth ortho on ``grid`` (cubic where the grid is finer, average where coarser:
+    no shift either way), NaN outside it."""
+    from rasterio.warp import Resampling, reproject
+    out = np.full(grid.shape, np.nan)
+    finer = abs(grid.transform.a) < abs(truth.transform.a) - 1e-9
+    reproject(np.where(np.isfinite(truth.data), truth.data, np.nan), out,
+              src_transform=truth.transform, src_crs=grid.crs, dst_transform=grid.transform,
+              dst_crs=grid.crs, src_nodata=np.nan, dst_nodata=np.nan,
+              resampling=Resampling.cubic if finer else Resampling.average)
+    return out
+
+
+def _shift(a, grid, truth, crop: int = 768):
+    """Shift report (raw-output pixels) of ``a`` against the truth on its grid, on the
+    central ``crop`` x ``crop`` window (the same window for every method)."""
     from swathflow.rectification.rectify import shift_report
-    if isinstance(path_or_array, (str, Path)):
-        with rasterio.open(path_or_array) as src:
-            a = src.read(1, masked=True).astype(float).filled(np.nan)
-            transform = src.transform
-    else:
-        a = path_or_array
-    sub_r, sub_t = overlap_with_truth(a, transform, truth)
-    return shift_report(sub_r, sub_t, tile=64, margin=16)
+    t = _truth_on(grid, truth)
+    h, w = a.shape
+    r0, c0 = max((h - crop) // 2, 0), max((w - crop) // 2, 0)
+    win = (slice(r0, r0 + crop), slice(c0, c0 + crop))
+    a, t = a[win], t[win]
+    a = np.where(np.isfinite(t), a, np.nan)
+    t = np.where(np.isfinite(t), t, np.nanmean(t))
+    return shift_report(a, t, tile=64, margin=16)
 
 
-def command(mission_dir, preset="demo", threads=2) -> dict:
-    """``swathflow rectify`` (a subprocess: start-up, every swing, COG writing) against
-    ``gdalwarp -geoloc`` and ``rasterio.warp.reproject`` on the same swings and grids, the
-    peers given their geolocation arrays (pixel corners, our model) for free."""
+def _read(path):
     import rasterio
+    with rasterio.open(path) as src:
+        return src.read(1, masked=True).astype(float).filled(np.nan)
+
+
+def _peers(rows, grid, mission, model, iid, truth, threads, dtype):
+    """gdalwarp -geoloc and rasterio.warp.reproject on one swing's grid."""
     from rasterio.crs import CRS
     from rasterio.warp import Resampling, reproject
+    import rasterio
+    n = grid.shape[0] * grid.shape[1]
+    X, Y = _geoloc(model, mission.terrain, grid.crs)       # free for the peers
+    crs = CRS.from_wkt(grid.pyproj_crs.to_wkt())
+    src_path = mission.images[iid].file
+    gdal = shutil.which("gdalwarp")
+    if gdal:
+        tmp = Path(tempfile.mkdtemp(prefix="bench-gdal-"))
+        vrt = _vrt(tmp, src_path, X, Y, grid.pyproj_crs.to_wkt(), "UInt16")
+        xmin, ymin, xmax, ymax = grid.bounds
+        cmd = [gdal, "-q", "-overwrite", "-geoloc", "-t_srs", grid.pyproj_crs.to_string(),
+               "-te", str(xmin), str(ymin), str(xmax), str(ymax), "-ts", str(grid.width),
+               str(grid.height), "-r", "bilinear", "-dstnodata", "0", "-ot", dtype,
+               "-multi", "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES",
+               "-co", "COMPRESS=DEFLATE", str(vrt), str(tmp / "gdal.tif")]
+        w, c, _ = _run(cmd)
+        r = rows["gdalwarp"]
+        r["wall"] += w
+        r["cpu"] += c
+        r["px"] += n
+        g = _read(tmp / "gdal.tif")
+        r["shifts"].append(_shift(np.where(g > 0, g, np.nan), grid, truth))
+        r["cmd"] = " ".join(cmd)
+        shutil.rmtree(tmp)
+    with rasterio.open(src_path) as s:
+        raw = s.read(1)
+    dst = np.zeros(grid.shape, raw.dtype)
+    c0, t0 = time.process_time(), time.perf_counter()
+    reproject(raw, dst, src_geoloc_array=np.stack([X, Y]), src_crs=crs,
+              dst_transform=grid.transform, dst_crs=crs, dst_nodata=0,
+              resampling=Resampling.bilinear, num_threads=threads)
+    r = rows["rasterio"]
+    r["wall"] += time.perf_counter() - t0
+    r["cpu"] += time.process_time() - c0
+    r["px"] += n
+    r["shifts"].append(_shift(np.where(dst > 0, dst.astype(float), np.nan), grid, truth))
 
+
+def command(mission_dir, preset="demo", threads=2, gsd=None, baseline=None,
+            peers=True) -> dict:
+    """``swathflow rectify`` (a subprocess: start-up, every swing, COG writing) against
+    ``gdalwarp -geoloc`` and ``rasterio.warp.reproject`` on the same swings and grids, the
+    peers given their geolocation arrays (pixel corners, our model) for free. ``gsd``:
+    the output pixel size (default the mission's); ``baseline``: another ``swathflow``
+    executable (e.g. main's) run the same way beside ours."""
     from swathflow.formats.calibfile import calibration_priors, read_calibration
     from swathflow.formats.raster import read_raster
     from swathflow.geometry.grid import Grid
     from swathflow.ingest.mission import load_mission
-    m = _mission(mission_dir, preset)
+    import rasterio
+    m = _at_gsd(_mission(mission_dir, preset), gsd)
     cal = m / "truth" / "calibration.json"
     truth = read_raster(m / "truth" / "ortho.tif", masked_to_nan=True)
     out = Path(tempfile.mkdtemp(prefix="bench-rect-"))
     env = dict(os.environ, DASK_NUM_WORKERS=str(threads))
-    wall, cpu, _ = _run([str(BIN / "swathflow"), "rectify", str(m), "--calibration", str(cal),
-                         "--out", str(out / "ours")], env=env)
+    runs = {"ours": str(BIN / "swathflow")}
+    if baseline:
+        runs["baseline"] = baseline
+    rows = {k: dict(wall=0.0, cpu=0.0, px=0, shifts=[]) for k in
+            list(runs) + ["gdalwarp", "rasterio"]}
+    for k, exe in runs.items():
+        wall, cpu, _ = _run([exe, "rectify", str(m), "--calibration", str(cal),
+                             "--out", str(out / k)], env=env)
+        rows[k].update(wall=wall, cpu=cpu, cmd=f"{exe} rectify {m} --calibration {cal} "
+                                              f"--out OUT")
     mission = load_mission(m)
     params = mission.priors.updated(calibration_priors(read_calibration(cal)))
-    gdal = shutil.which("gdalwarp")
-    rows = {"ours": dict(wall=wall, cpu=cpu, px=0, shifts=[]),
-            "gdalwarp": dict(wall=0.0, cpu=0.0, px=0, shifts=[]),
-            "rasterio": dict(wall=0.0, cpu=0.0, px=0, shifts=[])}
     for iid in mission.image_ids:
         ours = out / "ours" / f"{iid}.tif"
         with rasterio.open(ours) as src:
             grid = Grid(mission.crs, src.transform, src.shape)
             dtype = src.dtypes[0]
-        n = grid.shape[0] * grid.shape[1]
-        rows["ours"]["px"] += n
-        rows["ours"]["shifts"].append(_shift(ours, None, truth))
-        model = mission.model(iid, params)
-        X, Y = _geoloc(model, mission.terrain, grid.crs)       # free for the peers
-        crs = CRS.from_wkt(grid.pyproj_crs.to_wkt())
-        src_path = mission.images[iid].file
-        if gdal:
-            tmp = Path(tempfile.mkdtemp(prefix="bench-gdal-"))
-            vrt = _vrt(tmp, src_path, X, Y, grid.pyproj_crs.to_wkt(), "UInt16")
-            xmin, ymin, xmax, ymax = grid.bounds
-            cmd = [gdal, "-q", "-overwrite", "-geoloc", "-t_srs", grid.pyproj_crs.to_string(),
-                   "-te", str(xmin), str(ymin), str(xmax), str(ymax), "-ts", str(grid.width),
-                   str(grid.height), "-r", "bilinear", "-dstnodata", "0", "-ot", dtype,
-                   "-multi", "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES",
-                   "-co", "COMPRESS=DEFLATE", str(vrt), str(tmp / "gdal.tif")]
-            w, c, _ = _run(cmd)
-            rows["gdalwarp"]["wall"] += w
-            rows["gdalwarp"]["cpu"] += c
-            rows["gdalwarp"]["px"] += n
-            rows["gdalwarp"]["shifts"].append(_shift(tmp / "gdal.tif", None, truth))
-            rows["gdalwarp"]["cmd"] = " ".join(cmd)
-            shutil.rmtree(tmp)
-        with rasterio.open(src_path) as s:
-            raw = s.read(1)
-        dst = np.zeros(grid.shape, raw.dtype)
-        c0, t0 = time.process_time(), time.perf_counter()
-        reproject(raw, dst, src_geoloc_array=np.stack([X, Y]), src_crs=crs,
-                  dst_transform=grid.transform, dst_crs=crs, dst_nodata=0,
-                  resampling=Resampling.bilinear, num_threads=threads)
-        rows["rasterio"]["wall"] += time.perf_counter() - t0
-        rows["rasterio"]["cpu"] += time.process_time() - c0
-        rows["rasterio"]["px"] += n
-        rows["rasterio"]["shifts"].append(
-            _shift(np.where(dst > 0, dst.astype(float), np.nan), grid.transform, truth))
+        for k in runs:
+            a = _read(out / k / f"{iid}.tif")
+            rows[k]["px"] += a.size
+            rows[k]["shifts"].append(_shift(a, grid, truth))
+        if peers:
+            _peers(rows, grid, mission, mission.model(iid, params), iid, truth, threads, dtype)
     shutil.rmtree(out)
-    res = {}
+    return _table(rows, gsd=mission.gsd)
+
+
+def _table(rows, gsd) -> dict:
+    res = {"gsd": gsd}
     for k, r in rows.items():
         if not r["px"]:
             continue
@@ -200,6 +258,12 @@ def command(mission_dir, preset="demo", threads=2) -> dict:
                   "worst_tile_px": round(float(np.nanmax([s["worst_tile_px"] for s in sh])), 4)}
         if "cmd" in r:
             res[k]["cmd"] = r["cmd"][:200]
+    o = res.get("ours")
+    for k in ("baseline", "gdalwarp", "rasterio"):
+        if o and k in res:
+            res[f"ours_faster_than_{k}"] = {
+                "wall": round(res[k]["wall_s"] / max(o["wall_s"], 1e-9), 2),
+                "cpu": round(res[k]["cpu_s"] / max(o["cpu_s"], 1e-9), 2)}
     return res
 
 

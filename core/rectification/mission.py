@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 
@@ -45,14 +46,21 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                     kernel: str = "bilinear", tol: float = TOLERANCE_PX, tile: int = 512,
                     products: Sequence[str] = (),
                     progress: Callable[[str], None] | None = None, bands=None,
-                    dtype: str | None = None, mask_band: bool = False) -> list[dict]:
+                    dtype: str | None = None, mask_band: bool = False,
+                    workers: int | None = None) -> list[dict]:
     """Rectify the mission's images into ``out_dir/<id>.tif`` with ``calibration`` (a
     calibration.json; default: the mission's priors). Every band of each raw image is
     rectified (``bands``: a subset by 1-based index or wavelength, see
     :func:`~swathflow.rectification.rawimage.parse_bands`; default: ``[rectify] bands``
     of mission.toml, see :func:`mission_bands`), in the raw dtype unless
     ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``);
-    ``products`` adds ``<id>.glt.tif`` / ``<id>.igm.tif``. Returns one summary per image."""
+    ``products`` adds ``<id>.glt.tif`` / ``<id>.igm.tif``. Returns one summary per image.
+
+    ``workers`` processes rectify the images side by side (default: one per CPU, at most
+    one per image; forked, so nothing is imported or pickled again), each with one
+    thread; with one worker, one image, an active Dask client or no ``fork`` on the
+    platform, the images go one after the other, each on the current Dask scheduler
+    (threads over tiles)."""
     unknown = set(products) - {"glt", "igm"}
     if unknown:
         raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
@@ -65,24 +73,99 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                               f"has {', '.join(ids)}")
         ids = list(images)
     os.makedirs(out_dir, exist_ok=True)
-    summaries, cal_tag = [], ""
+    jobs = []
     for iid in ids:
-        out = os.path.join(out_dir, f"{iid}.tif")
-        t0 = time.perf_counter()
         sel = bands if bands not in (None, "") else mission_bands(mission, iid)
-        arr = rectify(mission, iid, calibration, kernel=kernel, tile=tile, method=method,
-                      tol=tol, bands=sel, dtype=dtype, mask_band=mask_band)
-        s = to_cog(arr, out, blocksize=tile)
-        for p in products:
-            to_cog(geolocation(mission, iid, calibration, p, kernel=kernel, tile=tile, tol=tol),
-                   os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=tile)
-        s.update(image_id=iid, method=method, kernel=kernel,
-                 seconds=round(time.perf_counter() - t0, 3))
-        cal_tag = arr.attrs["calibration"]
+        kw = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=sel, dtype=dtype,
+                  mask_band=mask_band)
+        jobs.append((mission, iid, calibration, os.path.join(out_dir, f"{iid}.tif"), kw,
+                     tuple(products)))
+    summaries, cal_tag = [], ""
+    for s, cal_tag, seconds in _run(jobs, _processes(workers, len(jobs))):
         summaries.append(s)
         if progress:
-            progress(f"{iid}: {arr.rio.height} x {arr.rio.width} px -> {out} "
-                     f"({time.perf_counter() - t0:.1f} s)")
+            rows, cols = s["shape"]
+            progress(f"{s['image_id']}: {rows} x {cols} px -> {s['path']} ({seconds:.1f} s)")
     write_text(os.path.join(out_dir, "rectify.json"),
                json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")
     return summaries
+
+
+#: the jobs of the running :func:`rectify_mission`, read by its forked workers
+_JOBS: list = []
+
+
+def _one(k: int):
+    """Rectify job ``k`` of :data:`_JOBS` as ``to_cog(rectify(...))``: (summary,
+    calibration tag, seconds)."""
+    mission, iid, calibration, out, kw, products = _JOBS[k]
+    t0 = time.perf_counter()
+    arr = rectify(mission, iid, calibration, **kw)
+    s = to_cog(arr, out, blocksize=kw["tile"])
+    for p in products:
+        to_cog(geolocation(mission, iid, calibration, p, kernel=kw["kernel"], tile=kw["tile"],
+                           tol=kw["tol"]),
+               os.path.join(os.path.dirname(out), f"{iid}.{p}.tif"), blocksize=kw["tile"])
+    seconds = time.perf_counter() - t0
+    s.update(image_id=iid, method=kw["method"], kernel=kw["kernel"], path=out,
+             shape=[int(arr.rio.height), int(arr.rio.width)], seconds=round(seconds, 3))
+    return s, arr.attrs["calibration"], seconds
+
+
+def _one_synchronous(k: int):
+    import dask
+    with dask.config.set(scheduler="synchronous"):      # the processes are the parallelism
+        return _one(k)
+
+
+def _processes(workers: int | None, n_jobs: int) -> int:
+    """Worker processes to use (1: in this process)."""
+    import multiprocessing as mp
+    if workers is not None and workers < 1:
+        raise FormatError(f"workers must be at least 1, not {workers}")
+    n = min(workers or os.cpu_count() or 1, n_jobs)
+    if n < 2 or "fork" not in mp.get_all_start_methods() or threading.active_count() > 1:
+        return 1                  # forking beside other threads may copy a held lock
+    try:
+        from distributed import default_client
+        default_client()
+        return 1                                  # a cluster is there: use it
+    except (ImportError, ValueError):
+        return n
+
+
+def _run(jobs, processes: int):
+    """(summary, seconds) of every job, in the jobs' order."""
+    global _JOBS
+    _JOBS = jobs
+    try:
+        if processes < 2:
+            for k in range(len(jobs)):
+                yield _one(k)
+            return
+        import multiprocessing as mp
+        _warm(jobs[0])
+        with mp.get_context("fork").Pool(processes) as pool:
+            yield from pool.imap(_one_synchronous, range(len(jobs)))
+    finally:
+        _JOBS = []
+
+
+def _warm(job) -> None:
+    """Import the engine and load its compiled kernels for the first job's types once,
+    before the workers fork (each would otherwise load them again)."""
+    import dask.array  # noqa: F401
+    import numpy as np
+    import rasterio  # noqa: F401
+    from swathflow.rectification.kernel import resample_window
+    from swathflow.rectification.paint import paint_window
+    from swathflow.rectification.tiles import output_plan
+    mission, iid, _, _, kw, _ = job
+    image = mission.images[iid].file
+    if kw["method"] != "exact":
+        return
+    src = open_raw_image(image, bands=kw["bands"])
+    dt, ond, _ = output_plan(src, kw["dtype"], kw["mask_band"])
+    paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
+    resample_window(np.zeros((src.count, 4, 4), src.dtype), np.zeros((2, 2, 2), np.float32),
+                    kw["kernel"], src.nodata, dt, ond)

@@ -14,8 +14,9 @@ import warnings
 import numpy as np
 from swathflow.errors import FormatError
 from swathflow.geometry.terrain import open_terrain
-from swathflow.rectification.kernel import lattice_coords, resample_window
+from swathflow.rectification.kernel import resample_window
 from swathflow.rectification.lattice import TOLERANCE_PX, leaves
+from swathflow.rectification.paint import paint_window
 from swathflow.rectification.rawimage import RawImage, open_raw_image
 
 KERNELS = ("nearest", "bilinear", "cubic")
@@ -75,16 +76,16 @@ def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_P
                 stats=None):
     """(window-relative coordinates ``(2, h, w)`` float32, window ``(l0, l1, e0, e1)`` or
     None) of one output tile."""
-    lv = leaves(model, grid, terrain, tol, step)
+    nl, ne = source.shape
+    lv = leaves(model, grid, terrain, tol, step, raw_shape=(nl, ne))
     if stats is not None:
         stats["exact_evaluations"] = stats.get("exact_evaluations", 0) + lv.exact_evaluations
         stats["pixels"] = stats.get("pixels", 0) + grid.shape[0] * grid.shape[1]
-    nl, ne = source.shape
     win = _window(lv, kernel, nl, ne)
     h, w = grid.shape
     if win is None:
         return np.full((2, h, w), np.nan, np.float32), None
-    return lattice_coords(lv.cells, lv.corners, h, w, win[0], win[2], nl, ne), win
+    return paint_window(lv.cells, lv.corners, h, w, win[0], win[2], nl, ne), win
 
 
 def rectify_tile(model, source, grid, terrain, kernel: str = "bilinear",

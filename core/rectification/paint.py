@@ -1,0 +1,98 @@
+"""Compiled painting of the lattice's rectangular leaves (numba, ``cache=True``).
+
+A leaf ``(r, c, sr, sc)`` covers the ``sr + 1`` x ``sc + 1`` output pixels from ``(r, c)``;
+their raw (line, element) is the bilinear interpolation of its four corner values at
+(r, c), (r, c + sc), (r + sr, c), (r + sr, c + sc). Leaves are painted in order, later
+(finer) ones overwriting the edges they share with coarser ones.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bil(wr, wc, q00, q01, q10, q11):
+    """Bilinear interpolation; terms of zero weight are left out (a NaN corner does not
+    spoil the exact values at the other corners)."""
+    v = 0.0
+    a = (1 - wr) * (1 - wc)
+    if a != 0.0:
+        v += a * q00
+    a = (1 - wr) * wc
+    if a != 0.0:
+        v += a * q01
+    a = wr * (1 - wc)
+    if a != 0.0:
+        v += a * q10
+    a = wr * wc
+    if a != 0.0:
+        v += a * q11
+    return v
+
+
+@njit(cache=True, nogil=True)
+def paint_window(cells, corners, h, w, l0, e0, nl, ne):
+    """Window-relative raw coordinates ``(2, h, w)`` float32 of a tile's pixels: NaN where
+    the coordinate is NaN or off the raw image (``nl`` x ``ne``) by more than half a
+    pixel, else minus the window origin ``(l0, e0)``."""
+    out = np.full((2, h, w), np.nan, np.float32)
+    for k in range(cells.shape[0]):
+        r, c, sr, sc = cells[k, 0], cells[k, 1], cells[k, 2], cells[k, 3]
+        for i in range(min(sr + 1, h - r)):
+            wr = i / sr
+            rr = r + i
+            for j in range(min(sc + 1, w - c)):
+                wc = j / sc
+                li = _bil(wr, wc, corners[k, 0, 0], corners[k, 1, 0], corners[k, 2, 0],
+                          corners[k, 3, 0])
+                ei = _bil(wr, wc, corners[k, 0, 1], corners[k, 1, 1], corners[k, 2, 1],
+                          corners[k, 3, 1])
+                if (li >= -0.5) and (li <= nl - 0.5) and (ei >= -0.5) and (ei <= ne - 0.5):
+                    out[0, rr, c + j] = li - l0
+                    out[1, rr, c + j] = ei - e0
+                else:
+                    out[0, rr, c + j] = np.nan
+                    out[1, rr, c + j] = np.nan
+    return out
+
+
+@njit(cache=True, nogil=True)
+def paint_f64(cells, corners, h, w):
+    """Absolute raw coordinates ``(h, w, 2)`` float64 of the leaves (no masking)."""
+    out = np.full((h, w, 2), np.nan)
+    for k in range(cells.shape[0]):
+        r, c, sr, sc = cells[k, 0], cells[k, 1], cells[k, 2], cells[k, 3]
+        for i in range(min(sr + 1, h - r)):
+            wr = i / sr
+            for j in range(min(sc + 1, w - c)):
+                wc = j / sc
+                for q in range(2):
+                    out[r + i, c + j, q] = _bil(wr, wc, corners[k, 0, q], corners[k, 1, q],
+                                                corners[k, 2, q], corners[k, 3, q])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def touching(cells, marked, H, W):
+    """For each cell ``(r, c, sr, sc)`` (``(n, 4)``), whether its closed rectangle shares a
+    pixel with the closed rectangle of a ``marked`` cell (``(m, 4)``)."""
+    mask = np.zeros((H, W), np.bool_)
+    for k in range(marked.shape[0]):
+        r, c, sr, sc = marked[k, 0], marked[k, 1], marked[k, 2], marked[k, 3]
+        for i in range(r, min(r + sr + 1, H)):
+            for j in range(c, min(c + sc + 1, W)):
+                mask[i, j] = True
+    out = np.zeros(cells.shape[0], np.bool_)
+    for k in range(cells.shape[0]):
+        r, c, sr, sc = cells[k, 0], cells[k, 1], cells[k, 2], cells[k, 3]
+        hit = False
+        for i in range(r, min(r + sr + 1, H)):
+            for j in range(c, min(c + sc + 1, W)):
+                if mask[i, j]:
+                    hit = True
+                    break
+            if hit:
+                break
+        out[k] = hit
+    return out
