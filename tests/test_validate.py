@@ -268,3 +268,15 @@ def test_orthometric_dem_without_geoid(m):
     assert "undulation" in p.message or "geoid" in p.message
     _toml(m, 'vertical = "orthometric"', 'vertical = "orthometric"\nundulation = 10.0')
     assert validate_mission(m) == []
+
+
+def test_reference_table_is_known_and_its_keys_checked(m):
+    """[reference] (calibration from a reference orthophoto) is read by swathflow: no
+    'unknown key' warning for it; a misspelt key inside it is an error naming the fix."""
+    with open(m / "mission.toml", "a") as f:
+        f.write('\n[reference]\northo = "ref.tif"\nties = true\n')
+    assert not [p for p in validate_mission(m) if "reference" in p.message]
+    with open(m / "mission.toml", "a") as f:
+        f.write('ortoh = "x.tif"\n')
+    p = _one(validate_mission(m), "ortoh")
+    assert p.level == "error" and "ortho" in p.fix and "[reference]" in p.where

@@ -30,7 +30,8 @@ from swathflow.geometry.terrain import DEM, ConstantHeight
 #: the keys of each mission.toml table that swathflow reads (spec/mission-format.md)
 KNOWN_KEYS = {
     "": ("mission", "sensor", "pos", "terrain", "gcp", "images", "calibration", "ties",
-         "rectify"),
+         "rectify", "reference"),
+    "reference": ("ortho", "dem", "ties"),
     "mission": ("name", "crs", "gsd", "max_pixels", "description"),
     "pos": ("file", "format", "max_gap"),
     "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
@@ -118,6 +119,8 @@ def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: 
         m = {}
     check_keys(cfg, KNOWN_KEYS[""], toml, "", c)
     check_keys(m, KNOWN_KEYS["mission"], toml, "[mission]", c)
+    if isinstance(cfg.get("reference"), dict):
+        check_keys(cfg["reference"], KNOWN_KEYS["reference"], toml, "[reference]", c)
     parts["name"] = str(m.get("name", root.name))
     crs = m.get("crs", "auto-utm")
     n0 = len(c.problems)
