@@ -19,6 +19,11 @@ from swathflow.io import atomic_path
 GDAL_CACHE_MB = 256
 #: bound on the finished blocks held before they are written (bytes)
 BATCH_BYTES = 256 * 2 ** 20
+#: the streamed .part file is uncompressed below this size (bytes), else deflate level 1
+PART_RAW_BYTES = 2 ** 30
+#: deflate level of the COG: with the predictor, level 1 measured 20 % faster than 6 and
+#: no larger (2.61 vs 2.65 MB on a 2.5 Mpx uint16 swing)
+DEFLATE_LEVEL = 1
 
 
 class _WindowWriter:
@@ -142,9 +147,14 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                 arr, bands = arr[0], None
             rows, cols = arr.shape[-2:]
             count = (bands or 1) - (1 if o.get("mask") else 0)
+            # the .part file is read once by the COG copy: uncompressed unless large
+            small = rows * cols * (bands or 1) * dtype.itemsize < PART_RAW_BYTES
             profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
-                           "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
-                           "blockysize": blocksize, "compress": compress, "BIGTIFF": "IF_SAFER"}
+                       "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
+                       "blockysize": blocksize, "compress": "none" if small else compress,
+                       "BIGTIFF": "IF_SAFER"}
+            if not small and compress == "deflate":
+                profile["zlevel"] = 1
             if o.get("grid") is not None:
                 profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
             if o.get("nodata") is not None:
@@ -165,7 +175,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             _store_here(sources, targets, scheduler)
         for dst, part, final, _ in parts:
             dst.close()
-            pred = {"PREDICTOR": "YES"} if compress == "deflate" else {}
+            pred = {"PREDICTOR": "YES", "LEVEL": DEFLATE_LEVEL} if compress == "deflate" else {}
             with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 rio_copy(part, final, driver="COG", COMPRESS=compress.upper(),
