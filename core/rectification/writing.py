@@ -119,6 +119,26 @@ def write_cog(path, arrays, grid: Grid | None, nodata=None, tags: Mapping | None
                      "dtype": dtype}], blocksize, compress, overview_resampling, scheduler)
 
 
+def _part_profile(o, shape, bands, dtype, blocksize, compress) -> dict:
+    """The rasterio profile of an output's streamed .part GeoTIFF (read once by the COG
+    copy: uncompressed unless large)."""
+    from swathflow.formats.raster import _crs
+    rows, cols = shape[-2:]
+    count = (bands or 1) - (1 if o.get("mask") else 0)
+    small = rows * cols * (bands or 1) * dtype.itemsize < PART_RAW_BYTES
+    profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
+               "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
+               "blockysize": blocksize, "compress": "none" if small else compress,
+               "BIGTIFF": "IF_SAFER"}
+    if not small and compress == "deflate":
+        profile["zlevel"] = 1
+    if o.get("grid") is not None:
+        profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
+    if o.get("nodata") is not None:
+        profile["nodata"] = o["nodata"]
+    return profile
+
+
 def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                overview_resampling: str = "average", scheduler=None) -> None:
     """Write several rasters computed in ONE dask graph (shared tiles computed once).
@@ -132,7 +152,6 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     import dask.array as da
     import rasterio
     from rasterio.shutil import copy as rio_copy
-    from swathflow.formats.raster import _crs
     with contextlib.ExitStack() as stack:
         sources, targets, parts = [], [], []
         for o in outputs:
@@ -145,20 +164,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             bands = arr.shape[0] if arr.ndim == 3 else None
             if bands == 1 and not o.get("mask"):
                 arr, bands = arr[0], None
-            rows, cols = arr.shape[-2:]
-            count = (bands or 1) - (1 if o.get("mask") else 0)
-            # the .part file is read once by the COG copy: uncompressed unless large
-            small = rows * cols * (bands or 1) * dtype.itemsize < PART_RAW_BYTES
-            profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
-                       "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
-                       "blockysize": blocksize, "compress": "none" if small else compress,
-                       "BIGTIFF": "IF_SAFER"}
-            if not small and compress == "deflate":
-                profile["zlevel"] = 1
-            if o.get("grid") is not None:
-                profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
-            if o.get("nodata") is not None:
-                profile["nodata"] = o["nodata"]
+            profile = _part_profile(o, arr.shape, bands, dtype, blocksize, compress)
             final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
             part = stack.enter_context(atomic_path(os.fspath(o["path"]) + ".part",
                                                    suffix=".tif"))
