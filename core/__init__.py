@@ -9,12 +9,13 @@ from swathflow.errors import FormatError, OutOfRangeError, SwathflowError
 from swathflow._version import __version__
 
 __all__ = ["FormatError", "Mission", "OutOfRangeError", "PosFormat", "SwathflowError",
-           "Trajectory", "interpolate_pos", "load_mission", "mosaic", "open_mission",
-           "read_pos", "rectify", "validate_mission", "__version__"]
+           "Trajectory", "geolocation", "interpolate_pos", "load_mission", "mosaic",
+           "open_mission", "read_pos", "rectify", "to_cog", "validate_mission", "__version__"]
 
 # imported on first use, so ``import swathflow`` (and so the command line's start-up)
 # stays free of pandas, xarray, rioxarray and the engines
 _LAZY = {"open_mission": "swathflow.ingest.api", "rectify": "swathflow.rectification.api",
+         "to_cog": "swathflow.rectification.api", "geolocation": "swathflow.rectification.api",
          "mosaic": "swathflow.mosaicking.api", "Mission": "swathflow.ingest.mission",
          "load_mission": "swathflow.ingest.mission",
          "validate_mission": "swathflow.ingest.mission",

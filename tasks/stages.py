@@ -6,7 +6,6 @@ output whose inputs have not changed (:mod:`swathflow.cache`), and never hashes 
 """
 from __future__ import annotations
 
-import json
 import threading
 import time
 from pathlib import Path
@@ -122,25 +121,16 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
 
 @task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
 def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
-    """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration."""
-    from swathflow.formats.calibfile import calibration_priors, read_calibration
-    from swathflow.cache import file_digest
-    from swathflow.geometry.grid import footprint_grid
-    from swathflow.rectification.rectify import rectify_image
+    """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration:
+    ``to_cog(rectify(...))`` of the Python API, band 1 in the raw image's dtype."""
+    from swathflow.rectification.api import rectify as rectified, to_cog
     m = _load(mission_path)
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
     key = stage_key("rectify", _mission_files(m) + _image_files(m, image_id) + [calibration])
     if is_fresh(out, key):
         return str(out)
-    params = m.priors.updated(calibration_priors(read_calibration(calibration)))
-    model = m.model(image_id, params)
-    grid = footprint_grid(model, m.terrain, m.gsd, m.crs)
     t0 = time.perf_counter()
-    rectify_image(model, m.image(image_id), m.terrain, out, grid=grid,
-                  tags={"image_id": image_id, "strip": m.images[image_id].strip,
-                        "direction": m.images[image_id].direction, "mission": m.name,
-                        "calibration": f"{calibration} (sha256 {file_digest(calibration)[:16]})",
-                        "parameters": json.dumps(model.parameters.values_dict())})
+    to_cog(rectified(m, image_id, calibration, bands="1", dtype=None), out)
     mark_done(out, key, seconds=round(time.perf_counter() - t0, 3))
     return str(out)
 
@@ -161,7 +151,7 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
     """Strip matching and feathered mosaic of the rectified swings: ``OUT/mosaic.tif``.
     ``anchor``: ``"gcp"`` ties the network to the mission's control points, ``"mean"``
     holds the mean offset at zero; ``"auto"``: gcp when the mission has control points."""
-    from swathflow.mosaicking.mosaic import mosaic as run
+    from swathflow.mosaicking.api import mosaic as run
     out = Path(out_dir) / "mosaic.tif"
     m = _load(mission_path) if mission_path else None
     has_control = m is not None and m.gcps is not None and \

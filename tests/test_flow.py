@@ -60,17 +60,33 @@ def _check_catalog(result: dict):
     from pystac.validation import validate_dict
     from shapely.geometry import shape
     from shapely.ops import transform
+    from stac_schemas import validate_extensions
     cat = pystac.Catalog.from_file(result["catalog"])
     items = {i.id: i for i in cat.get_items()}
     products = {Path(p).stem: p for p in result["rectified"]} | {"mosaic": result["mosaic"]}
     assert set(items) == set(products)
     for iid, path in products.items():
         validate_dict(items[iid].to_dict(), extensions=[])
+        validate_extensions(items[iid].to_dict())     # extension schemas, held offline
         with rasterio.open(path) as src:
             valid = float((src.dataset_mask() > 0).sum()) * abs(src.transform.a * src.transform.e)
             to = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
         area = transform(to.transform, shape(items[iid].geometry)).area
         assert abs(area - valid) < 0.03 * valid, (iid, area, valid)
+
+
+def _check_same_as_cli_and_api(mission: Path, result: dict, cal: str, out: Path):
+    """The flow's rectified swings are the pixels of 'swathflow rectify' and of the lazy
+    swathflow.rectify (one function under all three)."""
+    import swathflow
+    from swathflow.flows.cli import main
+    assert main(["rectify", str(mission), "--calibration", cal, "--out", str(out), "-q"]) == 0
+    for path in result["rectified"]:
+        iid = Path(path).stem
+        api = swathflow.rectify(mission, iid, cal, dtype=None).values
+        with rasterio.open(path) as f, rasterio.open(out / f"{iid}.tif") as c:
+            assert f.dtypes == c.dtypes == (str(api.dtype),) and f.nodata == c.nodata
+            assert np.array_equal(f.read(1), c.read(1)) and np.array_equal(f.read(1), api)
 
 
 def test_flow_end_to_end_and_rerun_reuses_outputs(tiny_mission, tmp_path):
@@ -80,6 +96,7 @@ def test_flow_end_to_end_and_rerun_reuses_outputs(tiny_mission, tmp_path):
     result = run(tiny_mission, out, calibration=cal)
     _check_against_truth(tiny_mission, result)
     _check_catalog(result)
+    _check_same_as_cli_and_api(tiny_mission, result, cal, tmp_path / "cli")
     eo = result["eo"][0]
     assert Path(eo).exists() and sum(1 for _ in open(eo)) > 10
     before = _outputs(out)

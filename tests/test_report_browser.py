@@ -105,3 +105,52 @@ def test_report_renders_in_headless_chromium(paper, chromium, tmp_path):
     assert img.shape == (9000, 1280)
     inked = (img < 200).mean(axis=1) > 0.01            # rows with drawing or text
     assert inked.mean() > 0.3, inked.mean()
+
+
+@pytest.fixture(scope="module")
+def mosaic_report(tmp_path_factory):
+    """A small synthetic mosaic with known strip offsets, and its HTML report."""
+    from mosaic_synth import make_swings, random_shifts
+
+    from swathflow.mosaicking.mosaic import mosaic
+    d = tmp_path_factory.mktemp("mosaic")
+    (d / "swings").mkdir()
+    shifts, rads = random_shifts(3, seed=2)
+    paths, _, _ = make_swings(d / "swings", n_strips=3, length=360, n_swings=2,
+                              shifts=shifts, rads=rads)
+    rep = mosaic(paths, d / "mosaic.tif", anchors=["0"], tile=256)
+    return d / "mosaic.html", rep, shifts
+
+
+def test_mosaic_report_tables_carry_the_true_offsets(mosaic_report):
+    """The report's node table gives each strip's offset within 0.2 px of the simulated
+    shift (strip 0 the anchor) with its sigma; one overlap row per measured overlap."""
+    import re
+    path, rep, shifts = mosaic_report
+    html = path.read_text(encoding="utf-8")
+    assert "<script" not in html and "<img" not in html and "http" not in html.split("<svg")[0]
+    rows = dict(re.findall(r"<tr><td class='l'>(\d+)</td><td>([^<]+)</td>", html))
+    assert sorted(rows) == ["0", "1", "2"]
+    for k, text in rows.items():
+        off = np.array([float(v) for v in text.split(",")])
+        assert np.hypot(*(off - (shifts[int(k)] - shifts[0]))) < 0.2, (k, off, shifts)
+    assert html.count("<td class='l'>") == 3 + 2 * len(rep["overlaps"])
+    assert len(rep["overlaps"]) >= 2 and sum(o["used"] for o in rep["overlaps"]) >= 2
+
+
+def test_mosaic_report_renders_in_headless_chromium(mosaic_report, chromium, tmp_path):
+    path, _, _ = mosaic_report
+    probe = tmp_path / "probe.html"
+    probe.write_text(path.read_text(encoding="utf-8").replace("</body>", CHECK + "</body>"),
+                     encoding="utf-8")
+    r = _chromium(chromium, "--enable-logging=stderr", "--v=0", "--virtual-time-budget=5000",
+                  "--dump-dom", probe.as_uri())
+    assert r.returncode == 0, r.stderr[-2000:]
+    console = [ln for ln in r.stderr.splitlines() if ":CONSOLE" in ln]
+    assert console and all("swathflow-check done" in ln for ln in console), console
+    dom = r.stdout
+    i = dom.index('id="swathflow-check">') + len('id="swathflow-check">')
+    found = json.loads(dom[i:dom.index("</pre>", i)].replace("&quot;", '"'))
+    assert len(found["figs"]) == 3, found          # graph, residual map, offsets
+    for w, h, marks in found["figs"]:
+        assert w > 300 and h > 150 and marks > 20, found["figs"]

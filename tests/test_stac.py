@@ -1,6 +1,7 @@
 """The run's STAC catalogue: pystac's validator (core schemas shipped in pystac, offline),
-pystac's extension classes reading back the fields, and footprints against the known
-valid-data polygon of synthetic COGs."""
+every declared extension validated against its JSON schema held offline
+(tests/data/stac-schemas, see tests/stac_schemas.py), pystac's extension classes reading
+back the fields, and footprints against the known valid-data polygon of synthetic COGs."""
 import json
 import socket
 from pathlib import Path
@@ -16,6 +17,7 @@ from pystac.extensions.raster import RasterExtension
 from pystac.validation import validate_dict
 from rasterio.transform import from_origin
 from shapely.geometry import Polygon, shape
+from stac_schemas import validate_extensions
 from swathflow.formats.stac import PROCESSING_SCHEMA, write_catalog
 
 CRS = "EPSG:32633"
@@ -95,6 +97,9 @@ def test_catalogue_validates_and_describes_the_products(tmp_path, offline):
     for item in items.values():
         d = json.loads(Path(item.self_href).read_text())
         validate_dict(d, extensions=[])          # STAC core item schema, shipped in pystac
+        used = validate_extensions(d)           # extension schemas, held offline
+        assert {u.split("/")[3] for u in used} >= {"projection", "raster", "processing"}
+        assert ("eo" in {u.split("/")[3] for u in used}) == (item.id == "L1")
         assert PROCESSING_SCHEMA in d["stac_extensions"]
         assert d["properties"]["processing:software"]["swathflow"]
         assert d["properties"]["processing:level"]
@@ -140,3 +145,30 @@ def test_rewrite_replaces_the_catalogue_whole(tmp_path, offline):
     ids = {i.id for i in pystac.Catalog.from_file(path).get_items()}
     assert ids == {"A"}
     assert not (tmp_path / "stac" / "B").exists()
+
+
+@pytest.mark.parametrize("where, key, bad", [
+    ("properties", "proj:code", 32633),                        # must be a string
+    ("properties", "proj:shape", [400]),                       # two integers
+    ("properties", "processing:level", 2),                     # a string
+    ("properties", "processing:datetime", "2026-01-01T00:00:00Z"),   # not in v1.0.0
+    ("raster", "data_type", "uint17"),                         # not a raster data type
+    ("eo", "center_wavelength", "10.5"),                       # a number
+])
+def test_extension_schemas_reject_wrong_fields(tmp_path, offline, where, key, bad):
+    """The offline extension schemas catch a wrong field of each extension (so the check
+    above can fail)."""
+    import jsonschema
+    (tmp_path / "r").mkdir()
+    _write_swing(tmp_path / "r" / "L1.tif", _rotated(300, 200, 400, 100, 10),
+                 band_tags={"wavelength": "10.5"})
+    path = write_catalog([tmp_path / "r" / "L1.tif"], None, tmp_path / "stac")
+    item = next(pystac.Catalog.from_file(path).get_items())
+    d = json.loads(Path(item.self_href).read_text())
+    validate_extensions(d)
+    if where == "properties":
+        d["properties"][key] = bad
+    else:
+        d["assets"]["data"][f"{where}:bands"][0][key] = bad
+    with pytest.raises(jsonschema.ValidationError):
+        validate_extensions(d)

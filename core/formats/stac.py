@@ -3,11 +3,12 @@ the mosaic.
 
 Each item carries the projection extension (code, shape, transform, native bbox), the raster
 extension on its data asset (per band: nodata, data type, resolution), the eo extension where
-wavelengths are known, and the processing extension (software, level, lineage, time); the
-calibration and its report are assets. Footprints are polygons of the valid data (the nodata
-mask traced with ``rasterio.features.shapes`` on a decimated mask, simplified to about one
-decimated pixel, in EPSG:4326), not bounding boxes. The catalogue folder is written beside
-the products and swapped in whole, so readers never see half of it.
+wavelengths are known, and the processing extension v1.0.0 (software, level, lineage; the
+processing time is the core ``created`` field); the calibration and its report are assets.
+Footprints are polygons of the valid data (the nodata mask traced with
+``rasterio.features.shapes`` on a decimated mask, simplified to about one decimated pixel,
+in EPSG:4326), not bounding boxes. The catalogue folder is written beside the products and
+swapped in whole, so readers never see half of it.
 """
 from __future__ import annotations
 
@@ -21,7 +22,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-PROCESSING_SCHEMA = "https://stac-extensions.github.io/processing/v1.2.0/schema.json"
+#: v1.0.0: the version whose JSON schema the tests hold offline (tests/data/stac-schemas);
+#: it has no processing:datetime, so the processing time is the core ``created`` field
+PROCESSING_SCHEMA = "https://stac-extensions.github.io/processing/v1.0.0/schema.json"
 COG = "image/tiff; application=geotiff; profile=cloud-optimized"
 MAX_MASK = 1024          # footprints are traced on a mask at most this many pixels across
 
@@ -107,7 +110,7 @@ def _item(path: str, item_id: str, when: dt.datetime, level: str, lineage: str,
         tags = src.tags()
     props = {"processing:software": {"swathflow": __version__}, "processing:level": level,
              "processing:lineage": lineage,
-             "processing:datetime": dt.datetime.now(dt.UTC).isoformat(),
+             "created": dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z"),
              "swathflow:footprint_resolution": res}
     props.update({f"swathflow:{k}": v for k, v in tags.items()
                   if k in ("image_id", "strip", "direction", "mission", "sensor")})

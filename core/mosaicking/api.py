@@ -1,8 +1,11 @@
 """The mosaic in xarray terms: :func:`mosaic` takes rectified swings (COG paths, or the
-DataArrays of :func:`swathflow.rectify`) and returns the mosaic as a lazily read,
-georeferenced ``xarray.DataArray``. A thin wrapper over :func:`swathflow.mosaicking.mosaic.mosaic`:
-the matching and blending run when called (overlaps matched on the current Dask client if
-one is active) and write the mosaic COG; the result is read back lazily through rioxarray."""
+DataArrays of :func:`swathflow.rectify`) and returns the mosaic as a lazy, georeferenced
+``xarray.DataArray``: the overlaps are matched and the offset network solved when it is
+called (on the current Dask client if one is active; the result is in
+``attrs["report"]``), the tiles are blended only when the array is computed, on the
+current Dask scheduler. ``swathflow mosaic`` and the flow's mosaic task call it with
+``out``, which also writes the COG, its quicklook, report picture and JSON with the
+engine's streaming writer (:func:`swathflow.mosaicking.mosaic.finish_mosaic`)."""
 from __future__ import annotations
 
 import os
@@ -13,44 +16,65 @@ import xarray as xr
 from swathflow.errors import FormatError
 
 SWING_TAGS = ("image_id", "strip", "direction", "mission", "sensor", "calibration")
+#: the options of the matching (plan) and of the writing (finish)
+_PLAN = ("per_image", "anchors", "balance", "match", "max_shift", "block", "min_texture",
+         "workers", "strips", "log", "control")
+_FINISH = ("tile", "workers", "png", "report", "cog")
 
 
 def _as_paths(swings, folder: str) -> list[str]:
     """COG paths of ``swings``; DataArrays are written into ``folder`` first (with their
-    image id and strip as tags, which the mosaic reads)."""
+    tags, image id and strip among them, which the mosaic reads)."""
+    from swathflow.rectification.api import to_cog
     paths = []
     for i, s in enumerate(swings):
         if isinstance(s, xr.DataArray):
             name = str(s.attrs.get("image_id") or s.name or f"swing{i}")
             path = os.path.join(folder, f"{name}.tif")
-            tags = {k: str(s.attrs[k]) for k in SWING_TAGS if k in s.attrs}
-            s.rio.to_raster(path, driver="COG", tags=tags)
+            to_cog(s, path)
             paths.append(path)
         else:
             paths.append(os.path.abspath(os.fspath(s)))
     return paths
 
 
-def mosaic(swings, out=None, **options) -> xr.DataArray:
-    """Strip-match and blend ``swings`` into the mosaic COG ``out`` (default: a new
-    temporary folder) and return it as a lazy DataArray over (y, x) with NaN nodata; the
-    mosaic report (offsets with sigmas, overlaps) is in ``attrs["report"]``. ``options`` go
-    to :func:`swathflow.mosaicking.mosaic.mosaic` (``feather``, ``per_image``, ``anchors``,
-    ``balance``, ``match``...)."""
-    import rioxarray
+def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
+           tile: int = 1024, cache_mb: int = 64, **options) -> xr.DataArray:
+    """The mosaic of ``swings`` as a lazy float32 DataArray over (y, x) with NaN nodata,
+    CRS and transform (rioxarray); the matching report (offsets with sigmas, overlaps) is
+    in ``attrs["report"]``. With ``out`` the mosaic COG (and its ``.png``, ``.report.png``
+    and ``.json``) is also written there, and the full report (timings) returned.
+    ``options`` go to :func:`swathflow.mosaicking.mosaic.plan_mosaic` (``per_image``,
+    ``anchors``, ``balance``, ``match``, ``control``, ``strips``...) and to the writer
+    (``png``, ``report``, ``cog``, ``workers``). DataArray swings are written to COGs
+    first (beside ``out``, or in a temporary folder)."""
+    import rasterio
 
-    from swathflow.mosaicking.mosaic import mosaic as run
+    from swathflow.mosaicking.mosaic import finish_mosaic, mosaic_array, plan_mosaic
+    from swathflow.rectification.api import grid_dataarray
+    from swathflow.geometry.grid import Grid
+    unknown = set(options) - set(_PLAN) - set(_FINISH)
+    if unknown:
+        raise FormatError(f"mosaic: unknown option(s) {', '.join(sorted(unknown))}")
     swings = list(swings)
     if len(swings) == 0:
         raise FormatError("mosaic: no swings given")
-    out = os.path.abspath(os.fspath(out)) if out else os.path.join(
-        tempfile.mkdtemp(prefix="swathflow-mosaic-"), "mosaic.tif")
-    folder = os.path.splitext(out)[0] + "-swings"
+    base = os.path.splitext(os.path.abspath(os.fspath(out)))[0] if out else os.path.join(
+        tempfile.mkdtemp(prefix="swathflow-mosaic-"), "mosaic")
+    folder = base + "-swings"
     if any(isinstance(s, xr.DataArray) for s in swings):
         os.makedirs(folder, exist_ok=True)
-    report = run(_as_paths(swings, folder), out, **options)
-    da = rioxarray.open_rasterio(out, chunks={"band": 1, "y": 1024, "x": 1024},
-                                 masked=True).squeeze("band", drop=True)
-    da.name = "mosaic"
+    paths = _as_paths(swings, folder)
+    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+        planned = plan_mosaic(paths, feather=feather, mode=mode,
+                              **{k: v for k, v in options.items() if k in _PLAN})
+    report = planned[3]
+    if out is not None:
+        report = finish_mosaic(planned, out, feather, mode, tile, cache_mb=cache_mb,
+                               **{k: v for k, v in options.items() if k in _FINISH})
+    layout, off, rad, _ = planned
+    arr, _ = mosaic_array(layout, off, rad, feather, mode, tile)
+    grid = Grid(layout.crs.to_string(), layout.transform, layout.shape)
+    da = grid_dataarray(arr, grid, "mosaic", {"product": "mosaic", "blend": mode})
     da.attrs["report"] = report
     return da

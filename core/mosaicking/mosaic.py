@@ -35,7 +35,8 @@ from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, La
                                          find_inputs, mission_strips, read_window,
                                          scan_inputs)
 from swathflow.mosaicking.network import Network, solve_network
-from swathflow.mosaicking.output import quicklook, render_tile, swing_cache, write_mosaic
+from swathflow.mosaicking.output import (mosaic_array, quicklook, render_tile, swing_cache,
+                                          write_mosaic)
 from swathflow.mosaicking.overlaps import (_active_client, find_overlaps,
                                            match_all, match_pair, plan)
 from swathflow.mosaicking.seams import seam_lines, seam_visibility
@@ -44,7 +45,8 @@ __all__ = ["Swing", "Layout", "scan_inputs", "find_overlaps", "match_pair", "sol
            "render_tile", "write_mosaic", "mosaic", "mission_strips", "find_inputs",
            "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP",
            "TAG_DIRECTION", "Network", "read_window", "swing_cache", "plan", "_active_client",
-           "network_report", "match_all"]
+           "network_report", "match_all", "plan_mosaic", "finish_mosaic",
+           "mosaic_array"]
 
 
 def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
@@ -53,7 +55,8 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
            workers: int | None = None, png: bool = True, report: bool = True,
            cog: bool = True, strips: dict | None = None, log=None,
            cache_mb: int = 64, control: dict | None = None) -> dict:
-    """Match, adjust and blend rectified swings ``paths`` into the mosaic ``out``.
+    """Match, adjust and blend rectified swings ``paths`` into the mosaic ``out``
+    (:func:`plan_mosaic`, then :func:`finish_mosaic`).
 
     ``control``: image id -> ``(offset (drow, dcol), sigma (row, col))`` in grid pixels,
     each image's absolute offset measured on its control points; the network is then tied
@@ -67,23 +70,53 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
     import rasterio
     t0 = time.perf_counter()
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        layout = scan_inputs(paths, strips)
-        n_sw = len(layout.swings)
-        rep = _header(layout, per_image, mode, feather)
-        off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
-        if match:
-            net, pairs, matches, keys = plan(layout, per_image, anchors, max_shift, block,
-                                             min_texture, workers, log, control)
-            rep.update(network_report(layout, net, pairs, matches, control))
-            rep["seconds_match"] = round(time.perf_counter() - t0, 3)
-            # the offsets as mosaic.json gives them (4 decimals) are the ones applied, so a
-            # run over part of the area with the report's offsets gives the same pixels
-            node_of = {k: q for q, k in enumerate(net.nodes)}
-            off = np.array([[round(float(v), 4) for v in net.offsets[node_of[k]]]
-                            for k in keys]).reshape(-1, 2)
-            if balance:
-                rad = np.array([round(float(net.radiometric[node_of[k]]), 4) for k in keys])
-            _log_matching(log, rep)
+        plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
+                            max_shift, block, min_texture, workers, strips, log, control)
+    return finish_mosaic(plan_, out, feather, mode, tile, workers, png, report, cog, t0,
+                         cache_mb)
+
+
+def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
+                mode: str = "feather", balance: bool = True, match: bool = True,
+                max_shift: int = 12, block: int = 128, min_texture: float = 1.0,
+                workers: int | None = None, strips: dict | None = None, log=None,
+                control: dict | None = None):
+    """The mosaic's inputs and corrections, before any blending: ``(layout, offsets,
+    radiometric, report)`` (the overlaps matched and the network solved when ``match``;
+    arguments as :func:`mosaic`)."""
+    t0 = time.perf_counter()
+    layout = scan_inputs(paths, strips)
+    n_sw = len(layout.swings)
+    rep = _header(layout, per_image, mode, feather)
+    off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
+    if match:
+        net, pairs, matches, keys = plan(layout, per_image, anchors, max_shift, block,
+                                         min_texture, workers, log, control)
+        rep.update(network_report(layout, net, pairs, matches, control))
+        rep["seconds_match"] = round(time.perf_counter() - t0, 3)
+        # the offsets as mosaic.json gives them (4 decimals) are the ones applied, so a
+        # run over part of the area with the report's offsets gives the same pixels
+        node_of = {k: q for q, k in enumerate(net.nodes)}
+        off = np.array([[round(float(v), 4) for v in net.offsets[node_of[k]]]
+                        for k in keys]).reshape(-1, 2)
+        if balance:
+            rad = np.array([round(float(net.radiometric[node_of[k]]), 4) for k in keys])
+        _log_matching(log, rep)
+    return layout, off, rad, rep
+
+
+def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: int = 1024,
+                  workers: int | None = None, png: bool = True, report: bool = True,
+                  cog: bool = True, t0: float | None = None, cache_mb: int = 64) -> dict:
+    """Blend a :func:`plan_mosaic` result into the COG ``out`` (tiles over dask threads,
+    streamed, atomic, GDAL's block cache capped at ``cache_mb``), then the quicklook, the
+    report picture and ``<out>.json`` (with GDAL's default cache: the overview reads are
+    many times slower under the cap)."""
+    import rasterio
+    t0 = time.perf_counter() if t0 is None else t0
+    layout, off, rad, rep = planned
+    rep = dict(rep)
+    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
         rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog))
     _products(out, rep, png, report, layout)
     rep["seconds"] = round(time.perf_counter() - t0, 3)
@@ -141,7 +174,7 @@ def _log_matching(log, rep) -> None:
 
 
 def _products(out, rep, png, report, layout) -> None:
-    """The quicklook PNG and the seams/residuals picture."""
+    """The quicklook PNG, the seams/residuals picture and the HTML report."""
     stem = os.path.splitext(os.fspath(out))[0]
     t1 = time.perf_counter()
     if png:
@@ -149,4 +182,6 @@ def _products(out, rep, png, report, layout) -> None:
     if report and "overlaps" in rep:
         from swathflow.mosaicking.report import seams_picture
         seams_picture(out, rep, layout, stem + ".report.png")
+        from swathflow.mosaicking.report_html import mosaic_report_html
+        mosaic_report_html(out, rep, layout, stem + ".html")
     rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)

@@ -11,7 +11,7 @@ import numpy as np
 from swathflow.io import atomic_path
 from swathflow.mosaicking.inputs import Layout, _Handles, read_window
 
-__all__ = ["swing_cache", "render_tile", "write_mosaic", "quicklook"]
+__all__ = ["swing_cache", "render_tile", "write_mosaic", "mosaic_array", "quicklook"]
 
 
 def swing_cache(layout: Layout, offsets, radiometric, feather: int = 64, handles=None,
@@ -71,6 +71,60 @@ class _Writer:
                                             rs.stop - rs.start))
 
 
+class _Blender:
+    """The blended tiles of a mosaic as a picklable dask block function: each process (a
+    thread pool, or a distributed worker) builds its own swing cache and dataset handles
+    on first use, so the lazy mosaic computes on any scheduler."""
+
+    def __init__(self, layout: Layout, offsets, radiometric, feather: int, mode: str):
+        self.layout, self.feather, self.mode = layout, feather, mode
+        self.offsets = np.asarray(offsets, float)
+        self.radiometric = np.asarray(radiometric, float)
+        self._cache = self._handles = None
+        self._lock = threading.Lock()
+
+    def __getstate__(self):
+        return {k: v for k, v in self.__dict__.items()
+                if k not in ("_cache", "_handles", "_lock")}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state, _cache=None, _handles=None, _lock=threading.Lock())
+
+    def cache(self):
+        with self._lock:
+            if self._cache is None:
+                self._handles = _Handles()
+                self._cache = swing_cache(self.layout, self.offsets, self.radiometric,
+                                          self.feather, self._handles)
+            return self._cache
+
+    def __call__(self, x, block_info=None):
+        (a, b), (c, d) = block_info[None]["array-location"]
+        v, _ = render_tile(self.layout, a, c, b, d, self.offsets, self.cache(), self.mode)
+        return v.astype(np.float32)
+
+    def close(self):
+        if self._handles is not None:
+            self._handles.close()
+
+
+def mosaic_array(layout: Layout, offsets, radiometric, feather: int = 64,
+                 mode: str = "feather", tile: int = 1024):
+    """The mosaic as a lazy float32 dask array over the layout's grid (NaN = nodata),
+    tiles of ``tile`` pixels blended when computed. Returns (array, blender); the
+    blender's :meth:`_Blender.close` closes this process's dataset handles."""
+    import dask.array as da
+    from dask.base import tokenize
+    blender = _Blender(layout, offsets, radiometric, feather, mode)
+    H, W = layout.shape
+    name = "mosaic-" + tokenize([s.path for s in layout.swings], layout.shape,
+                                tuple(layout.transform)[:6], blender.offsets,
+                                blender.radiometric, feather, mode, tile)
+    arr = da.zeros((H, W), chunks=(tile, tile), dtype=np.float32).map_blocks(
+        blender, dtype=np.float32, name=name)
+    return arr, blender
+
+
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                  mode: str = "feather", tile: int = 1024, workers: int | None = None,
                  dtype=None, nodata=None, cog: bool = True, blocksize: int = 512) -> dict:
@@ -91,16 +145,7 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     H, W = layout.shape
     offsets = np.asarray(offsets, float)
     radiometric = np.asarray(radiometric, float)
-    handles = _Handles()
-    cache = swing_cache(layout, offsets, radiometric, feather, handles)
-
-    def block(x, block_info=None):
-        (a, b), (c, d) = block_info[None]["array-location"]
-        v, _ = render_tile(layout, a, c, b, d, offsets, cache, mode)
-        return v.astype(np.float32)
-
-    arr = da.zeros((H, W), chunks=(tile, tile), dtype=np.float32).map_blocks(
-        block, dtype=np.float32)
+    arr, blender = mosaic_array(layout, offsets, radiometric, feather, mode, tile)
     profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=dtype.name,
                    crs=layout.crs, transform=layout.transform, nodata=nodata, tiled=True,
                    blockxsize=blocksize, blockysize=blocksize, compress="deflate",
@@ -125,7 +170,7 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                 if cog and os.path.exists(tmp):
                     os.remove(tmp)
     finally:
-        handles.close()
+        blender.close()
     return {"seconds_render": t_render, "seconds_total": time.perf_counter() - t0,
             "shape": [H, W], "dtype": dtype.name}
 

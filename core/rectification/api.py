@@ -1,10 +1,17 @@
-"""Rectification in xarray terms: :func:`rectify` returns a lazy, georeferenced
-``xarray.DataArray`` (CRS, transform and nodata through rioxarray), so ``.rio.to_raster()``,
-``.plot()`` and ``.compute()`` work; computing runs the engine tile by tile on the current
-Dask scheduler (a ``distributed.Client`` if one is active). A thin wrapper over the engine's
-lazy :func:`~swathflow.rectification.rectify.rectify` and the footprint grid."""
+"""Rectification in xarray terms, the rasterio way: one lazy array, one writer.
+
+:func:`rectify` returns a lazy, georeferenced ``xarray.DataArray`` (CRS, transform and
+nodata through rioxarray, band descriptions and wavelengths as coordinates, the product
+tags as attributes); nothing is read or computed until it is. :func:`to_cog` streams any
+such array into a Cloud-Optimized GeoTIFF atomically, tile by tile on the current Dask
+scheduler (a ``distributed.Client`` if one is active), in bounded memory, keeping its dtype,
+nodata or mask band and band metadata. ``swathflow rectify`` and the flow's rectify task
+are ``to_cog(rectify(...))``; :func:`geolocation` gives the GLT and IGM products the same
+way."""
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from collections.abc import Mapping
 
@@ -16,29 +23,34 @@ from swathflow.formats.calibfile import calibration_priors, read_calibration
 from swathflow.geometry.grid import Grid, footprint_grid
 from swathflow.ingest.mission import Mission, load_mission
 
-
-def _engine():
-    """The engine's lazy rectify (its module is being split: take it where it is)."""
-    try:
-        from swathflow.rectification.tiles import rectify as run
-    except ImportError:
-        from swathflow.rectification.rectify import rectify as run
-    return run
+#: attributes that are not product tags (rioxarray's encoding, the mosaic's report)
+_NOT_TAGS = {"_FillValue", "scale_factor", "add_offset", "grid_mapping", "units",
+             "long_name", "report", "nodata"}
+METHODS = ("exact", "polynomial")
 
 
 def _parameters(mission: Mission, calibration):
+    """(parameters, calibration tag) of ``calibration`` (a path, a parsed document or
+    None: the mission's priors)."""
     if calibration is None:
-        return mission.priors
+        return mission.priors, "none: mission priors (mission.toml [calibration])"
     doc = calibration if isinstance(calibration, Mapping) else read_calibration(calibration)
     if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):
-        raise FormatError(f"calibration is for sensor {doc['sensor']!r}, the mission uses "
-                          f"{mission.sensor.get('model')!r}")
-    return mission.priors.updated(calibration_priors(doc))
+        where = f"{calibration}: " if isinstance(calibration, (str, os.PathLike)) else ""
+        raise FormatError(f"{where}calibration is for sensor {doc['sensor']!r}, the mission "
+                          f"uses {mission.sensor.get('model')!r}")
+    tag = "given as a document"
+    if isinstance(calibration, (str, os.PathLike)):
+        with open(calibration, "rb") as f:
+            digest = hashlib.sha256(f.read()).hexdigest()[:16]
+        tag = f"{os.path.abspath(calibration)} (sha256 {digest})"
+    return mission.priors.updated(calibration_priors(doc)), tag
 
 
-def grid_dataarray(data, grid: Grid, name: str, attrs: Mapping | None = None) -> xr.DataArray:
+def grid_dataarray(data, grid: Grid, name: str, attrs: Mapping | None = None,
+                   nodata=np.nan) -> xr.DataArray:
     """A (band, y, x) or (y, x) array over ``grid`` as a georeferenced DataArray: pixel
-    centre coordinates, CRS, transform and NaN nodata written the rioxarray way."""
+    centre coordinates, CRS, transform and nodata (None: none) written the rioxarray way."""
     import rioxarray  # noqa: F401  (registers the .rio accessor)
     t = grid.transform
     rows, cols = grid.shape
@@ -49,29 +61,212 @@ def grid_dataarray(data, grid: Grid, name: str, attrs: Mapping | None = None) ->
         coords["band"] = np.arange(1, data.shape[0] + 1)
     da = xr.DataArray(data, dims=dims, coords=coords, name=name, attrs=dict(attrs or {}))
     da = da.rio.write_crs(grid.crs).rio.write_transform(t)
-    return da.rio.write_nodata(np.nan, encoded=False)
+    return da.rio.write_nodata(nodata, encoded=False) if nodata is not None else da
 
 
-def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = None,
-            crs: str | None = None, kernel: str = "bilinear", tile: int = 512,
-            **options) -> xr.DataArray:
-    """The swing ``image_id`` of ``mission`` (a folder or a loaded Mission) orthorectified
-    onto its footprint grid, as a lazy float32 DataArray over (y, x) with NaN outside the
-    footprint. ``calibration``: a calibration.json path or its parsed document (default: the
-    mission's priors); ``gsd``/``crs`` default to the mission's. ``options`` go to the
-    engine (e.g. ``tol``)."""
+def _band_coords(da: xr.DataArray, infos) -> xr.DataArray:
+    """Band metadata as coordinates on ``band`` (scalars for a 2-D array): ``band`` the
+    1-based band of the raw file, ``description``, ``wavelength``/``fwhm`` where known."""
+    dim = ("band",) if "band" in da.dims else ()
+
+    def val(v):
+        return v if dim else v[0]
+    coords = {"band": (dim, val(np.array([b.index for b in infos]))),
+              "description": (dim, val(np.array([b.description for b in infos], object)))}
+    if any(b.wavelength is not None for b in infos):
+        coords["wavelength"] = (dim, val(np.array([np.nan if b.wavelength is None
+                                                   else b.wavelength for b in infos])),
+                                {"units": next((b.units for b in infos if b.units), "")})
+    if any(b.fwhm is not None for b in infos):
+        coords["fwhm"] = (dim, val(np.array([np.nan if b.fwhm is None else b.fwhm
+                                             for b in infos])))
+    return da.assign_coords(coords)
+
+
+def _band_infos(da: xr.DataArray):
+    """BandInfo of each band of ``da`` from its coordinates (see :func:`_band_coords`)."""
+    from swathflow.rectification.rawimage import BandInfo
+    if "description" not in da.coords:
+        return ()
+    n = da.sizes.get("band", 1)
+
+    def col(name):
+        if name not in da.coords:
+            return [None] * n
+        v = np.atleast_1d(da.coords[name].values)
+        return [None if isinstance(x, float) and np.isnan(x) else x for x in v.tolist()]
+    units = da.coords["wavelength"].attrs.get("units") if "wavelength" in da.coords else None
+    return [BandInfo(int(i), str(d or ""), w, f, units or None)
+            for i, d, w, f in zip(col("band"), col("description"), col("wavelength"),
+                                  col("fwhm"))]
+
+
+def _open(mission, image_id):
     m = mission if isinstance(mission, Mission) else load_mission(mission)
     if image_id not in m.images:
         raise FormatError(f"{m.path}: no image {image_id!r}; the mission has "
                           f"{', '.join(m.images)}")
-    model = m.model(image_id, _parameters(m, calibration))
-    grid = footprint_grid(model, m.terrain, gsd or m.gsd, crs or m.crs)
-    options.setdefault("dtype", "float32")     # NaN nodata, as documented (the engine
-    data = _engine()(model, m.image(image_id), grid, m.terrain, kernel=kernel, tile=tile,
-                     **options)                # would keep the raw integer type)
+    return m
+
+
+def _tags(m: Mission, image_id, model, method, kernel, tol, cal_tag, terrain) -> dict:
+    from swathflow._version import __version__
     e = m.images[image_id]
-    attrs = {"image_id": image_id, "direction": e.direction, "strip": e.strip,
-             "mission": m.name, "sensor": m.sensor.get("model", ""), "kernel": kernel}
-    if isinstance(calibration, (str, os.PathLike)):
-        attrs["calibration"] = os.fspath(calibration)
-    return grid_dataarray(data, grid, image_id, attrs)
+    return {"software": f"swathflow {__version__}", "method": method, "kernel": kernel,
+            "sensor": m.sensor.get("model", ""),
+            "tolerance_px": tol if method == "exact" else "",
+            "terrain": str(terrain.state()), "image_id": image_id, "strip": e.strip,
+            "direction": e.direction, "mission": m.name, "calibration": cal_tag,
+            "parameters": json.dumps(model.parameters.values_dict())}
+
+
+def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = None,
+            crs: str | None = None, kernel: str = "bilinear", tile: int = 512,
+            method: str = "exact", tol: float | None = None, bands=None,
+            dtype: str | None = "float32", mask_band: bool = False) -> xr.DataArray:
+    """The swing ``image_id`` of ``mission`` (a folder or a loaded Mission) orthorectified
+    onto its footprint grid, as a lazy DataArray over (y, x), or (band, y, x) when several
+    bands are selected (``bands``: 1-based indices or wavelengths, see
+    :func:`~swathflow.rectification.rawimage.parse_bands`; default every band).
+
+    ``dtype`` (default float32, NaN outside the footprint; None: the raw image's own type,
+    as ``swathflow rectify`` writes it, with an integer nodata value or, with
+    ``mask_band``, none and a lazy ``mask`` coordinate over (y, x): 255 valid, 0 not).
+    ``calibration``: a calibration.json path or its parsed document (default: the
+    mission's priors); ``gsd``/``crs`` default to the mission's. ``method``: ``exact``
+    (tile by tile, ``tol`` raw pixels) or ``polynomial`` (one band, float32, computed as
+    one block). Band descriptions and wavelengths are coordinates; the product tags
+    (image id, strip, calibration, parameters...) are attributes."""
+    from swathflow.geometry.terrain import open_terrain
+    from swathflow.rectification.lattice import TOLERANCE_PX
+    from swathflow.rectification.rawimage import open_raw_image
+    from swathflow.rectification.tiles import check_inputs, output_plan, rectify_blocks
+    if method not in METHODS:
+        raise FormatError(f"unknown rectification method {method!r}; use one of "
+                          f"{', '.join(METHODS)}")
+    tol = TOLERANCE_PX if tol is None else tol
+    m = _open(mission, image_id)
+    params, cal_tag = _parameters(m, calibration)
+    model = m.model(image_id, params)
+    terrain = open_terrain(m.terrain)
+    grid = footprint_grid(model, terrain, gsd or m.gsd, crs or m.crs)
+    source = open_raw_image(m.images[image_id].file, bands=bands)
+    check_inputs(model, source, kernel)
+    attrs = _tags(m, image_id, model, method, kernel, tol, cal_tag, terrain)
+    if method == "polynomial":
+        return _polynomial(model, source, grid, terrain, attrs)
+    dt, nodata, use_mask = output_plan(source, dtype, mask_band)
+    arr = rectify_blocks(model, source, grid, terrain, kernel, tol, tile, dtype=dtype,
+                         mask_plane=use_mask)
+    data = arr[:-1] if use_mask else arr
+    if source.count == 1:
+        data = data[0]
+    out = _band_coords(grid_dataarray(data, grid, image_id, attrs, nodata), source.band_info)
+    if use_mask:
+        out = out.assign_coords(mask=(("y", "x"), arr[-1]))
+    return out
+
+
+def _polynomial(model, source, grid, terrain, attrs) -> xr.DataArray:
+    """The forward (polynomial) method as a lazy DataArray of one block (the method holds
+    the whole output grid in memory by design)."""
+    import dask
+    import dask.array as dsa
+
+    from swathflow.rectification.rectify import rectify_polynomial
+    if source.count != 1:
+        raise FormatError(f"the polynomial method rectifies one band; the raw image has "
+                          f"{source.count}: select one (bands) or use the exact method")
+    block = dask.delayed(rectify_polynomial, pure=True)(model, source, grid, terrain)
+    data = dsa.from_delayed(block, shape=grid.shape, dtype=np.float32)
+    return _band_coords(grid_dataarray(data, grid, attrs["image_id"], attrs),
+                        source.band_info)
+
+
+def geolocation(mission, image_id: str, calibration=None, product: str = "glt", *,
+                gsd: float | None = None, crs: str | None = None, kernel: str = "bilinear",
+                tile: int = 512, tol: float | None = None) -> xr.DataArray:
+    """A geolocation product of the swing as a lazy DataArray. ``glt``: the ENVI GLT over
+    the rectified grid (int32 (band, y, x): element + 1, line + 1; 0 = none). ``igm``: map
+    x, y and ellipsoidal height of every raw pixel centre, float64 (band, line, element)
+    in raw geometry (no CRS on the array; the map CRS is in ``attrs["crs"]``)."""
+    import dask.array as dsa
+
+    from swathflow.geometry.terrain import open_terrain
+    from swathflow.rectification.lattice import TOLERANCE_PX
+    from swathflow.rectification.rawimage import open_raw_image
+    from swathflow.rectification.tiles import check_inputs, glt_blocks
+    if product not in ("glt", "igm"):
+        raise FormatError(f"unknown product {product!r}; use glt, igm")
+    tol = TOLERANCE_PX if tol is None else tol
+    m = _open(mission, image_id)
+    params, cal_tag = _parameters(m, calibration)
+    model = m.model(image_id, params)
+    terrain = open_terrain(m.terrain)
+    grid = footprint_grid(model, terrain, gsd or m.gsd, crs or m.crs)
+    attrs = _tags(m, image_id, model, "exact", kernel, tol, cal_tag, terrain)
+    if product == "glt":
+        source = open_raw_image(m.images[image_id].file)
+        check_inputs(model, source, kernel)
+        arr = glt_blocks(model, source, grid, terrain, kernel, tol, tile)
+        attrs.update(product="GLT", bands="element+1,line+1",
+                     convention="ENVI GLT, 1-based, 0 = none")
+        return grid_dataarray(arr, grid, f"{image_id}.glt", attrs, nodata=0)
+    from swathflow.rectification.rectify import igm_block
+    import dask
+    nl, ne = model.shape
+    blk = max(1, min(nl, 2_000_000 // max(ne, 1)))
+    parts = [dsa.from_delayed(dask.delayed(igm_block, pure=True)(
+        model, terrain, grid.crs, l0, min(l0 + blk, nl)),
+        shape=(3, min(l0 + blk, nl) - l0, ne), dtype=np.float64) for l0 in range(0, nl, blk)]
+    attrs.update(product="IGM", crs=grid.pyproj_crs.to_string(), bands="x,y,h_ellipsoidal",
+                 geometry="raw (line, element)")
+    data = dsa.concatenate(parts, axis=1).rechunk((3, tile, tile))
+    return xr.DataArray(data, dims=("band", "line", "element"), name=f"{image_id}.igm",
+                        attrs={**attrs, "_FillValue": np.nan})
+
+
+def _grid_of(da: xr.DataArray) -> Grid | None:
+    """The output grid of a georeferenced DataArray (None: not georeferenced)."""
+    if "x" not in da.dims or "y" not in da.dims or da.rio.crs is None:
+        return None
+    return Grid(da.rio.crs.to_string(), da.rio.transform(), (da.rio.height, da.rio.width))
+
+
+def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: int = 512,
+           compress: str = "deflate", overview_resampling: str = "average",
+           scheduler=None) -> dict:
+    """Write ``da`` (lazy or not; (y, x) or (band, y, x), or a raw-geometry array without
+    CRS) as a Cloud-Optimized GeoTIFF at ``path``, atomically: its blocks are computed on
+    the current Dask scheduler and streamed window by window in THIS process (memory
+    bounded by the blocks in flight), then laid out by GDAL's COG driver with overviews.
+    Keeps the dtype, the nodata value (``da.rio.nodata``) or the ``mask`` coordinate as an
+    internal mask band, band descriptions and wavelengths, and the attributes as GDAL
+    tags (with ``tags`` added). Returns a summary (path, grid, bands, dtype, nodata)."""
+    import dask.array as dsa
+
+    from swathflow.rectification.writing import write_cogs
+    grid = _grid_of(da)
+    nodata = da.rio.nodata if grid is not None else da.attrs.get("_FillValue")
+    data = da.data if hasattr(da.data, "chunks") else dsa.from_array(np.asarray(da.data),
+                                                                    chunks=blocksize)
+    bands = data if data.ndim == 3 else data[None]
+    use_mask = "mask" in da.coords and da.coords["mask"].dims == ("y", "x")
+    if use_mask:
+        mask = da.coords["mask"].data
+        mask = mask if hasattr(mask, "chunks") else dsa.from_array(mask, chunks=blocksize)
+        bands = dsa.concatenate([bands, mask.astype(bands.dtype)[None]], axis=0)
+        bands = bands.rechunk({0: -1})         # one block per tile: the tile computed once
+        nodata = None
+    elif data.ndim == 2:
+        bands = data
+    out_tags = {k: str(v) for k, v in da.attrs.items() if k not in _NOT_TAGS}
+    out_tags.update({k: str(v) for k, v in (tags or {}).items()})
+    write_cogs([{"path": path, "array": bands, "grid": grid, "nodata": nodata,
+                 "tags": out_tags, "mask": use_mask, "bands": _band_infos(da)}],
+               blocksize=blocksize, compress=compress,
+               overview_resampling=overview_resampling, scheduler=scheduler)
+    nd = "mask band" if use_mask else str(nodata)
+    return {"path": os.fspath(path), "grid": grid.state() if grid else None,
+            "bands": int(da.sizes.get("band", 1)), "dtype": np.dtype(da.dtype).name,
+            "nodata": nd}

@@ -1,8 +1,9 @@
 """Rectify every (or some) image of a mission with a calibration: one COG per image and a
-``rectify.json`` summary."""
+``rectify.json`` summary. Each image is ``to_cog(rectify(...))`` of the Python API
+(:mod:`swathflow.rectification.api`), as the flow's rectify task writes it; the images run
+side by side in forked worker processes."""
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import threading
@@ -10,12 +11,10 @@ import time
 from collections.abc import Callable, Sequence
 
 from swathflow.errors import FormatError
-from swathflow.formats.calibfile import calibration_priors, read_calibration
-from swathflow.geometry.grid import footprint_grid
 from swathflow.ingest.mission import load_mission
 from swathflow.io import write_text
-from swathflow.rectification.rawimage import open_raw_image
-from swathflow.rectification.rectify import TOLERANCE_PX, rectify_image
+from swathflow.rectification.api import geolocation, rectify, to_cog
+from swathflow.rectification.lattice import TOLERANCE_PX
 
 
 def rectify_mission(mission_path, out_dir, calibration: str | None = None,
@@ -29,26 +28,18 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     calibration.json; default: the mission's priors). Every band of each raw image is
     rectified (``bands``: a subset by 1-based index or wavelength, see
     :func:`~swathflow.rectification.rawimage.parse_bands`), in the raw dtype unless
-    ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``). Returns
-    one summary per image.
+    ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``);
+    ``products`` adds ``<id>.glt.tif`` / ``<id>.igm.tif``. Returns one summary per image.
 
     ``workers`` processes rectify the images side by side (default: one per CPU, at most
     one per image; forked, so nothing is imported or pickled again), each with one
-    thread; with one worker, one image, an active Dask client or no ``fork`` on the
-    platform, the images go one after the other, each on the current Dask scheduler
-    (threads over tiles)."""
+    thread; with one worker, one image, an active Dask client, other threads alive or no
+    ``fork`` on the platform, the images go one after the other, each on the current Dask
+    scheduler (threads over tiles)."""
+    unknown = set(products) - {"glt", "igm"}
+    if unknown:
+        raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
     mission = load_mission(mission_path)
-    params, cal_tag = mission.priors, "none: mission priors (mission.toml [calibration])"
-    if calibration:
-        doc = read_calibration(calibration)
-        if doc.get("sensor") and doc["sensor"] != mission.sensor.get("model"):
-            raise FormatError(f"{calibration}: calibration is for sensor "
-                              f"{doc['sensor']!r}, the mission uses "
-                              f"{mission.sensor.get('model')!r}")
-        params = mission.priors.updated(calibration_priors(doc))
-        with open(calibration, "rb") as f:
-            digest = hashlib.sha256(f.read()).hexdigest()[:16]
-        cal_tag = f"{os.path.abspath(calibration)} (sha256 {digest})"
     ids = mission.image_ids
     if images:
         missing = [i for i in images if i not in ids]
@@ -57,21 +48,16 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                               f"has {', '.join(ids)}")
         ids = list(images)
     os.makedirs(out_dir, exist_ok=True)
-    jobs = []
-    for iid in ids:
-        model = mission.model(iid, params)
-        kw = dict(gsd=mission.gsd, crs=mission.crs, method=method, kernel=kernel, tol=tol, tile=tile,
-                  products=tuple(products), bands=bands, dtype=dtype, mask_band=mask_band,
-                  tags={"image_id": iid, "calibration": cal_tag, "mission": mission.name,
-                        "parameters": json.dumps(model.parameters.values_dict())})
-        jobs.append((iid, model, mission.images[iid].file, mission.terrain,
-                     os.path.join(out_dir, f"{iid}.tif"), kw))
-    summaries = []
-    for s, seconds in _run(jobs, _processes(workers, len(jobs))):
+    options = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=bands,
+                   dtype=dtype, mask_band=mask_band)
+    jobs = [(mission, iid, calibration, out_dir, tuple(products), options) for iid in ids]
+    summaries, cal_tag = [], ""
+    for s, tag, shape in _run(jobs, _processes(workers, len(jobs))):
         summaries.append(s)
+        cal_tag = tag
         if progress:
-            rows, cols = s["grid"]["shape"]
-            progress(f"{s['image_id']}: {rows} x {cols} px -> {s['path']} ({seconds:.1f} s)")
+            progress(f"{s['image_id']}: {shape[0]} x {shape[1]} px -> {s['path']} "
+                     f"({s['seconds']:.1f} s)")
     write_text(os.path.join(out_dir, "rectify.json"),
                json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")
     return summaries
@@ -82,14 +68,19 @@ _JOBS: list = []
 
 
 def _one(k: int):
-    """Rectify job ``k`` of :data:`_JOBS`: (summary, seconds)."""
-    iid, model, image, terrain, out, kw = _JOBS[k]
+    """Rectify job ``k`` of :data:`_JOBS`: (summary, calibration tag, (rows, cols))."""
+    mission, iid, calibration, out_dir, products, o = _JOBS[k]
+    out = os.path.join(out_dir, f"{iid}.tif")
     t0 = time.perf_counter()
-    kw = dict(kw)
-    kw["grid"] = footprint_grid(model, terrain, kw.pop("gsd"), kw.pop("crs"))
-    s = rectify_image(model, open_raw_image(image), terrain, out, **kw)
-    s["image_id"] = iid
-    return s, time.perf_counter() - t0
+    arr = rectify(mission, iid, calibration, **o)
+    s = to_cog(arr, out, blocksize=o["tile"])
+    for p in products:
+        to_cog(geolocation(mission, iid, calibration, p, kernel=o["kernel"], tile=o["tile"],
+                           tol=o["tol"]),
+               os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=o["tile"])
+    s.update(image_id=iid, method=o["method"], kernel=o["kernel"],
+             seconds=round(time.perf_counter() - t0, 3))
+    return s, arr.attrs["calibration"], (arr.rio.height, arr.rio.width)
 
 
 def _one_synchronous(k: int):
@@ -115,7 +106,7 @@ def _processes(workers: int | None, n_jobs: int) -> int:
 
 
 def _run(jobs, processes: int):
-    """(summary, seconds) of every job, in the jobs' order."""
+    """The results of :func:`_one` for every job, in the jobs' order."""
     global _JOBS
     _JOBS = jobs
     try:
@@ -139,12 +130,13 @@ def _warm(job) -> None:
     import rasterio  # noqa: F401
     from swathflow.rectification.kernel import resample_window
     from swathflow.rectification.paint import paint_window
+    from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.tiles import output_plan
-    _, _, image, _, _, kw = job
-    if kw["method"] != "exact":
+    mission, iid, _, _, _, o = job
+    if o["method"] != "exact":
         return
-    src = open_raw_image(image, bands=kw["bands"])
-    dt, ond, _ = output_plan(src, kw["dtype"], kw["mask_band"])
+    src = open_raw_image(mission.images[iid].file, bands=o["bands"])
+    dt, ond, _ = output_plan(src, o["dtype"], o["mask_band"])
     paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
     resample_window(np.zeros((src.count, 4, 4), src.dtype), np.zeros((2, 2, 2), np.float32),
-                    kw["kernel"], src.nodata, dt, ond)
+                    o["kernel"], src.nodata, dt, ond)

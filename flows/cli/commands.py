@@ -115,7 +115,8 @@ def calibrate(args) -> int:
 
 
 def rectify(args) -> int:
-    """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image."""
+    """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image,
+    each ``swathflow.to_cog(swathflow.rectify(...))`` (through ``rectify_mission``)."""
     from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
     if not args.calibration:
@@ -132,10 +133,11 @@ def rectify(args) -> int:
 
 
 def mosaic(args) -> int:
-    """``swathflow mosaic SOURCE --out FILE.tif``: match strips, feather, write a COG."""
+    """``swathflow mosaic SOURCE --out FILE.tif``: match strips, feather, write a COG
+    (``swathflow.mosaic(..., out)``, as the flow's mosaic task)."""
     from swathflow.cluster import dask_client
+    from swathflow.mosaicking.api import mosaic as run
     from swathflow.mosaicking.mosaic import find_inputs, mission_strips
-    from swathflow.mosaicking.mosaic import mosaic as run
     out = os.fspath(args.out)
     # absolute: the overlaps may be matched by worker processes elsewhere
     paths = [os.path.abspath(p) for p in find_inputs(args.source)
@@ -155,7 +157,7 @@ def mosaic(args) -> int:
                   feather=args.feather, mode="cut" if args.no_feather else "feather",
                   balance=not args.no_balance, match=not args.no_match,
                   max_shift=args.max_shift, tile=args.tile, workers=workers, strips=strips,
-                  log=log)
+                  log=log).attrs["report"]
     if log:
         for nd in rep.get("nodes", []):
             log(f"  node {nd['node']}: offset (row, col) = {nd['offset']} px, "
