@@ -1,6 +1,7 @@
 """Rectify every (or some) image of a mission with a calibration: one COG per image and a
 ``rectify.json`` summary. Each image is ``to_cog(rectify(...))`` of the Python API
-(:mod:`swathflow.rectification.api`), as the flow's rectify task writes it."""
+(:mod:`swathflow.rectification.api`), as the flow's rectify task writes it; the images run
+side by side in forked worker processes."""
 from __future__ import annotations
 
 import json
@@ -58,9 +59,9 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
 
     ``workers`` processes rectify the images side by side (default: one per CPU, at most
     one per image; forked, so nothing is imported or pickled again), each with one
-    thread; with one worker, one image, an active Dask client or no ``fork`` on the
-    platform, the images go one after the other, each on the current Dask scheduler
-    (threads over tiles)."""
+    thread; with one worker, one image, an active Dask client, other threads alive or no
+    ``fork`` on the platform, the images go one after the other, each on the current Dask
+    scheduler (threads over tiles)."""
     unknown = set(products) - {"glt", "igm"}
     if unknown:
         raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
@@ -73,19 +74,19 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                               f"has {', '.join(ids)}")
         ids = list(images)
     os.makedirs(out_dir, exist_ok=True)
-    jobs = []
-    for iid in ids:
-        sel = bands if bands not in (None, "") else mission_bands(mission, iid)
-        kw = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=sel, dtype=dtype,
-                  mask_band=mask_band)
-        jobs.append((mission, iid, calibration, os.path.join(out_dir, f"{iid}.tif"), kw,
-                     tuple(products)))
+    options = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=bands,
+                   dtype=dtype, mask_band=mask_band)
+    jobs = [(mission, iid, calibration, out_dir, tuple(products),
+             dict(options, bands=bands if bands not in (None, "") else
+                  mission_bands(mission, iid)))
+            for iid in ids]
     summaries, cal_tag = [], ""
-    for s, cal_tag, seconds in _run(jobs, _processes(workers, len(jobs))):
+    for s, tag, shape in _run(jobs, _processes(workers, len(jobs))):
         summaries.append(s)
+        cal_tag = tag
         if progress:
-            rows, cols = s["shape"]
-            progress(f"{s['image_id']}: {rows} x {cols} px -> {s['path']} ({seconds:.1f} s)")
+            progress(f"{s['image_id']}: {shape[0]} x {shape[1]} px -> {s['path']} "
+                     f"({s['seconds']:.1f} s)")
     write_text(os.path.join(out_dir, "rectify.json"),
                json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")
     return summaries
@@ -96,20 +97,19 @@ _JOBS: list = []
 
 
 def _one(k: int):
-    """Rectify job ``k`` of :data:`_JOBS` as ``to_cog(rectify(...))``: (summary,
-    calibration tag, seconds)."""
-    mission, iid, calibration, out, kw, products = _JOBS[k]
+    """Rectify job ``k`` of :data:`_JOBS`: (summary, calibration tag, (rows, cols))."""
+    mission, iid, calibration, out_dir, products, o = _JOBS[k]
+    out = os.path.join(out_dir, f"{iid}.tif")
     t0 = time.perf_counter()
-    arr = rectify(mission, iid, calibration, **kw)
-    s = to_cog(arr, out, blocksize=kw["tile"])
+    arr = rectify(mission, iid, calibration, **o)
+    s = to_cog(arr, out, blocksize=o["tile"])
     for p in products:
-        to_cog(geolocation(mission, iid, calibration, p, kernel=kw["kernel"], tile=kw["tile"],
-                           tol=kw["tol"]),
-               os.path.join(os.path.dirname(out), f"{iid}.{p}.tif"), blocksize=kw["tile"])
-    seconds = time.perf_counter() - t0
-    s.update(image_id=iid, method=kw["method"], kernel=kw["kernel"], path=out,
-             shape=[int(arr.rio.height), int(arr.rio.width)], seconds=round(seconds, 3))
-    return s, arr.attrs["calibration"], seconds
+        to_cog(geolocation(mission, iid, calibration, p, kernel=o["kernel"], tile=o["tile"],
+                           tol=o["tol"]),
+               os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=o["tile"])
+    s.update(image_id=iid, method=o["method"], kernel=o["kernel"],
+             seconds=round(time.perf_counter() - t0, 3))
+    return s, arr.attrs["calibration"], (arr.rio.height, arr.rio.width)
 
 
 def _one_synchronous(k: int):
@@ -135,7 +135,7 @@ def _processes(workers: int | None, n_jobs: int) -> int:
 
 
 def _run(jobs, processes: int):
-    """(summary, seconds) of every job, in the jobs' order."""
+    """The results of :func:`_one` for every job, in the jobs' order."""
     global _JOBS
     _JOBS = jobs
     try:
@@ -160,12 +160,11 @@ def _warm(job) -> None:
     from swathflow.rectification.kernel import resample_window
     from swathflow.rectification.paint import paint_window
     from swathflow.rectification.tiles import output_plan
-    mission, iid, _, _, kw, _ = job
-    image = mission.images[iid].file
-    if kw["method"] != "exact":
+    mission, iid, _, _, _, o = job
+    if o["method"] != "exact":
         return
-    src = open_raw_image(image, bands=kw["bands"])
-    dt, ond, _ = output_plan(src, kw["dtype"], kw["mask_band"])
+    src = open_raw_image(mission.images[iid].file, bands=o["bands"])
+    dt, ond, _ = output_plan(src, o["dtype"], o["mask_band"])
     paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
     resample_window(np.zeros((src.count, 4, 4), src.dtype), np.zeros((2, 2, 2), np.float32),
-                    kw["kernel"], src.nodata, dt, ond)
+                    o["kernel"], src.nodata, dt, ond)

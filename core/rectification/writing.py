@@ -19,6 +19,11 @@ from swathflow.io import atomic_path
 GDAL_CACHE_MB = 256
 #: bound on the finished blocks held before they are written (bytes)
 BATCH_BYTES = 256 * 2 ** 20
+#: the streamed .part file is uncompressed below this size (bytes), else deflate level 1
+PART_RAW_BYTES = 2 ** 30
+#: deflate level of the COG: with the predictor, level 1 measured 20 % faster than 6 and
+#: no larger (2.61 vs 2.65 MB on a 2.5 Mpx uint16 swing)
+DEFLATE_LEVEL = 1
 
 
 class _WindowWriter:
@@ -114,6 +119,26 @@ def write_cog(path, arrays, grid: Grid | None, nodata=None, tags: Mapping | None
                      "dtype": dtype}], blocksize, compress, overview_resampling, scheduler)
 
 
+def _part_profile(o, shape, bands, dtype, blocksize, compress) -> dict:
+    """The rasterio profile of an output's streamed .part GeoTIFF (read once by the COG
+    copy: uncompressed unless large)."""
+    from swathflow.formats.raster import _crs
+    rows, cols = shape[-2:]
+    count = (bands or 1) - (1 if o.get("mask") else 0)
+    small = rows * cols * (bands or 1) * dtype.itemsize < PART_RAW_BYTES
+    profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
+               "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
+               "blockysize": blocksize, "compress": "none" if small else compress,
+               "BIGTIFF": "IF_SAFER"}
+    if not small and compress == "deflate":
+        profile["zlevel"] = 1
+    if o.get("grid") is not None:
+        profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
+    if o.get("nodata") is not None:
+        profile["nodata"] = o["nodata"]
+    return profile
+
+
 def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                overview_resampling: str = "average", scheduler=None) -> None:
     """Write several rasters computed in ONE dask graph (shared tiles computed once).
@@ -127,7 +152,6 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     import dask.array as da
     import rasterio
     from rasterio.shutil import copy as rio_copy
-    from swathflow.formats.raster import _crs
     with contextlib.ExitStack() as stack:
         sources, targets, parts = [], [], []
         for o in outputs:
@@ -140,15 +164,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             bands = arr.shape[0] if arr.ndim == 3 else None
             if bands == 1 and not o.get("mask"):
                 arr, bands = arr[0], None
-            rows, cols = arr.shape[-2:]
-            count = (bands or 1) - (1 if o.get("mask") else 0)
-            profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
-                           "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
-                           "blockysize": blocksize, "compress": compress, "BIGTIFF": "IF_SAFER"}
-            if o.get("grid") is not None:
-                profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
-            if o.get("nodata") is not None:
-                profile["nodata"] = o["nodata"]
+            profile = _part_profile(o, arr.shape, bands, dtype, blocksize, compress)
             final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
             part = stack.enter_context(atomic_path(os.fspath(o["path"]) + ".part",
                                                    suffix=".tif"))
@@ -165,7 +181,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             _store_here(sources, targets, scheduler)
         for dst, part, final, _ in parts:
             dst.close()
-            pred = {"PREDICTOR": "YES"} if compress == "deflate" else {}
+            pred = {"PREDICTOR": "YES", "LEVEL": DEFLATE_LEVEL} if compress == "deflate" else {}
             with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 rio_copy(part, final, driver="COG", COMPRESS=compress.upper(),
