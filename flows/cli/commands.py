@@ -150,8 +150,9 @@ def mosaic(args) -> int:
     anchors, control = _mosaic_anchor(args.anchor, mission, args.calibration)
     log = _say(args)
     workers = args.workers
-    # the overlap matching holds the GIL: worker processes, as in the mission flow
-    cluster = not args.no_match and (args.dask_address or (workers or os.cpu_count() or 1) > 1)
+    # the overlap matching's compiled search releases the GIL: threads in this process by
+    # default (a local cluster of processes cost 2x the CPU); a cluster only when named
+    cluster = not args.no_match and bool(args.dask_address)
     with (dask_client(args.dask_address, n_workers=workers) if cluster
           else contextlib.nullcontext()):
         rep = run(paths, out, per_image=args.per_image, anchors=anchors, control=control,

@@ -243,12 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="largest offset searched, pixels (default 12)")
     s.add_argument("--tile", type=_positive_int, default=1024, help="tile size in pixels (default 1024)")
     s.add_argument("--workers", type=_positive_int,
-                   help="render threads and local Dask worker processes for the overlap "
-                        "matching (default: all cores, at most 4 processes; 1: everything "
-                        "in this process)")
+                   help="threads for the overlap matching and the rendering (default: "
+                        "all cores)")
     s.add_argument("--dask-address",
-                   help="match the overlaps on an existing Dask scheduler (default: a local "
-                        "cluster of --workers processes)")
+                   help="match the overlaps on an existing Dask scheduler (default: threads "
+                        "in this process)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:mosaic"))
 
     s = sub.add_parser("run", parents=common, help="run the whole mission flow (Prefect, Dask)")
