@@ -35,6 +35,7 @@ KNOWN_KEYS = {
     "pos": ("file", "format", "max_gap"),
     "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
     "gcp": ("file", "crs"),
+    "rectify": ("bands",),
     "images": IMAGE_KEYS + ("view",),
 }
 
@@ -117,6 +118,7 @@ def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: 
         c.add(toml, "[mission]", "table missing", 'add [mission] with name, crs and gsd')
         m = {}
     check_keys(cfg, KNOWN_KEYS[""], toml, "", c)
+    check_keys(cfg.get("rectify"), KNOWN_KEYS["rectify"], toml, "[rectify]", c)
     check_keys(m, KNOWN_KEYS["mission"], toml, "[mission]", c)
     parts["name"] = str(m.get("name", root.name))
     crs = m.get("crs", "auto-utm")
