@@ -94,9 +94,11 @@ def main(argv=None) -> int:
                          "2048 uint16 ENVI BIL swing (20,000 lines: 8 GB on disk)")
     ap.add_argument("--memory-lines", type=int, default=20000)
     ap.add_argument("--memory-gsd", type=float, default=1.0)
+    ap.add_argument("--memory-mission", help="reuse a mission written by an earlier run")
     args = ap.parse_args(argv)
     if args.memory:
-        r = memory_run(args.memory_lines, 2048, args.bands, args.memory_gsd)
+        r = memory_run(args.memory_lines, 2048, args.bands, args.memory_gsd,
+                       mission=args.memory_mission)
         print(json.dumps(r))
         print(f"{r['raw'][0]} x {r['raw'][1]} x {r['raw'][2]} uint16 BIL swing "
               f"({r['raw_gb']} GB): 'swathflow rectify' peak RSS {r['peak_rss_mb']} MB "
@@ -192,67 +194,85 @@ def write_bil_swing(path: Path, lines: int, elements: int, bands: int, block: in
         f"data type = 12\ninterleave = bil\nbyte order = 0\n")
 
 
-def memory_run(lines=20000, elements=2048, bands=100, gsd=1.0, workdir=None,
-               check_bands=(0, 49, 99)) -> dict:
+def prepare_swing(td: Path, lines=20000, elements=2048, bands=100, gsd=1.0):
     """Simulate a one-swing geometry (the paper preset's sensor with ``elements`` elements
-    and a swing of ``lines`` lines), write its raw image as a ``bands``-band uint16 ENVI BIL
-    swing, rectify it with the ``swathflow rectify`` command under ``/usr/bin/time -v`` and
-    check some bands' pixels against the pattern at the true model's raw coordinates."""
+    and a swing of ``lines`` lines) in ``td/mission`` and write swing L1 as a ``bands``-band
+    uint16 ENVI BIL; returns (mission folder, lines, seconds spent writing)."""
+    from swathflow.ingest.mission import load_mission
+    from swathflow.sensors.pendulum.simulate import preset_config, simulate
+    ifov = preset_config("paper").ifov
+    swing = math.degrees((lines - 1) * ifov) / 2
+    m = Path(td) / "mission"
+    simulate(m, preset="paper", seed=0, n_elements=elements, swing_max=swing,
+             render=False, write_ortho=False, gsd=gsd, gcp_plan={}, gcp_other=(2, 3))
+    mission = load_mission(m)
+    nl = mission.model("L1").shape[0]
+    t0 = time.perf_counter()
+    write_bil_swing(m / "images" / "L1.bil", nl, elements, bands)
+    t_write = time.perf_counter() - t0
+    old = mission.images["L1"].file.name
+    toml = m / "mission.toml"
+    toml.write_text(toml.read_text().replace(f'"images/{old}"', '"images/L1.bil"'))
+    (m / "images" / old).unlink()
+    return m, nl, t_write
+
+
+def measure_swing(m: Path, out: Path, check_bands=(0, 49, 99)) -> dict:
+    """``swathflow rectify`` of swing L1 under ``/usr/bin/time -v``: peak RSS, times, and
+    some bands' pixels against the pattern at the true model's raw coordinates."""
     import re
     import subprocess
 
     import rasterio
     from swathflow.geometry.grid import Grid
     from swathflow.ingest.mission import load_mission
-    from swathflow.sensors.pendulum.simulate import preset_config, simulate
-    ifov = preset_config("paper").ifov
-    swing = math.degrees((lines - 1) * ifov) / 2
+    cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "swathflow"),
+           "rectify", "-q", str(m), "--out", str(out), "--images", "L1"]
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if p.returncode:
+        raise RuntimeError(p.stderr[-3000:])
+    rss = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", p.stderr).group(1))
+    cpu = sum(float(re.search(rf"{k} time \(seconds\): ([\d.]+)", p.stderr).group(1))
+              for k in ("User", "System"))
+    mission = load_mission(m)
+    model = mission.model("L1")
+    nl, ne = model.shape
+    rng = np.random.default_rng(0)
+    with rasterio.open(out / "L1.tif") as src:
+        bands = src.count
+        assert src.dtypes[0] == "uint16"
+        grid = Grid(mission.crs, src.transform, (src.height, src.width))
+        rows = rng.integers(0, src.height, 4000)
+        cols = rng.integers(0, src.width, 4000)
+        vals = np.stack([src.read(b + 1)[rows, cols] for b in check_bands]).astype(float)
+        shape, size = (src.height, src.width), os.path.getsize(out / "L1.tif")
+    x, y = grid.xy(rows, cols)
+    ij = model.ground_to_image(grid.to_ecef(x, y, mission.terrain))
+    inside = (np.isfinite(ij).all(-1) & (ij[:, 0] >= 0) & (ij[:, 0] <= nl - 1)
+              & (ij[:, 1] >= 0) & (ij[:, 1] <= ne - 1))
+    want = np.stack([pattern(b, ij[inside, 0], ij[inside, 1]) for b in check_bands])
+    err = np.abs(vals[:, inside] - want)
+    return {"raw": [bands, nl, ne], "raw_gb": round(bands * nl * ne * 2 / 1e9, 2),
+            "grid": list(shape), "out_gb": round(size / 1e9, 2), "wall_s": round(wall, 1),
+            "cpu_s": round(cpu, 1), "peak_rss_mb": round(rss / 1024),
+            "checked_px": int(inside.sum()), "checked_bands": [b + 1 for b in check_bands],
+            "max_err_dn": round(float(err.max()), 3),
+            "median_err_dn": round(float(np.median(err)), 3)}
+
+
+def memory_run(lines=20000, elements=2048, bands=100, gsd=1.0, workdir=None,
+               mission=None) -> dict:
+    """:func:`prepare_swing` (or an existing ``mission`` folder) then :func:`measure_swing`;
+    everything written is deleted afterwards."""
     with tempfile.TemporaryDirectory(dir=workdir) as td:
-        m = Path(td) / "mission"
-        simulate(m, preset="paper", seed=0, n_elements=elements, swing_max=swing,
-                 render=False, write_ortho=False, gsd=gsd, gcp_plan={}, gcp_other=(2, 3))
-        mission = load_mission(m)
-        nl = mission.model("L1").shape[0]
-        t0 = time.perf_counter()
-        write_bil_swing(m / "images" / "L1.bil", nl, elements, bands)
-        t_write = time.perf_counter() - t0
-        old = mission.images["L1"].file.name
-        toml = m / "mission.toml"
-        toml.write_text(toml.read_text().replace(f'"images/{old}"', '"images/L1.bil"'))
-        (m / "images" / old).unlink()
-        out = Path(td) / "out"
-        cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "swathflow"),
-               "rectify", "-q", str(m), "--out", str(out), "--images", "L1"]
-        t0 = time.perf_counter()
-        p = subprocess.run(cmd, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        if p.returncode:
-            raise RuntimeError(p.stderr[-3000:])
-        rss = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", p.stderr).group(1))
-        cpu = sum(float(re.search(rf"{k} time \(seconds\): ([\d.]+)", p.stderr).group(1))
-                  for k in ("User", "System"))
-        mission = load_mission(m)
-        model = mission.model("L1")
-        rng = np.random.default_rng(0)
-        with rasterio.open(out / "L1.tif") as src:
-            assert src.count == bands and src.dtypes[0] == "uint16"
-            grid = Grid(mission.crs, src.transform, (src.height, src.width))
-            rows = rng.integers(0, src.height, 4000)
-            cols = rng.integers(0, src.width, 4000)
-            vals = np.stack([src.read(b + 1)[rows, cols] for b in check_bands]).astype(float)
-            shape, size = (src.height, src.width), os.path.getsize(out / "L1.tif")
-        x, y = grid.xy(rows, cols)
-        ij = model.ground_to_image(grid.to_ecef(x, y, mission.terrain))
-        inside = (np.isfinite(ij).all(-1) & (ij[:, 0] >= 0) & (ij[:, 0] <= nl - 1)
-                  & (ij[:, 1] >= 0) & (ij[:, 1] <= elements - 1))
-        want = np.stack([pattern(b, ij[inside, 0], ij[inside, 1]) for b in check_bands])
-        err = np.abs(vals[:, inside] - want)
-    return {"raw": [bands, nl, elements], "raw_gb": round(bands * nl * elements * 2 / 1e9, 2),
-            "write_s": round(t_write, 1), "grid": list(shape), "gsd": gsd,
-            "out_gb": round(size / 1e9, 2), "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
-            "peak_rss_mb": round(rss / 1024), "checked_px": int(inside.sum()),
-            "checked_bands": [b + 1 for b in check_bands],
-            "max_err_dn": round(float(err.max()), 3), "median_err_dn": round(float(np.median(err)), 3)}
+        t_write = None
+        if mission is None:
+            mission, _, t_write = prepare_swing(Path(td), lines, elements, bands, gsd)
+        r = measure_swing(Path(mission), Path(td) / "out")
+    r.update(write_s=round(t_write, 1) if t_write else None, gsd=gsd)
+    return r
 
 
 if __name__ == "__main__":

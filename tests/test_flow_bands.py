@@ -92,3 +92,9 @@ def test_mission_bands_option_selects_bands_and_names_bad_ones(tiny_mission, tmp
     toml.write_text(text + '\n[rectify]\nbands = "2-5"\n')
     with pytest.raises(FormatError, match=r"mission.toml: \[rectify\] bands = '2-5'.*bands 1-3"):
         rectify_mission(mission, out, cal, images=["L1"])
+    # a typo of the key is an error naming it, not silently every band
+    from swathflow.ingest.mission import validate_mission
+    toml.write_text(text + '\n[rectify]\nband = "3"\n')
+    probs = validate_mission(mission)
+    assert any(p.where == "[rectify].band" and p.level == "error" and "bands" in p.fix
+               for p in probs), probs

@@ -131,3 +131,42 @@ def test_envi_window_read_keeps_interleave_and_selects_bands(layout, tmp_path):
     v, ok = K.resample_window(w, co + 0.25, "bilinear", None, np.float64, np.nan)
     assert ok.all() and np.abs(v - _truth_bilinear(cube[2:5, 3:17, 5:29], co + 0.25,
                                                    14, 24)).max() < 1e-9
+
+
+def _rss_file_mb() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(ln.split()[1]) for ln in f if ln.startswith("RssFile")) / 1024
+
+
+@pytest.mark.skipif(not __import__("os").path.exists("/proc/self/status"), reason="Linux")
+def test_mapped_window_pages_are_released_after_resampling(tmp_path):
+    """Resident memory bounded by the tile: the pages of a memory-mapped ENVI window that
+    the kernel touched are dropped from the process afterwards (the swing's file is not
+    kept resident as tiles go by)."""
+    from swathflow.rectification.gather import release_pages
+    nb, nl, ne = 16, 1024, 1024                     # 32 MB of uint16, BIL
+    path = tmp_path / "big.bil"
+    b, li, ei = np.ogrid[0:nb, 0:nl, 0:ne]
+    np.ascontiguousarray(np.broadcast_to(((b * 7 + li + 2 * ei) % 60000).astype("<u2"),
+                                         (nb, nl, ne)).transpose(1, 0, 2)).tofile(path)
+    (tmp_path / "big.bil.hdr").write_text(
+        f"ENVI\nsamples = {ne}\nlines = {nl}\nbands = {nb}\nheader offset = 0\n"
+        "data type = 12\ninterleave = bil\nbyte order = 0\n")
+    img = open_raw_image(path)
+    w = img.read(0, nl, 0, ne)
+    r0 = _rss_file_mb()
+    assert int(w[:, ::4, ::512].sum()) > 0          # touch every page of the window
+    r1 = _rss_file_mb()
+    release_pages(w)
+    r2 = _rss_file_mb()
+    assert r1 - r0 > 24 and r1 - r2 > 24, (r0, r1, r2)
+    # through the kernel: every pixel resampled, nothing left resident
+    co = np.stack(np.meshgrid(np.arange(nl - 1.0) + 0.5, np.arange(0, ne - 1.0, 2) + 0.5,
+                              indexing="ij")).astype(np.float32)
+    K.resample_window(w, co[:, :2, :2], "bilinear", None, np.uint16, 0)  # compiled code
+    release_pages(w)
+    r2 = _rss_file_mb()
+    v, ok = K.resample_window(w, co, "bilinear", None, np.uint16, 0)
+    r3 = _rss_file_mb()
+    assert ok.all() and r3 - r2 < 4, (r2, r3)
+    assert v[3, 10, 7] == np.floor(3 * 7 + 10.5 + 2 * 14.5 + 0.5)      # round half up

@@ -36,6 +36,7 @@ KNOWN_KEYS = {
     "pos": ("file", "format", "max_gap"),
     "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
     "gcp": ("file", "crs"),
+    "rectify": ("bands",),
     "images": IMAGE_KEYS + ("view",),
 }
 
@@ -118,6 +119,7 @@ def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: 
         c.add(toml, "[mission]", "table missing", 'add [mission] with name, crs and gsd')
         m = {}
     check_keys(cfg, KNOWN_KEYS[""], toml, "", c)
+    check_keys(cfg.get("rectify"), KNOWN_KEYS["rectify"], toml, "[rectify]", c)
     check_keys(m, KNOWN_KEYS["mission"], toml, "[mission]", c)
     if isinstance(cfg.get("reference"), dict):
         check_keys(cfg["reference"], KNOWN_KEYS["reference"], toml, "[reference]", c)

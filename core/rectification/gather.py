@@ -401,9 +401,12 @@ def _gather(flat, strides, shape, coords, nearest, check, clamp, has_nodata, nod
 
 
 def _memmap_of(a):
-    """The :class:`numpy.memmap` (with its open mmap) an array is a view of, or None."""
+    """The :class:`numpy.memmap` an array is a view of: the one made over the open mmap
+    (its ``base``), whose data start ``offset % ALLOCATIONGRANULARITY`` bytes into the
+    mapping (views of a memmap are memmaps too, but start elsewhere); or None."""
+    import mmap
     while a is not None:
-        if isinstance(a, np.memmap) and getattr(a, "_mmap", None) is not None:
+        if isinstance(a, np.memmap) and isinstance(a.base, mmap.mmap):
             return a
         a = a.base
     return None
@@ -422,8 +425,9 @@ def release_pages(window: np.ndarray) -> None:
     nbytes = window.itemsize + sum((n - 1) * st for n, st in zip(window.shape, window.strides))
     base = mm.ctypes.data - (mm.offset % mmap.ALLOCATIONGRANULARITY)
     start = window.__array_interface__["data"][0] - base
+    mm = mm.base
     page = mmap.PAGESIZE
     lo = max(start // page * page, 0)
-    hi = min(-(-(start + nbytes) // page) * page, len(mm._mmap))
+    hi = min(-(-(start + nbytes) // page) * page, len(mm))
     if hi > lo:
-        mm._mmap.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
+        mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
