@@ -75,9 +75,11 @@ def main(argv=None) -> int:
           f"load {os.getloadavg()[0]:.1f}")
     names = list(rows[0][5])
     print(f"  {'workers':>7} {'run wall s':>10} {'run CPU s':>9} {'no-op wall':>10} "
-          f"{'no-op CPU':>9}  " + " ".join(f"{k:>15}" for k in names))
+          f"{'no-op CPU':>9} {'outside':>8}  " + " ".join(f"{k:>15}" for k in names))
     for n, wall, cpu, rw, rc, st in rows:
-        print(f"  {n:>7} {wall:10.1f} {cpu:9.1f} {rw:10.2f} {rc:9.2f}  "
+        # outside the stages: imports, validation, Prefect's server, Dask's cluster
+        print(f"  {n:>7} {wall:10.1f} {cpu:9.1f} {rw:10.2f} {rc:9.2f} "
+              f"{wall - sum(st.values()):8.1f}  "
               + " ".join(f"{st.get(k, float('nan')):15.1f}" for k in names))
     if len(rows) > 1:
         print(f"  1 -> {rows[-1][0]} workers: {rows[0][1] / rows[-1][1]:.2f}x (run wall), "
