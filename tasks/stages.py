@@ -74,7 +74,7 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
         key = stage_key("pos", _mission_files(m) + [m.images[iid].lines_file])
         if not is_fresh(out, key):
             lines = m.lines(iid)
-            ds = interp(m.pos, lines["time"])
+            ds = interp(m.trajectory, lines["time"])     # built once with the mission
             df = pd.DataFrame({"line": range(len(lines["time"])), "time": lines["time"],
                                **{k: ds[k].values for k in ("lat", "lon", "h", "roll", "pitch",
                                                           "heading")}})

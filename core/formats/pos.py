@@ -129,9 +129,10 @@ class Trajectory:
                         self.attitude[:, 1], heading, "trajectory")
 
 
-def interpolate_pos(ds: xr.Dataset, times, max_gap: float = 1.0) -> xr.Dataset:
-    """Interpolate a trajectory Dataset to ``times``; returns a Dataset over ``time``."""
-    traj = Trajectory.from_dataset(ds, max_gap=max_gap)
+def interpolate_pos(ds: xr.Dataset | Trajectory, times, max_gap: float = 1.0) -> xr.Dataset:
+    """Interpolate a trajectory (a POS Dataset, or a :class:`Trajectory` already built from
+    one, e.g. ``Mission.trajectory``) to ``times``; returns a Dataset over ``time``."""
+    traj = ds if isinstance(ds, Trajectory) else Trajectory.from_dataset(ds, max_gap=max_gap)
     t = np.asarray(times, dtype=float)
     r = traj.interpolate(t)
     from swathflow.geometry.geodesy import ecef_to_geodetic
