@@ -5,7 +5,7 @@ refinement; and against the image coordinates the ground points were made from."
 import numpy as np
 import pytest
 
-from swathflow.sensors.pendulum import PendulumModel
+from swathflow.sensors.pendulum import PendulumModel, model as pendulum_model
 
 
 @pytest.fixture(scope="module", params=["L", "R"])
@@ -79,3 +79,21 @@ def test_compiled_agrees_with_numpy_path(model):
         ref = model._ground_to_image_numpy(pts, True)
         assert np.array_equal(np.isnan(got), np.isnan(ref))
         assert np.nanmax(np.abs(got - ref)) < 1e-7
+
+
+@pytest.mark.parametrize("case", [0, 1])
+def test_compiled_exact_solve_matches_brute_force(case, monkeypatch):
+    """Every point through the exact secant solve (the path taken where a POS sample puts a
+    kink inside the line: a fifth of the points on the demo mission), on the spec vectors'
+    trajectory, against the brute-force brackets and the numpy secant solve."""
+    from test_rectify import scene_model
+    m = scene_model(n_lines=500, n_elements=160, case=case)
+    monkeypatch.setattr(pendulum_model, "ROUGH_LINE", -1.0)      # every point is "rough"
+    img, g, g_off, off = _points(m, seed=11)
+    for pts in (g, g_off):
+        got = m.ground_to_image(pts)
+        ref = _brute_force(m, pts)
+        assert np.array_equal(np.isnan(got), np.isnan(ref))
+        # both stop when a secant step is below 1e-9 line
+        assert np.nanmax(np.abs(got - ref)) < 1e-8
+    assert np.abs(m.ground_to_image(g) - img).max() < 1e-5

@@ -121,11 +121,39 @@ def _lagrange(line, j, l1, cam0, cam1, cam2, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def refine(g, j, fj, fj1, nvec, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen,
-           r_es, c, rough_line, line_out, cam_out, rough_out):
-    """Fractional line and camera vector of points ``g`` crossing between ``j, j+1``;
-    ``rough_out`` marks the points to solve exactly. Returns False where the POS could not
-    be interpolated (the caller takes the numpy path, which reports it)."""
+def _secant(g, j, fj, fj1, nvec, geo, tol, max_iter, cam, pos):
+    """Secant iterations on the exact condition inside ``[j, j+1]`` (as
+    ``linesolve.secant_lines``); the line, with the exact camera vector left in ``cam``."""
+    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
+    l0, f0 = float(j), fj
+    d = fj - fj1
+    l1 = j + fj / d if d != 0.0 else math.nan
+    if not math.isfinite(l1):
+        l1 = j + 0.5
+    for _ in range(max_iter):
+        if not _camera_of(l1, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen,
+                          cam, pos):
+            return math.nan
+        f1 = cam[0] * nvec[0] + cam[1] * nvec[1] + cam[2] * nvec[2]
+        step = f1 * (l1 - l0) / (f1 - f0)
+        if not math.isfinite(step):
+            step = 0.0
+        l0, f0, l1 = l1, f1, l1 - step
+        if not abs(step) > tol:
+            break
+    if not _camera_of(l1, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen, cam,
+                      pos):
+        return math.nan
+    return l1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
+    """Fractional line and camera vector of points ``g`` crossing between ``j, j+1``
+    (``geo``: line columns, POS times and table, max gap, R_BP^T, R_HS, u_gps, u_sen).
+    Returns False where the POS could not be interpolated (the caller then takes the numpy
+    path, which reports it)."""
+    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
     cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
     pos = np.empty(8)
     for i in range(g.shape[0]):
@@ -138,9 +166,14 @@ def refine(g, j, fj, fj1, nvec, cols, time, table, max_gap, r_bp_t, r_hs, u_gps,
                           cam1, pos):
             return False
         f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
-        line, rough_out[i] = _quadratic_root(a, fa, fb, l1, f1, rough_line)
-        _frame_vector(r_es, c, a, g[i], cam0)
-        _frame_vector(r_es, c, a + 1, g[i], cam2)
-        _lagrange(line, a, l1, cam0, cam1, cam2, cam_out[i])
+        line, rough = _quadratic_root(a, fa, fb, l1, f1, rough_line)
+        if rough:       # not smooth inside the line (a POS sample in it): solve exactly
+            line = _secant(g[i], a, fa, fb, nvec, geo, 1e-9, 30, cam_out[i], pos)
+            if math.isnan(line):
+                return False
+        else:
+            _frame_vector(r_es, c, a, g[i], cam0)
+            _frame_vector(r_es, c, a + 1, g[i], cam2)
+            _lagrange(line, a, l1, cam0, cam1, cam2, cam_out[i])
         line_out[i] = line
     return True

@@ -351,18 +351,14 @@ class PendulumModel(SensorModel):
         if "pos_table" not in self._shared:
             self._shared["pos_table"] = np.column_stack([tr.ecef, tr.lat, tr.lon, tr.attitude])
         m = g.shape[0]
-        line, cam, rough = np.empty(m), np.empty((m, 3)), np.empty(m, np.bool_)
-        ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]),
-                           self._line_cols, np.asarray(tr.time, float),
-                           self._shared["pos_table"], float(tr.max_gap), self._r_bp_t,
-                           self._r_hs, np.asarray(self._u_gps, float),
-                           np.asarray(self._u_sen, float), r_es, c, ROUGH_LINE, line, cam,
-                           rough)
+        line, cam = np.empty(m), np.empty((m, 3))
+        geo = (self._line_cols, np.asarray(tr.time, float), self._shared["pos_table"],
+               float(tr.max_gap), self._r_bp_t, self._r_hs, np.asarray(self._u_gps, float),
+               np.asarray(self._u_sen, float))
+        ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]), geo, r_es, c,
+                           ROUGH_LINE, line, cam)
         if not ok:
             return None
-        r = np.flatnonzero(rough)
-        if r.size:
-            line[r], cam[r] = self._solve_exact(g[r], j[r], fj[r], fj1[r], tol=1e-9)
         return line, cam
 
     def _pixels(self, line, cam, clip: bool) -> np.ndarray:
