@@ -29,6 +29,7 @@ def main(argv=None) -> int:
     from rasterio.transform import from_origin
 
     from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
+    from swathflow.sensors.base import CHUNK
     from swathflow.sensors.pendulum import PendulumModel
     from swathflow.geometry.terrain import DEM
 
@@ -55,6 +56,10 @@ def main(argv=None) -> int:
                    lambda s: m.image_to_ground(img[s], 10.0))
     back = timed("ground_to_image, constant height", lambda s: m.ground_to_image(ground[s]))
     err = np.nanmax(np.abs(back - img))
+    # the same solve through the numpy path (before the compiled kernels; their reference)
+    timed("ground_to_image, constant height, numpy path",
+          lambda s: np.concatenate([m._ground_to_image_numpy(c, True) for c in
+                                    np.array_split(ground[s], max(1, len(ground[s]) // CHUNK))]))
 
     # a DEM under the swing: hills on a 10 m grid in UTM
     llh = ecef_to_geodetic(ground[:: max(1, n // 1000)])

@@ -12,9 +12,11 @@ import numpy as np
 
 from swathflow.errors import FormatError
 from swathflow.geometry.linesolve import bracket_lines, plane_brackets, secant_lines
+from swathflow.geometry.planesolve import bracket_planes, coarse_grid
 from swathflow.geometry.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
 
 from swathflow.sensors.base import CHUNK, Parameter, ParameterSet, SensorModel
+from swathflow.sensors.pendulum import kernel
 
 #: root estimates (secant, inverse quadratic) further apart than this (lines) mark a
 #: condition that is not smooth inside the line: those points are solved exactly
@@ -325,6 +327,56 @@ class PendulumModel(SensorModel):
         return out.reshape(shape + (2,))
 
     def _ground_to_image(self, g, clip: bool) -> np.ndarray:
+        """Compiled path (numba): the same brackets and refinement as the numpy path."""
+        n = g.shape[0]
+        out = np.full((n, 2), np.nan)
+        g = np.ascontiguousarray(g, dtype=float)
+        j, fj, fj1 = np.empty(n, np.intp), np.empty(n), np.empty(n)
+        found = np.empty(n, np.bool_)
+        if "coarse_grid" not in self._shared:
+            self._shared["coarse_grid"] = coarse_grid(self.n_lines)
+        bracket_planes(g, self._planes, self._shared["coarse_grid"], j, fj, fj1, found)
+        k = np.flatnonzero(found)
+        if k.size:
+            refined = self._refine_compiled(g[k], j[k], fj[k], fj1[k])
+            if refined is None:       # the POS could not be interpolated: numpy reports it
+                return self._ground_to_image_numpy(g, clip)
+            out[k] = self._pixels(*refined, clip)
+        return out
+
+    def _refine_compiled(self, g, j, fj, fj1):
+        """``_refine`` through the numba kernel; None where the POS has a gap there."""
+        r_es, c = self._line_frames()
+        tr = self._trajectory
+        if "pos_table" not in self._shared:
+            self._shared["pos_table"] = np.column_stack([tr.ecef, tr.lat, tr.lon, tr.attitude])
+        m = g.shape[0]
+        line, cam = np.empty(m), np.empty((m, 3))
+        geo = (self._line_cols, np.asarray(tr.time, float), self._shared["pos_table"],
+               float(tr.max_gap), self._r_bp_t, self._r_hs, np.asarray(self._u_gps, float),
+               np.asarray(self._u_sen, float))
+        ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]), geo, r_es, c,
+                           ROUGH_LINE, line, cam)
+        if not ok:
+            return None
+        return line, cam
+
+    def _pixels(self, line, cam, clip: bool) -> np.ndarray:
+        """(line, element) from fractional lines and camera vectors; NaN behind the camera
+        and, with ``clip``, off the detector."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            elem = self._k0 + self._f * cam[:, 0] / (-cam[:, 2]) / self._pp
+        front = cam[:, 2] < 0
+        elem = np.where(front, elem, np.nan)
+        line = np.where(front, line, np.nan)
+        if clip:
+            off = (elem < -0.5) | (elem > self.n_elements - 0.5)
+            elem = np.where(off, np.nan, elem)
+            line = np.where(off, np.nan, line)
+        return np.stack([line, elem], axis=-1)
+
+    def _ground_to_image_numpy(self, g, clip: bool) -> np.ndarray:
+        """The numpy path (reference for the compiled one, and its fallback)."""
         n = g.shape[0]
         out = np.full((n, 2), np.nan)
         planes = self._planes
@@ -339,18 +391,7 @@ class PendulumModel(SensorModel):
         j, fj, fj1, found = bracket_lines(f_int, n, self.n_lines, lo, hi, flo, fhi)
         k = np.flatnonzero(found)
         if k.size:
-            line, cam = self._refine(g[k], j[k], fj[k], fj1[k])
-            with np.errstate(invalid="ignore", divide="ignore"):
-                elem = self._k0 + self._f * cam[:, 0] / (-cam[:, 2]) / self._pp
-            front = cam[:, 2] < 0
-            elem = np.where(front, elem, np.nan)
-            line = np.where(front, line, np.nan)
-            if clip:
-                off = (elem < -0.5) | (elem > self.n_elements - 0.5)
-                elem = np.where(off, np.nan, elem)
-                line = np.where(off, np.nan, line)
-            out[k, 0] = line
-            out[k, 1] = elem
+            out[k] = self._pixels(*self._refine(g[k], j[k], fj[k], fj1[k]), clip)
         return out
 
     @classmethod

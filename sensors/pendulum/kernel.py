@@ -1,0 +1,179 @@
+"""Compiled refinement of the pendulum's ground_to_image (numba): the same steps as
+``PendulumModel._refine`` and ``_camera_of`` one point at a time (POS interpolation,
+closed-form rotation chain, inverse quadratic root and Lagrange camera vector), so the
+lattice's exact projections cost well under a microsecond a point.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+DEG = math.pi / 180.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _pos_at(time, table, max_gap, t, out):
+    """Linear POS interpolation at time ``t`` into ``out`` (8 columns); False where
+    ``t`` is outside the trajectory or inside a gap (the numpy path then raises)."""
+    n = time.shape[0]
+    if not (t >= time[0] and t <= time[n - 1]):
+        return False
+    i = np.searchsorted(time, t, side="right") - 1
+    i = min(max(i, 0), n - 2)
+    gap = time[i + 1] - time[i]
+    if gap > max_gap:
+        return False
+    w = (t - time[i]) / gap
+    for k in range(8):
+        a = table[i, k]
+        out[k] = a + (table[i + 1, k] - a) * w
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _camera_of(line, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen, cam, pos):
+    """The camera-frame vector of ground point ``g`` seen from fractional ``line``."""
+    n = cols.shape[0]
+    line = min(max(line, 0.0), n - 1.0)
+    i = min(int(line), n - 2)
+    w = line - i
+    t = cols[i, 0] * (1 - w) + cols[i + 1, 0] * w
+    s = cols[i, 1] * (1 - w) + cols[i + 1, 1] * w
+    q = cols[i, 2] * (1 - w) + cols[i + 1, 2] * w
+    if not _pos_at(time, table, max_gap, t, pos):
+        return False
+    x, y, z = g[0] - pos[0], g[1] - pos[1], g[2] - pos[2]
+    lat, lon = pos[3] * DEG, pos[4] * DEG
+    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+    e_ = -so * x + co * y
+    n_ = -sl * co * x - sl * so * y + cl * z
+    d_ = -cl * co * x - cl * so * y - sl * z
+    x, y, z = n_, e_, d_
+    sh, ch = math.sin(pos[7] * DEG), math.cos(pos[7] * DEG)
+    x, y = ch * x + sh * y, -sh * x + ch * y
+    sp, cp = math.sin(pos[6] * DEG), math.cos(pos[6] * DEG)
+    x, z = cp * x - sp * z, sp * x + cp * z
+    sr, cr = math.sin(pos[5] * DEG), math.cos(pos[5] * DEG)
+    y, z = cr * y + sr * z, -sr * y + cr * z
+    x, y, z = x - u_gps[0], y - u_gps[1], z - u_gps[2]
+    x, y, z = (x * r_bp_t[0, 0] + y * r_bp_t[1, 0] + z * r_bp_t[2, 0],
+               x * r_bp_t[0, 1] + y * r_bp_t[1, 1] + z * r_bp_t[2, 1],
+               x * r_bp_t[0, 2] + y * r_bp_t[1, 2] + z * r_bp_t[2, 2])
+    ss, cs = math.sin(s), math.cos(s)
+    y, z = cs * y + ss * z, -ss * y + cs * z
+    sq, cq = math.sin(q), math.cos(q)
+    x, z = cq * x - sq * z, sq * x + cq * z
+    x, y, z = x - u_sen[0], y - u_sen[1], z - u_sen[2]
+    for k in range(3):
+        cam[k] = x * r_hs[0, k] + y * r_hs[1, k] + z * r_hs[2, k]
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _frame_vector(r_es, c, j, g, out):
+    """``R_ES[j]^T (g - C[j])``: the camera vector at integer line ``j``."""
+    dx, dy, dz = g[0] - c[j, 0], g[1] - c[j, 1], g[2] - c[j, 2]
+    for k in range(3):
+        out[k] = r_es[j, 0, k] * dx + r_es[j, 1, k] * dy + r_es[j, 2, k] * dz
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sgn(v):
+    return (v > 0.0) - (v < 0.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _quadratic_root(j, fj, fj1, l1, f1, rough_line):
+    """Inverse quadratic root through (j, l1, j+1), the secant against the far bracket end
+    where it leaves the bracket; and whether the two disagree (solve exactly)."""
+    same = _sgn(f1) == _sgn(fj)
+    ja = j + 1.0 if same else float(j)
+    fa = fj1 if same else fj
+    w = f1 / (f1 - fa) if f1 - fa != 0.0 else math.nan
+    line = l1 + (w if math.isfinite(w) else 0.0) * (ja - l1)
+    x0, x1, x2 = float(j), l1, j + 1.0
+    q = (x0 * f1 * fj1 / ((fj - f1) * (fj - fj1)) + x1 * fj * fj1 / ((f1 - fj) * (f1 - fj1))
+         + x2 * fj * f1 / ((fj1 - fj) * (fj1 - f1)))
+    use = math.isfinite(q) and q >= x0 and q <= x2
+    rough = (not use) or abs(q - line) > rough_line
+    return (q if use else line), rough
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _lagrange(line, j, l1, cam0, cam1, cam2, out):
+    """The camera vector at ``line``: quadratic through the lines j, l1, j + 1 (linear
+    where the chord point sits on an integer line)."""
+    x0, x1, x2 = float(j), l1, j + 1.0
+    d01, d02, d12 = (x0 - x1) * (x0 - x2), (x1 - x0) * (x1 - x2), (x2 - x0) * (x2 - x1)
+    if d01 != 0.0 and d02 != 0.0 and d12 != 0.0:
+        a0 = (line - x1) * (line - x2) / d01
+        a1 = (line - x0) * (line - x2) / d02
+        a2 = (line - x0) * (line - x1) / d12
+        if math.isfinite(a0) and math.isfinite(a1) and math.isfinite(a2):
+            for k in range(3):
+                out[k] = a0 * cam0[k] + a1 * cam1[k] + a2 * cam2[k]
+            return
+    t = line - x0
+    for k in range(3):
+        out[k] = cam0[k] + t * (cam2[k] - cam0[k])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _secant(g, j, fj, fj1, nvec, geo, tol, max_iter, cam, pos):
+    """Secant iterations on the exact condition inside ``[j, j+1]`` (as
+    ``linesolve.secant_lines``); the line, with the exact camera vector left in ``cam``."""
+    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
+    l0, f0 = float(j), fj
+    d = fj - fj1
+    l1 = j + fj / d if d != 0.0 else math.nan
+    if not math.isfinite(l1):
+        l1 = j + 0.5
+    for _ in range(max_iter):
+        if not _camera_of(l1, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen,
+                          cam, pos):
+            return math.nan
+        f1 = cam[0] * nvec[0] + cam[1] * nvec[1] + cam[2] * nvec[2]
+        step = f1 * (l1 - l0) / (f1 - f0)
+        if not math.isfinite(step):
+            step = 0.0
+        l0, f0, l1 = l1, f1, l1 - step
+        if not abs(step) > tol:
+            break
+    if not _camera_of(l1, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen, cam,
+                      pos):
+        return math.nan
+    return l1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
+    """Fractional line and camera vector of points ``g`` crossing between ``j, j+1``
+    (``geo``: line columns, POS times and table, max gap, R_BP^T, R_HS, u_gps, u_sen).
+    Returns False where the POS could not be interpolated (the caller then takes the numpy
+    path, which reports it)."""
+    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
+    cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
+    pos = np.empty(8)
+    for i in range(g.shape[0]):
+        a, fa, fb = j[i], fj[i], fj1[i]
+        d = fa - fb
+        l1 = a + fa / d if d != 0.0 else math.nan
+        if not math.isfinite(l1):
+            l1 = a + 0.5
+        if not _camera_of(l1, g[i], cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen,
+                          cam1, pos):
+            return False
+        f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
+        line, rough = _quadratic_root(a, fa, fb, l1, f1, rough_line)
+        if rough:       # not smooth inside the line (a POS sample in it): solve exactly
+            line = _secant(g[i], a, fa, fb, nvec, geo, 1e-9, 30, cam_out[i], pos)
+            if math.isnan(line):
+                return False
+        else:
+            _frame_vector(r_es, c, a, g[i], cam0)
+            _frame_vector(r_es, c, a + 1, g[i], cam2)
+            _lagrange(line, a, l1, cam0, cam1, cam2, cam_out[i])
+        line_out[i] = line
+    return True
