@@ -137,7 +137,6 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     (tile by tile, ``tol`` raw pixels) or ``polynomial`` (one band, float32, computed as
     one block). Band descriptions and wavelengths are coordinates; the product tags
     (image id, strip, calibration, parameters...) are attributes."""
-    from swathflow.geometry.terrain import open_terrain
     from swathflow.rectification.lattice import TOLERANCE_PX
     from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.tiles import check_inputs, output_plan, rectify_blocks
@@ -145,11 +144,7 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
         raise FormatError(f"unknown rectification method {method!r}; use one of "
                           f"{', '.join(METHODS)}")
     tol = TOLERANCE_PX if tol is None else tol
-    m = _open(mission, image_id)
-    params, cal_tag = _parameters(m, calibration)
-    model = m.model(image_id, params)
-    terrain = open_terrain(m.terrain)
-    grid = footprint_grid(model, terrain, gsd or m.gsd, crs or m.crs)
+    m, model, terrain, grid, cal_tag = _swing(mission, image_id, calibration, gsd, crs)
     source = open_raw_image(m.images[image_id].file, bands=bands)
     check_inputs(model, source, kernel)
     attrs = _tags(m, image_id, model, method, kernel, tol, cal_tag, terrain)
@@ -165,6 +160,17 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     if use_mask:
         out = out.assign_coords(mask=(("y", "x"), arr[-1]))
     return out
+
+
+def _swing(mission, image_id: str, calibration, gsd, crs):
+    """The loaded mission, the swing's sensor model with the calibration, the opened
+    terrain, the footprint grid and the calibration's tag."""
+    from swathflow.geometry.terrain import open_terrain
+    m = _open(mission, image_id)
+    params, cal_tag = _parameters(m, calibration)
+    model = m.model(image_id, params)
+    terrain = open_terrain(m.terrain)
+    return m, model, terrain, footprint_grid(model, terrain, gsd or m.gsd, crs or m.crs), cal_tag
 
 
 def _polynomial(model, source, grid, terrain, attrs) -> xr.DataArray:
@@ -192,18 +198,13 @@ def geolocation(mission, image_id: str, calibration=None, product: str = "glt", 
     in raw geometry (no CRS on the array; the map CRS is in ``attrs["crs"]``)."""
     import dask.array as dsa
 
-    from swathflow.geometry.terrain import open_terrain
     from swathflow.rectification.lattice import TOLERANCE_PX
     from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.tiles import check_inputs, glt_blocks
     if product not in ("glt", "igm"):
         raise FormatError(f"unknown product {product!r}; use glt, igm")
     tol = TOLERANCE_PX if tol is None else tol
-    m = _open(mission, image_id)
-    params, cal_tag = _parameters(m, calibration)
-    model = m.model(image_id, params)
-    terrain = open_terrain(m.terrain)
-    grid = footprint_grid(model, terrain, gsd or m.gsd, crs or m.crs)
+    m, model, terrain, grid, cal_tag = _swing(mission, image_id, calibration, gsd, crs)
     attrs = _tags(m, image_id, model, "exact", kernel, tol, cal_tag, terrain)
     if product == "glt":
         source = open_raw_image(m.images[image_id].file)

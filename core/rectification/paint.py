@@ -10,25 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True, nogil=True, inline="always")
-def _bil(wr, wc, q00, q01, q10, q11):
-    """Bilinear interpolation; terms of zero weight are left out (a NaN corner does not
-    spoil the exact values at the other corners)."""
-    v = 0.0
-    a = (1 - wr) * (1 - wc)
-    if a != 0.0:
-        v += a * q00
-    a = (1 - wr) * wc
-    if a != 0.0:
-        v += a * q01
-    a = wr * (1 - wc)
-    if a != 0.0:
-        v += a * q10
-    a = wr * wc
-    if a != 0.0:
-        v += a * q11
-    return v
+from swathflow.rectification.kernel import _bil  # one bilinear rule for both painters
 
 
 @njit(cache=True, nogil=True)
