@@ -8,12 +8,11 @@ per swing direction, before and after the adjustment.
 """
 from __future__ import annotations
 
-import io
-import itertools
-import re
 
 import numpy as np
 import pandas as pd
+
+from swathflow.io import figure_svg
 
 COLORS = {"L": "#1f77b4", "R": "#d62728"}
 OTHER = "#555555"
@@ -34,22 +33,6 @@ def _figure(ncols: int, nrows: int = 1, size=(5.2, 3.6)):
     return fig, fig.subplots(nrows, ncols, squeeze=False)
 
 
-_SALT = itertools.count()
-
-
-def to_svg(fig) -> str:
-    """The figure as an inline ``<svg>`` element for HTML: no XML prolog or metadata, ids
-    unique per figure (several share one document), ``href`` instead of ``xlink:href``."""
-    import matplotlib
-    buf = io.StringIO()
-    with matplotlib.rc_context({"svg.hashsalt": f"swathflow-{next(_SALT)}",
-                                "svg.fonttype": "none"}):
-        fig.savefig(buf, format="svg", metadata={"Creator": None, "Date": None,
-                                                 "Format": None, "Type": None})
-    text = buf.getvalue()
-    text = text[text.index("<svg"):]
-    text = re.sub(r'\s+xmlns:xlink="[^"]*"', "", text, count=1)
-    return text.replace("xlink:href=", "href=")
 
 
 def _scale(u: np.ndarray, v: np.ndarray, length: float) -> tuple[float, float]:
@@ -98,7 +81,7 @@ def image_vectors(res: pd.DataFrame, image_id: str) -> str:
         ax.set_title(f"{image_id}: {stage}", loc="left")
         ax.set_xlabel("line (px)")
         ax.set_ylabel("element (px)")
-    return to_svg(fig)
+    return figure_svg(fig)
 
 
 def map_vectors(res: pd.DataFrame) -> str:
@@ -124,7 +107,7 @@ def map_vectors(res: pd.DataFrame) -> str:
             if (q["direction"] == d).any():
                 ax.plot([], [], color=c, label=f"direction {d}")
         ax.legend(loc="lower right", fontsize=8)
-    return to_svg(fig)
+    return figure_svg(fig)
 
 
 def against(res: pd.DataFrame, column: str, label: str) -> str:
@@ -146,7 +129,7 @@ def against(res: pd.DataFrame, column: str, label: str) -> str:
             ax.set_ylabel(f"{comp} (px)")
             if len(q):
                 ax.legend(fontsize=8, loc="upper right")
-    return to_svg(fig)
+    return figure_svg(fig)
 
 
 def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:

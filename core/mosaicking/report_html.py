@@ -12,14 +12,11 @@ status, residual).
 from __future__ import annotations
 
 import html
-import io
-import itertools
 import os
-import re
 
 import numpy as np
 
-from swathflow.io import write_text
+from swathflow.io import figure_svg, write_text
 
 __all__ = ["mosaic_report_html"]
 
@@ -32,21 +29,6 @@ th{background:#f2f2f2}td.l,th.l{text-align:left}.bad{background:#fbb}.skip{color
 figure{margin:1em 0}figure svg{max-width:100%;height:auto}
 figcaption{color:#555;font-size:.85em}
 """
-_SALT = itertools.count()
-
-
-def _svg(fig) -> str:
-    """The figure as an inline ``<svg>`` (no prolog, ids unique per figure)."""
-    import matplotlib
-    buf = io.StringIO()
-    with matplotlib.rc_context({"svg.hashsalt": f"mosaic-{next(_SALT)}",
-                                "svg.fonttype": "none"}):
-        fig.savefig(buf, format="svg", metadata={"Creator": None, "Date": None,
-                                                 "Format": None, "Type": None})
-    text = buf.getvalue()
-    text = text[text.index("<svg"):]
-    text = re.sub(r'\s+xmlns:xlink="[^"]*"', "", text, count=1)
-    return text.replace("xlink:href=", "href=")
 
 
 def _figure(w=10.0, h=6.0, cols=1):
@@ -118,7 +100,7 @@ def graph_figure(rep: dict, layout) -> str:
                  f"overlaps: colour = residual, red = rejected, dotted = skipped", fontsize=9)
     fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, fraction=0.03,
                  label="residual after adjustment (px)")
-    return _svg(fig)
+    return figure_svg(fig, "mosaic")
 
 
 def residual_map_figure(rep: dict, mosaic_path, max_side: int = 900) -> str:
@@ -162,14 +144,14 @@ def residual_map_figure(rep: dict, mosaic_path, max_side: int = 900) -> str:
                  f"residual)", fontsize=9)
     fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, fraction=0.03,
                  label="residual after adjustment (px)")
-    return _svg(fig)
+    return figure_svg(fig, "mosaic")
 
 
 def offsets_figure(rep: dict) -> str:
     from swathflow.mosaicking.report import _nodes_panel
     fig, axes = _figure(11, 4, cols=2)
     _nodes_panel(axes[0], axes[1], rep)
-    return _svg(fig)
+    return figure_svg(fig, "mosaic")
 
 
 def _fmt(v, nd=3) -> str:
