@@ -228,7 +228,13 @@ def test_sigterm_exits_143_with_a_message(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "simulate",
                              str(tmp_path / "d"), "--preset", "demo"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(6)
+    # terminate once the run is writing (its output folder exists), not after a fixed
+    # sleep: on a loaded machine the imports alone can take longer than any fixed delay
+    for _ in range(600):
+        if (tmp_path / "d").exists() or proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    time.sleep(1)
     proc.terminate()
     _out, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
