@@ -51,11 +51,14 @@ def intersect(origin, direction, terrain: Terrain, step: float | None = None,
               max_iter: int = 40, compiled: bool = True) -> np.ndarray:
     """Intersect rays with the terrain; returns ECEF ``(..., 3)``, NaN where a ray misses.
 
-    For a DEM the ray is marched downwards from the DEM's highest to its lowest height in
-    steps of ``step`` metres along the ray (default: about one DEM cell), the first crossing
-    is bracketed and refined by regula falsi to below 0.1 mm in height. A raster DEM goes
-    through the compiled kernel of :mod:`swathflow.geometry.march` (``compiled=False``:
-    the numpy reference, which asks ``terrain.height`` at every step).
+    For a DEM the ray is marched downwards from the DEM's highest to its lowest height,
+    the first crossing is bracketed and refined by regula falsi to below 0.1 mm in height.
+    A raster DEM goes through the compiled kernel of :mod:`swathflow.geometry.march`
+    (steps of one DEM cell across the ground); ``compiled=False`` takes the numpy
+    reference, which steps ``step`` metres along the ray (default: about one DEM cell) and
+    asks ``terrain.height`` at every step, as does any other :class:`Terrain`. A constant
+    height is met by the compiled Newton of ``march.shell_hits`` (``compiled=False``: numpy
+    and pyproj).
     """
     origin = np.asarray(origin, float)
     direction = np.asarray(direction, float)
@@ -64,15 +67,20 @@ def intersect(origin, direction, terrain: Terrain, step: float | None = None,
     origin = np.broadcast_to(origin, shape).reshape(-1, 3)
     direction = np.broadcast_to(direction, shape).reshape(-1, 3)
     if isinstance(terrain, ConstantHeight):
-        lam = _ellipsoid_hit(origin, direction, terrain.h)
-        lam = _refine_constant(origin, direction, lam, terrain.h)
+        if compiled:
+            from swathflow.geometry.march import shell_hits
+            lam = shell_hits(np.ascontiguousarray(origin), np.ascontiguousarray(direction),
+                             float(terrain.h))
+        else:
+            lam = _ellipsoid_hit(origin, direction, terrain.h)
+            lam = _refine_constant(origin, direction, lam, terrain.h)
         out = origin + lam[:, None] * direction
         return out.reshape(shape)
     if compiled and all(hasattr(terrain, k) for k in ("data", "transform", "crs_wkt")):
         from swathflow.geometry.march import intersect_dem
-        if step is None:
-            step = getattr(terrain, "cell_size_m", None) or 30.0
-        return intersect_dem(origin, direction, terrain, step, max_iter).reshape(shape)
+        out = intersect_dem(origin, direction, terrain, max_iter)
+        if out is not None:
+            return out.reshape(shape)
     return _intersect_dem(origin, direction, terrain, step, max_iter).reshape(shape)
 
 

@@ -177,3 +177,63 @@ def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
             _lagrange(line, a, l1, cam0, cam1, cam2, cam_out[i])
         line_out[i] = line
     return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rays(image, geo, k0, pixel_pitch, y0, focal, c_out, d_out):
+    """Projection centres and unit directions (ECEF) of image points ``(n, 2)``: the
+    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for :func:`refine`).
+    Returns False where a line is not finite or the POS cannot be interpolated at its time
+    (the caller then takes the numpy path, which reports it)."""
+    cols, time, table, max_gap, r_bp, r_hs, u_gps, u_sen = geo
+    pos = np.empty(8)
+    n = cols.shape[0]
+    for i in range(image.shape[0]):
+        line = image[i, 0]
+        if not math.isfinite(line):
+            return False
+        line = min(max(line, 0.0), n - 1.0)
+        j = min(int(line), n - 2)
+        w = line - j
+        t = cols[j, 0] * (1 - w) + cols[j + 1, 0] * w
+        s = cols[j, 1] * (1 - w) + cols[j + 1, 1] * w
+        q = cols[j, 2] * (1 - w) + cols[j + 1, 2] * w
+        if not _pos_at(time, table, max_gap, t, pos):
+            return False
+        # the camera vector in the scan head (R_HS), and the scan head's lever u_sen
+        cx, cy, cz = (image[i, 1] - k0) * pixel_pitch, y0, -focal
+        hx = r_hs[0, 0] * cx + r_hs[0, 1] * cy + r_hs[0, 2] * cz
+        hy = r_hs[1, 0] * cx + r_hs[1, 1] * cy + r_hs[1, 2] * cz
+        hz = r_hs[2, 0] * cx + r_hs[2, 1] * cy + r_hs[2, 2] * cz
+        ss, cs, sq, cq = math.sin(s), math.cos(s), math.sin(q), math.cos(q)
+        sr, cr = math.sin(pos[5] * DEG), math.cos(pos[5] * DEG)
+        sp, cp = math.sin(pos[6] * DEG), math.cos(pos[6] * DEG)
+        sh, ch = math.sin(pos[7] * DEG), math.cos(pos[7] * DEG)
+        lat, lon = pos[3] * DEG, pos[4] * DEG
+        sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+        for v in range(2):
+            if v == 0:
+                x, y, z = hx, hy, hz
+            else:
+                x, y, z = u_sen[0], u_sen[1], u_sen[2]
+            # R_PH = Rx(swing) Ry(pitch_comp), then R_BP
+            x, z = cq * x + sq * z, -sq * x + cq * z
+            y, z = cs * y - ss * z, ss * y + cs * z
+            x, y, z = (r_bp[0, 0] * x + r_bp[0, 1] * y + r_bp[0, 2] * z,
+                       r_bp[1, 0] * x + r_bp[1, 1] * y + r_bp[1, 2] * z,
+                       r_bp[2, 0] * x + r_bp[2, 1] * y + r_bp[2, 2] * z)
+            if v == 1:
+                x, y, z = x + u_gps[0], y + u_gps[1], z + u_gps[2]
+            # R_NB = Rz(heading) Ry(pitch) Rx(roll), then R_EN (north, east, down -> ECEF)
+            y, z = cr * y - sr * z, sr * y + cr * z
+            x, z = cp * x + sp * z, -sp * x + cp * z
+            x, y = ch * x - sh * y, sh * x + ch * y
+            ex = -sl * co * x - so * y - cl * co * z
+            ey = -sl * so * x + co * y - cl * so * z
+            ez = cl * x - sl * z
+            if v == 0:
+                norm = math.sqrt(ex * ex + ey * ey + ez * ez)
+                d_out[i, 0], d_out[i, 1], d_out[i, 2] = ex / norm, ey / norm, ez / norm
+            else:
+                c_out[i, 0], c_out[i, 1], c_out[i, 2] = pos[0] + ex, pos[1] + ey, pos[2] + ez
+    return True
