@@ -62,26 +62,32 @@ def intersect(origin, direction, terrain: Terrain, step: float | None = None,
     """
     origin = np.asarray(origin, float)
     direction = np.asarray(direction, float)
-    direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
     shape = np.broadcast_shapes(origin.shape, direction.shape)
     origin = np.broadcast_to(origin, shape).reshape(-1, 3)
     direction = np.broadcast_to(direction, shape).reshape(-1, 3)
-    if isinstance(terrain, ConstantHeight):
-        if compiled:
-            from swathflow.geometry.march import shell_hits
-            lam = shell_hits(np.ascontiguousarray(origin), np.ascontiguousarray(direction),
-                             float(terrain.h))
-        else:
-            lam = _ellipsoid_hit(origin, direction, terrain.h)
-            lam = _refine_constant(origin, direction, lam, terrain.h)
-        out = origin + lam[:, None] * direction
+    out = _intersect_compiled(origin, direction, terrain, max_iter) if compiled else None
+    if out is not None:
         return out.reshape(shape)
-    if compiled and all(hasattr(terrain, k) for k in ("data", "transform", "crs_wkt")):
-        from swathflow.geometry.march import intersect_dem
-        out = intersect_dem(origin, direction, terrain, max_iter)
-        if out is not None:
-            return out.reshape(shape)
+    direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+    if isinstance(terrain, ConstantHeight):
+        lam = _ellipsoid_hit(origin, direction, terrain.h)
+        lam = _refine_constant(origin, direction, lam, terrain.h)
+        return (origin + lam[:, None] * direction).reshape(shape)
     return _intersect_dem(origin, direction, terrain, step, max_iter).reshape(shape)
+
+
+def _intersect_compiled(origin, direction, terrain, max_iter):
+    """The compiled kernels (directions of any length): a constant height through
+    ``march.shell_hits``, a raster DEM through ``march.intersect_dem``; None for any other
+    terrain, or a DEM whose frame cannot be fitted."""
+    from swathflow.geometry import march
+    if isinstance(terrain, ConstantHeight):
+        o = np.ascontiguousarray(origin)
+        d = np.ascontiguousarray(direction)
+        return o + march.shell_hits(o, d, float(terrain.h))[:, None] * d
+    if all(hasattr(terrain, k) for k in ("data", "transform", "crs_wkt")):
+        return march.intersect_dem(origin, direction, terrain, max_iter)
+    return None
 
 
 def _height_gap(origin, direction, lam, terrain):
