@@ -77,12 +77,12 @@ def measure(name: str, sizes, repeat: int, numpy_path: bool) -> list[dict]:
         model.image_to_ground(np.array([[nl / 2, ne / 2]]), dem)      # compile, fit once
         for n in sizes:
             img = np.stack([rng.uniform(0, nl - 1, n), rng.uniform(0, ne - 1, n)], axis=-1)
-            cpu, wall = _cpu(lambda: model.image_to_ground(img, dem), repeat)
+            cpu, wall = _cpu(lambda img=img: model.image_to_ground(img, dem), repeat)
             row = {"model": name, "points": n, "cpu_s": cpu, "wall_s": wall}
             if numpy_path and hasattr(model, "_ray_numpy"):
                 from swathflow.geometry.intersect import intersect
 
-                def before():
+                def before(img=img):
                     o, d = model._ray_numpy(img)
                     intersect(o, d, dem, compiled=False)
                 row["numpy_cpu_s"], _ = _cpu(before, 1)

@@ -247,8 +247,10 @@ def _march_piece(q, data, blocks, g_prev, max_iter):
     for k in range(1, n_steps + 1):
         t = t0 + (t1 - t0) * k / n_steps
         g = _gap(t, q, data)[0]
-        if g_prev > 0 and g > 0 and _may_graze(t_prev, t, q, data):
-            # a ridge may poke through the ray inside the step: look at eighths of it
+        if ((g_prev > 0 and g > 0 and _may_graze(t_prev, t, q, data))
+                or (math.isnan(g_prev) and g <= 0)):
+            # a ridge may poke through the ray inside the step, or the ray comes in over
+            # nodata or the DEM's edge below the surface: look at eighths of the step
             sa, sg = t_prev, g_prev
             for m in range(1, 8):
                 tm = t_prev + (t - t_prev) * m / 8
