@@ -205,30 +205,27 @@ def tile_of(e, n, u, grid, ubox):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def poly3(c, s0, t0, w0, s1, t1, w1, s2, t2, w2, out):
-    """The tile polynomial ``c`` at three points of one tile, into ``out[0:9]`` (point by
-    point: column, row, height)."""
-    for k in range(9):
-        out[k] = 0.0
+def poly3(c, s0, t0, w0, s1, t1, w1, s2, t2, w2):
+    """The tile polynomial ``c`` at three points of one tile: a 9-tuple, point by point
+    (column, row, height); the sums stay in registers."""
+    a0 = b0 = h0 = a1 = b1 = h1 = a2 = b2 = h2 = 0.0
     m = 0
-    pw0 = 1.0
-    pw1 = 1.0
-    pw2 = 1.0
+    pw0 = pw1 = pw2 = 1.0
     for k in range(DEGREE + 1):
         pt0, pt1, pt2 = pw0, pw1, pw2
         for j in range(DEGREE + 1 - k):
             ps0, ps1, ps2 = pt0, pt1, pt2
             for _i in range(DEGREE + 1 - k - j):
-                a, b, cc = c[m, 0], c[m, 1], c[m, 2]
-                out[0] += a * ps0
-                out[1] += b * ps0
-                out[2] += cc * ps0
-                out[3] += a * ps1
-                out[4] += b * ps1
-                out[5] += cc * ps1
-                out[6] += a * ps2
-                out[7] += b * ps2
-                out[8] += cc * ps2
+                ca, cb, ch = c[m, 0], c[m, 1], c[m, 2]
+                a0 += ca * ps0
+                b0 += cb * ps0
+                h0 += ch * ps0
+                a1 += ca * ps1
+                b1 += cb * ps1
+                h1 += ch * ps1
+                a2 += ca * ps2
+                b2 += cb * ps2
+                h2 += ch * ps2
                 m += 1
                 ps0 *= s0
                 ps1 *= s1
@@ -239,6 +236,7 @@ def poly3(c, s0, t0, w0, s1, t1, w1, s2, t2, w2, out):
         pw0 *= w0
         pw1 *= w1
         pw2 *= w2
+    return a0, b0, h0, a1, b1, h1, a2, b2, h2
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -272,8 +272,9 @@ def _piece(e, n, u, de, dn, du, l0, length, grid, ubox, coef, q):
     ty, tx, s0, t0, w0 = tile_of(e + l0 * de, n + l0 * dn, u + l0 * du, grid, ubox)
     ty2, tx2, s2, t2, w2 = tile_of(e + l2 * de, n + l2 * dn, u + l2 * du, grid, ubox)
     if ty == ty2 and tx == tx2:         # the tile coordinates are linear along the ray
-        poly3(coef[ty, tx], s0, t0, w0, 0.5 * (s0 + s2), 0.5 * (t0 + t2), 0.5 * (w0 + w2),
-              s2, t2, w2, q[9:])
+        (q[9], q[10], q[11], q[12], q[13], q[14], q[15], q[16],
+         q[17]) = poly3(coef[ty, tx], s0, t0, w0, 0.5 * (s0 + s2), 0.5 * (t0 + t2),
+                        0.5 * (w0 + w2), s2, t2, w2)
     else:
         lm = l0 + 0.5 * length
         ty1, tx1, s1, t1, w1 = tile_of(e + lm * de, n + lm * dn, u + lm * du, grid, ubox)

@@ -180,11 +180,33 @@ def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def rays(image, geo, k0, pixel_pitch, y0, focal, c_out, d_out):
+def _pos_from(time, table, max_gap, t, k, out):
+    """``_pos_at`` with the search started at POS index ``k`` (``time[k] <= t``: the
+    epoch of an earlier time, e.g. the line's; a random binary search costs more than the
+    rest of a ray)."""
+    n = time.shape[0]
+    if not (t >= time[0] and t <= time[n - 1]):
+        return False
+    k = max(k, 0)
+    while k < n - 2 and time[k + 1] <= t:
+        k += 1
+    gap = time[k + 1] - time[k]
+    if gap > max_gap:
+        return False
+    w = (t - time[k]) / gap
+    for c in range(8):
+        a = table[k, c]
+        out[c] = a + (table[k + 1, c] - a) * w
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rays(image, geo, line_epoch, k0, pixel_pitch, y0, focal, c_out, d_out):
     """Projection centres and unit directions (ECEF) of image points ``(n, 2)``: the
-    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for :func:`refine`).
-    Returns False where a line is not finite or the POS cannot be interpolated at its time
-    (the caller then takes the numpy path, which reports it)."""
+    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for :func:`refine`,
+    ``line_epoch`` the POS index of every line's time). Returns False where a line is not
+    finite or the POS cannot be interpolated at its time (the caller then takes the numpy
+    path, which reports it)."""
     cols, time, table, max_gap, r_bp, r_hs, u_gps, u_sen = geo
     pos = np.empty(8)
     n = cols.shape[0]
@@ -198,7 +220,7 @@ def rays(image, geo, k0, pixel_pitch, y0, focal, c_out, d_out):
         t = cols[j, 0] * (1 - w) + cols[j + 1, 0] * w
         s = cols[j, 1] * (1 - w) + cols[j + 1, 1] * w
         q = cols[j, 2] * (1 - w) + cols[j + 1, 2] * w
-        if not _pos_at(time, table, max_gap, t, pos):
+        if not _pos_from(time, table, max_gap, t, line_epoch[j], pos):
             return False
         # the camera vector in the scan head (R_HS), and the scan head's lever u_sen
         cx, cy, cz = (image[i, 1] - k0) * pixel_pitch, y0, -focal

@@ -219,8 +219,11 @@ class PendulumModel(SensorModel):
         image = np.asarray(image, float)
         flat = np.ascontiguousarray(image.reshape(-1, 2))
         c, d = np.empty((flat.shape[0], 3)), np.empty((flat.shape[0], 3))
-        if self.n_lines >= 2 and kernel.rays(flat, self._geo(), self._k0, self._pp, self._y0,
-                                             self._f, c, d):
+        geo = self._geo()
+        if "line_epoch" not in self._shared:
+            self._shared["line_epoch"] = np.searchsorted(geo[1], geo[0][:, 0], side="right") - 1
+        if self.n_lines >= 2 and kernel.rays(flat, geo, self._shared["line_epoch"], self._k0,
+                                             self._pp, self._y0, self._f, c, d):
             shape = image.shape[:-1] + (3,)
             return c.reshape(shape), d.reshape(shape)
         return self._ray_numpy(image)
