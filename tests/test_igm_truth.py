@@ -76,14 +76,29 @@ def test_hits_lie_on_the_dem_and_round_trip(hills):
     assert np.linalg.norm(g[:2000] - ref, axis=-1).max() < 1e-3
 
 
-def test_compiled_pendulum_rays_equal_the_numpy_rays(hills):
-    model, _ = hills
+def _models():
+    from test_rectify import scene_model
+    from swathflow.sensors.pushbroom import PushbroomModel
+    return {"pendulum": scene_model(n_lines=600, n_elements=192),
+            "pushbroom": PushbroomModel.example_model("forward", n_lines=300),
+            "rotating-mirror": _plugin_model()}
+
+
+@pytest.mark.parametrize("which", ["pendulum", "pushbroom", "rotating-mirror"])
+def test_compiled_rays_equal_the_numpy_rays(which):
+    from swathflow.errors import OutOfRangeError
+    model = _models()[which]
+    nl, ne = model.shape
     img = _image(model, 5000, seed=2)
-    img[:10, 0] = [-3.0, -0.5, 0.0, 599.0, 599.7, 602.0, 0.25, 1.0, 300.5, 12.0]
+    img[:8, 0] = [-3.0, -0.5, 0.0, nl - 1.0, nl - 0.3, nl + 2.0, 0.25, 1.0]
+    img[8:12, 1] = [-0.5, 0.0, ne - 1.0, ne - 0.5]
     c, d = model.ray(img)
     c0, d0 = model._ray_numpy(img)
     assert np.abs(c - c0).max() < 1e-6 and np.abs(d - d0).max() < 1e-10     # 1e-6 px
-    assert model.ray(img.reshape(50, 100, 2))[1].shape == (50, 100, 3)
+    assert model.ray(img[:5000].reshape(50, 100, 2))[1].shape == (50, 100, 3)
+    # a line that is not a number: the numpy path reports it, as before
+    with pytest.raises(OutOfRangeError):
+        model.ray(np.array([[np.nan, 3.0]]))
 
 
 def test_rays_aimed_at_known_points_on_the_hills(hills):
