@@ -265,33 +265,36 @@ def _march_piece(q, data, blocks, g_prev, max_iter):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _piece(e, n, u, de, dn, du, l0, length, grid, ubox, coef, q):
-    """The quadratic piece (column, row, height in ``t``) of the ray from ``l0`` over
-    ``length`` (local ENU origin and direction ``e, n, u`` and ``de, dn, du``) into ``q``."""
+def _quadratic(a0, a1, a2):
+    """Coefficients of v(t) = q0 + q1 t + q2 t^2 through (0, a0), (1/2, a1), (1, a2)."""
+    return a0, -3 * a0 + 4 * a1 - a2, 2 * a0 - 4 * a1 + 2 * a2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _piece(e, n, u, de, dn, du, l0, length, grid, ubox, coef):
+    """The quadratic piece of the ray from ``l0`` over ``length`` (local ENU origin and
+    direction ``e, n, u`` and ``de, dn, du``): 9 coefficients, 3 each for column, row and
+    height in ``t`` in [0, 1]."""
     l2 = l0 + length
     ty, tx, s0, t0, w0 = tile_of(e + l0 * de, n + l0 * dn, u + l0 * du, grid, ubox)
     ty2, tx2, s2, t2, w2 = tile_of(e + l2 * de, n + l2 * dn, u + l2 * du, grid, ubox)
     if ty == ty2 and tx == tx2:         # the tile coordinates are linear along the ray
-        (q[9], q[10], q[11], q[12], q[13], q[14], q[15], q[16],
-         q[17]) = poly3(coef[ty, tx], s0, t0, w0, 0.5 * (s0 + s2), 0.5 * (t0 + t2),
-                        0.5 * (w0 + w2), s2, t2, w2)
+        c0, r0, h0, c1, r1, h1, c2, r2, h2 = poly3(
+            coef[ty, tx], s0, t0, w0, 0.5 * (s0 + s2), 0.5 * (t0 + t2), 0.5 * (w0 + w2),
+            s2, t2, w2)
     else:
         lm = l0 + 0.5 * length
         ty1, tx1, s1, t1, w1 = tile_of(e + lm * de, n + lm * dn, u + lm * du, grid, ubox)
-        q[9], q[10], q[11] = poly(coef[ty, tx], s0, t0, w0)
-        q[12], q[13], q[14] = poly(coef[ty1, tx1], s1, t1, w1)
-        q[15], q[16], q[17] = poly(coef[ty2, tx2], s2, t2, w2)
-    for m in range(3):      # v(t) = q0 + q1 t + q2 t^2 through t = 0, 1/2, 1
-        a0, a1, a2 = q[9 + m], q[12 + m], q[15 + m]
-        q[3 * m] = a0
-        q[3 * m + 1] = -3 * a0 + 4 * a1 - a2
-        q[3 * m + 2] = 2 * a0 - 4 * a1 + 2 * a2
+        c0, r0, h0 = poly(coef[ty, tx], s0, t0, w0)
+        c1, r1, h1 = poly(coef[ty1, tx1], s1, t1, w1)
+        c2, r2, h2 = poly(coef[ty2, tx2], s2, t2, w2)
+    return _quadratic(c0, c1, c2) + _quadratic(r0, r1, r2) + _quadratic(h0, h1, h2)
 
 
 @njit(cache=True, nogil=True)
-def _one_ray(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, max_iter, q):
-    """``lam`` of the first crossing of the ray ``o + lam d`` (``d`` a unit vector) with
-    the DEM from above; NaN where none."""
+def _one_ray(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, max_iter):
+    """``lam`` of the first crossing of the ray ``o + lam d`` (3-tuples, ``d`` a unit
+    vector) with the DEM from above; NaN where none."""
     lt, inside = _shell(o[0], o[1], o[2], d[0], d[1], d[2], h_top)
     if inside:
         lt = 0.0
@@ -310,7 +313,7 @@ def _one_ray(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, ma
     g_prev = np.nan
     for p in range(pieces):
         l0 = lt + p * length
-        _piece(e, n, u, de, dn, du, l0, length, grid, ubox, coef, q)
+        q = _piece(e, n, u, de, dn, du, l0, length, grid, ubox, coef)
         if p == 0:
             g_prev = _gap(0.0, q, data)[0]
         t, g_prev = _march_piece(q, data, blocks, g_prev, max_iter)
@@ -323,16 +326,14 @@ def _one_ray(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, ma
 def hits(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, max_iter, out):
     """ECEF points ``out`` where the rays (``d`` any length) first meet the DEM from above
     (NaN: never)."""
-    q = np.empty(18)
-    u = np.empty(3)
     for i in range(o.shape[0]):
         norm = math.sqrt(d[i, 0] ** 2 + d[i, 1] ** 2 + d[i, 2] ** 2)
+        u = (d[i, 0] / norm, d[i, 1] / norm, d[i, 2] / norm)
+        p = (o[i, 0], o[i, 1], o[i, 2])
+        lam = _one_ray(p, u, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data,
+                       max_iter)
         for k in range(3):
-            u[k] = d[i, k] / norm
-        lam = _one_ray(o[i], u, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data,
-                       max_iter, q)
-        for k in range(3):
-            out[i, k] = o[i, k] + lam * u[k]
+            out[i, k] = p[k] + lam * u[k]
     return out
 
 
