@@ -44,7 +44,9 @@ def _model(name):
     if name == "pushbroom":
         from swathflow.sensors.pushbroom import PushbroomModel
         return PushbroomModel.example_model("nadir", n_lines=600)
-    sys.path.insert(0, str(ROOT / "plugins" / "rotating-mirror"))
+    import swathflow        # the plugin of the build being measured (main's for --before)
+    repo = Path(swathflow.__file__).resolve().parents[1]
+    sys.path.insert(0, str(repo / "plugins" / "rotating-mirror"))
     from swathflow_rotating_mirror.model import RotatingMirrorModel
     return RotatingMirrorModel.example_model()
 

@@ -51,14 +51,15 @@ def intersect(origin, direction, terrain: Terrain, step: float | None = None,
               max_iter: int = 40, compiled: bool = True) -> np.ndarray:
     """Intersect rays with the terrain; returns ECEF ``(..., 3)``, NaN where a ray misses.
 
-    For a DEM the ray is marched downwards from the DEM's highest to its lowest height,
-    the first crossing is bracketed and refined by regula falsi to below 0.1 mm in height.
-    A raster DEM goes through the compiled kernel of :mod:`swathflow.geometry.march`
-    (steps of one DEM cell across the ground); ``compiled=False`` takes the numpy
-    reference, which steps ``step`` metres along the ray (default: about one DEM cell) and
-    asks ``terrain.height`` at every step, as does any other :class:`Terrain`. A constant
-    height is met by the compiled Newton of ``march.shell_hits`` (``compiled=False``: numpy
-    and pyproj).
+    For a DEM the ray is marched downwards from the DEM's highest to its lowest height and
+    the first crossing is bracketed and refined to below 0.1 mm in height. A raster DEM
+    goes through the compiled kernel of :mod:`swathflow.geometry.march` (steps of at most
+    one DEM cell across the ground, Newton's method on the bilinear DEM; ``step`` is not
+    used); ``compiled=False`` takes the numpy reference, which steps ``step`` metres along
+    the ray (default: about one DEM cell), asks ``terrain.height`` at every step and
+    refines by regula falsi, as does any other :class:`Terrain`. A constant height is met
+    by the compiled Newton of ``march.shell_hits`` (``compiled=False``: numpy and pyproj).
+    Directions need not be unit vectors.
     """
     origin = np.asarray(origin, float)
     direction = np.asarray(direction, float)
