@@ -51,29 +51,44 @@ def intersect(origin, direction, terrain: Terrain, step: float | None = None,
               max_iter: int = 40, compiled: bool = True) -> np.ndarray:
     """Intersect rays with the terrain; returns ECEF ``(..., 3)``, NaN where a ray misses.
 
-    For a DEM the ray is marched downwards from the DEM's highest to its lowest height in
-    steps of ``step`` metres along the ray (default: about one DEM cell), the first crossing
-    is bracketed and refined by regula falsi to below 0.1 mm in height. A raster DEM goes
-    through the compiled kernel of :mod:`swathflow.geometry.march` (``compiled=False``:
-    the numpy reference, which asks ``terrain.height`` at every step).
+    For a DEM the ray is marched downwards from the DEM's highest to its lowest height and
+    the first crossing is bracketed and refined to below 0.1 mm in height. A raster DEM
+    goes through the compiled kernel of :mod:`swathflow.geometry.march` (steps of at most
+    one DEM cell across the ground, Newton's method on the bilinear DEM; ``step`` is not
+    used); ``compiled=False`` takes the numpy reference, which steps ``step`` metres along
+    the ray (default: about one DEM cell), asks ``terrain.height`` at every step and
+    refines by regula falsi, as does any other :class:`Terrain`. A constant height is met
+    by the compiled Newton of ``march.shell_hits`` (``compiled=False``: numpy and pyproj).
+    Directions need not be unit vectors.
     """
     origin = np.asarray(origin, float)
     direction = np.asarray(direction, float)
-    direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
     shape = np.broadcast_shapes(origin.shape, direction.shape)
     origin = np.broadcast_to(origin, shape).reshape(-1, 3)
     direction = np.broadcast_to(direction, shape).reshape(-1, 3)
+    out = _intersect_compiled(origin, direction, terrain, max_iter) if compiled else None
+    if out is not None:
+        return out.reshape(shape)
+    direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
     if isinstance(terrain, ConstantHeight):
         lam = _ellipsoid_hit(origin, direction, terrain.h)
         lam = _refine_constant(origin, direction, lam, terrain.h)
-        out = origin + lam[:, None] * direction
-        return out.reshape(shape)
-    if compiled and all(hasattr(terrain, k) for k in ("data", "transform", "crs_wkt")):
-        from swathflow.geometry.march import intersect_dem
-        if step is None:
-            step = getattr(terrain, "cell_size_m", None) or 30.0
-        return intersect_dem(origin, direction, terrain, step, max_iter).reshape(shape)
+        return (origin + lam[:, None] * direction).reshape(shape)
     return _intersect_dem(origin, direction, terrain, step, max_iter).reshape(shape)
+
+
+def _intersect_compiled(origin, direction, terrain, max_iter):
+    """The compiled kernels (directions of any length): a constant height through
+    ``march.shell_hits``, a raster DEM through ``march.intersect_dem``; None for any other
+    terrain, or a DEM whose frame cannot be fitted."""
+    from swathflow.geometry import march
+    if isinstance(terrain, ConstantHeight):
+        o = np.ascontiguousarray(origin)
+        d = np.ascontiguousarray(direction)
+        return o + march.shell_hits(o, d, float(terrain.h))[:, None] * d
+    if all(hasattr(terrain, k) for k in ("data", "transform", "crs_wkt")):
+        return march.intersect_dem(origin, direction, terrain, max_iter)
+    return None
 
 
 def _height_gap(origin, direction, lam, terrain):

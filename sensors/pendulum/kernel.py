@@ -10,6 +10,8 @@ import math
 import numpy as np
 from numba import njit
 
+from swathflow.geometry.navkernel import body_to_ecef, nav_trig, pos_from
+
 DEG = math.pi / 180.0
 
 
@@ -17,19 +19,9 @@ DEG = math.pi / 180.0
 def _pos_at(time, table, max_gap, t, out):
     """Linear POS interpolation at time ``t`` into ``out`` (8 columns); False where
     ``t`` is outside the trajectory or inside a gap (the numpy path then raises)."""
-    n = time.shape[0]
-    if not (t >= time[0] and t <= time[n - 1]):
+    if not (t >= time[0] and t <= time[time.shape[0] - 1]):
         return False
-    i = np.searchsorted(time, t, side="right") - 1
-    i = min(max(i, 0), n - 2)
-    gap = time[i + 1] - time[i]
-    if gap > max_gap:
-        return False
-    w = (t - time[i]) / gap
-    for k in range(8):
-        a = table[i, k]
-        out[k] = a + (table[i + 1, k] - a) * w
-    return True
+    return pos_from(time, table, max_gap, t, np.searchsorted(time, t, side="right") - 1, out)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -176,4 +168,55 @@ def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
             _frame_vector(r_es, c, a + 1, g[i], cam2)
             _lagrange(line, a, l1, cam0, cam1, cam2, cam_out[i])
         line_out[i] = line
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rays(image, geo, line_epoch, k0, pixel_pitch, y0, focal, c_out, d_out):
+    """Projection centres and unit directions (ECEF) of image points ``(n, 2)``: the
+    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for :func:`refine`,
+    ``line_epoch`` the POS epoch of every line's time). Returns False where a line is not
+    finite or the POS cannot be interpolated at its time (the caller then takes the numpy
+    path, which reports it)."""
+    cols, time, table, max_gap, r_bp, r_hs, u_gps, u_sen = geo
+    pos = np.empty(8)
+    n = cols.shape[0]
+    for i in range(image.shape[0]):
+        line = image[i, 0]
+        if not math.isfinite(line):
+            return False
+        line = min(max(line, 0.0), n - 1.0)
+        j = min(int(line), n - 2)
+        w = line - j
+        t = cols[j, 0] * (1 - w) + cols[j + 1, 0] * w
+        s = cols[j, 1] * (1 - w) + cols[j + 1, 1] * w
+        q = cols[j, 2] * (1 - w) + cols[j + 1, 2] * w
+        if not pos_from(time, table, max_gap, t, line_epoch[j], pos):
+            return False
+        trig = nav_trig(pos)
+        ss, cs, sq, cq = math.sin(s), math.cos(s), math.sin(q), math.cos(q)
+        # the camera vector in the scan head (R_HS), and the scan head's lever u_sen
+        cx, cy, cz = (image[i, 1] - k0) * pixel_pitch, y0, -focal
+        hx = r_hs[0, 0] * cx + r_hs[0, 1] * cy + r_hs[0, 2] * cz
+        hy = r_hs[1, 0] * cx + r_hs[1, 1] * cy + r_hs[1, 2] * cz
+        hz = r_hs[2, 0] * cx + r_hs[2, 1] * cy + r_hs[2, 2] * cz
+        for v in range(2):
+            if v == 0:
+                x, y, z = hx, hy, hz
+            else:
+                x, y, z = u_sen[0], u_sen[1], u_sen[2]
+            # R_PH = Rx(swing) Ry(pitch_comp), then R_BP
+            x, z = cq * x + sq * z, -sq * x + cq * z
+            y, z = cs * y - ss * z, ss * y + cs * z
+            x, y, z = (r_bp[0, 0] * x + r_bp[0, 1] * y + r_bp[0, 2] * z,
+                       r_bp[1, 0] * x + r_bp[1, 1] * y + r_bp[1, 2] * z,
+                       r_bp[2, 0] * x + r_bp[2, 1] * y + r_bp[2, 2] * z)
+            if v == 1:
+                x, y, z = x + u_gps[0], y + u_gps[1], z + u_gps[2]
+            ex, ey, ez = body_to_ecef(x, y, z, trig)
+            if v == 0:
+                norm = math.sqrt(ex * ex + ey * ey + ez * ez)
+                d_out[i, 0], d_out[i, 1], d_out[i, 2] = ex / norm, ey / norm, ez / norm
+            else:
+                c_out[i, 0], c_out[i, 1], c_out[i, 2] = pos[0] + ex, pos[1] + ey, pos[2] + ez
     return True

@@ -214,6 +214,22 @@ class PendulumModel(SensorModel):
 
     # --- interface ------------------------------------------------------------------------
     def ray(self, image):
+        """Compiled (``kernel.rays``); the numpy path where the kernel declines (a line
+        off the POS or not finite: the numpy path reports it)."""
+        image = np.asarray(image, float)
+        flat = np.ascontiguousarray(image.reshape(-1, 2))
+        c, d = np.empty((flat.shape[0], 3)), np.empty((flat.shape[0], 3))
+        geo = self._geo()
+        if "line_epoch" not in self._shared:
+            self._shared["line_epoch"] = np.searchsorted(geo[1], geo[0][:, 0], side="right") - 1
+        if self.n_lines >= 2 and kernel.rays(flat, geo, self._shared["line_epoch"], self._k0,
+                                             self._pp, self._y0, self._f, c, d):
+            shape = image.shape[:-1] + (3,)
+            return c.reshape(shape), d.reshape(shape)
+        return self._ray_numpy(image)
+
+    def _ray_numpy(self, image):
+        """The numpy path of :meth:`ray` (reference for the compiled one)."""
         image = np.asarray(image, float)
         c, r = self._state(image[..., 0])
         d = apply(r, self._camera_vectors(image[..., 1]))
@@ -347,19 +363,23 @@ class PendulumModel(SensorModel):
     def _refine_compiled(self, g, j, fj, fj1):
         """``_refine`` through the numba kernel; None where the POS has a gap there."""
         r_es, c = self._line_frames()
-        tr = self._trajectory
-        if "pos_table" not in self._shared:
-            self._shared["pos_table"] = np.column_stack([tr.ecef, tr.lat, tr.lon, tr.attitude])
         m = g.shape[0]
         line, cam = np.empty(m), np.empty((m, 3))
-        geo = (self._line_cols, np.asarray(tr.time, float), self._shared["pos_table"],
-               float(tr.max_gap), self._r_bp_t, self._r_hs, np.asarray(self._u_gps, float),
-               np.asarray(self._u_sen, float))
-        ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]), geo, r_es, c,
-                           ROUGH_LINE, line, cam)
+        ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]), self._geo(),
+                           r_es, c, ROUGH_LINE, line, cam)
         if not ok:
             return None
         return line, cam
+
+    def _geo(self) -> tuple:
+        """The kernels' view of the geometry: line columns, POS times and table (ECEF,
+        lat, lon, attitude), max gap, R_BP, R_HS, u_gps, u_sen."""
+        tr = self._trajectory
+        if "pos_table" not in self._shared:
+            self._shared["pos_table"] = np.column_stack([tr.ecef, tr.lat, tr.lon, tr.attitude])
+        return (self._line_cols, np.asarray(tr.time, float), self._shared["pos_table"],
+                float(tr.max_gap), self._r_bp_t, self._r_hs, np.asarray(self._u_gps, float),
+                np.asarray(self._u_sen, float))
 
     def _pixels(self, line, cam, clip: bool) -> np.ndarray:
         """(line, element) from fractional lines and camera vectors; NaN behind the camera

@@ -265,6 +265,35 @@ class PushbroomModel(GroundSolver, Partials, SensorModel):
 
     # --- interface ------------------------------------------------------------------------
     def ray(self, image):
+        """Compiled (:func:`~swathflow.sensors.pushbroom.rays.rays`); the numpy path where
+        the kernel declines (a line off the POS or not finite: the numpy path reports it)."""
+        from swathflow.geometry.navkernel import epochs, pos_table
+        from swathflow.sensors.pushbroom.rays import rays
+        image = np.asarray(image, float)
+        if self.n_lines < 2:
+            return self._ray_numpy(image)
+        flat = np.ascontiguousarray(image.reshape(-1, 2))
+        sh = self._shared
+        if "nav" not in sh:
+            tr = self._trajectory
+            time, table = pos_table(tr)
+            sh["nav"] = (time, table, float(tr.max_gap))
+            lt = np.ascontiguousarray(self._ltime, dtype=float)
+            sh["line_epochs"] = (lt, epochs(time, lt))
+        nf = self._ft.size
+        fixes = (np.asarray(self._ft, float),
+                 np.asarray(self._d_ned if nf else np.zeros((0, 3)), float).reshape(-1, 3),
+                 np.radians(np.asarray(self._d_opk if nf else np.zeros((0, 3)),
+                                       float)).reshape(-1, 3))
+        cam = (np.ascontiguousarray(self._R_bs), np.asarray(self._u_gps, float), self._coef_t)
+        c, d = np.empty((flat.shape[0], 3)), np.empty((flat.shape[0], 3))
+        if rays(flat, sh["line_epochs"], sh["nav"], fixes, cam, c, d):
+            shape = image.shape[:-1] + (3,)
+            return c.reshape(shape), d.reshape(shape)
+        return self._ray_numpy(image)
+
+    def _ray_numpy(self, image):
+        """The numpy path of :meth:`ray` (reference for the compiled one)."""
         image = np.asarray(image, float)
         c, r = self._state_t(self._line_time(image[..., 0]))
         tx, ty, _, _ = self.view_tangents(image[..., 1])

@@ -153,6 +153,30 @@ class RotatingMirrorModel(SensorModel):
         return self._row_time(image[..., 0]) + image[..., 1] * self._dwell
 
     def ray(self, image):
+        """Compiled (``kernel.rays``); the numpy path where the kernel declines (a line off
+        the POS or not finite: the numpy path reports it)."""
+        from swathflow.geometry.navkernel import epochs, pos_table
+        from swathflow_rotating_mirror import kernel
+        image = np.asarray(image, float)
+        flat = np.ascontiguousarray(image.reshape(-1, 2))
+        sh = self._shared
+        if "nav" not in sh:
+            tr = self._trajectory
+            time, table = pos_table(tr)
+            sh["nav"] = (time, table, float(tr.max_gap))
+            rtime = np.ascontiguousarray(self._lines["time"], dtype=float)
+            sh["rows"] = (rtime, np.ascontiguousarray(self._start, dtype=float),
+                          epochs(time, rtime))
+        scan = (float(self._ifov), float(self._dwell), float(self._offset),
+                np.ascontiguousarray(self._R_bm), np.asarray(self._u_gps, float))
+        c, d = np.empty((flat.shape[0], 3)), np.empty((flat.shape[0], 3))
+        if kernel.rays(flat, sh["rows"], sh["nav"], scan, c, d):
+            shape = image.shape[:-1] + (3,)
+            return c.reshape(shape), d.reshape(shape)
+        return self._ray_numpy(image)
+
+    def _ray_numpy(self, image):
+        """The numpy path of :meth:`ray` (reference for the compiled one)."""
         image = np.asarray(image, float)
         c, r = self._state(self.image_time(image))
         th = self.scan_angle(image)
