@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -126,11 +127,13 @@ def _processes(workers: int | None, n_jobs: int) -> int:
     n = min(workers or os.cpu_count() or 1, n_jobs)
     if n < 2 or "fork" not in mp.get_all_start_methods() or threading.active_count() > 1:
         return 1                  # forking beside other threads may copy a held lock
+    if "distributed" not in sys.modules:     # not imported: no client can be active (and
+        return n                             # importing it costs 0.2-0.3 s)
     try:
         from distributed import default_client
         default_client()
         return 1                                  # a cluster is there: use it
-    except (ImportError, ValueError):
+    except ValueError:
         return n
 
 
@@ -143,28 +146,44 @@ def _run(jobs, processes: int):
             for k in range(len(jobs)):
                 yield _one(k)
             return
+        import gc
         import multiprocessing as mp
         _warm(jobs[0])
-        with mp.get_context("fork").Pool(processes) as pool:
-            yield from pool.imap(_one_synchronous, range(len(jobs)))
+        gc.freeze()         # the objects of the imports are shared by the forked workers:
+        try:                # no collector passes over them there (nor copies of their pages)
+            with mp.get_context("fork").Pool(processes, initializer=_worker_signals) as pool:
+                yield from pool.imap(_one_synchronous, range(len(jobs)))
+                pool.close()                     # the workers end on their own (no SIGTERM)
+                pool.join()
+        finally:
+            gc.unfreeze()
     finally:
         _JOBS = []
 
 
+def _worker_signals() -> None:
+    """A forked worker ends quietly on SIGTERM (the pool's terminate, or the command's
+    process group stopped) and leaves Ctrl-C to the parent, which stops the pool."""
+    import signal
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _warm(job) -> None:
-    """Import the engine and load its compiled kernels for the first job's types once,
-    before the workers fork (each would otherwise load them again)."""
-    import dask.array  # noqa: F401
-    import numpy as np
-    import rasterio  # noqa: F401
-    from swathflow.rectification.kernel import resample_window
-    from swathflow.rectification.paint import paint_window
-    from swathflow.rectification.tiles import output_plan
-    mission, iid, _, _, _, o = job
+    """Import the engine and load every compiled kernel the jobs call (numba's on-disk
+    cache) once, before the workers fork (each would otherwise load them again): the first
+    job's swing set-up, and an 8 x 8 px window in the middle of its grid rectified."""
+    from dask.local import get_sync
+
+    from swathflow.rectification.api import _swing
+    from swathflow.rectification.tiles import output_plan, rectify_blocks
+    mission, iid, calibration, _, _, o = job
     if o["method"] != "exact":
         return
-    src = open_raw_image(mission.images[iid].file, bands=o["bands"])
-    dt, ond, _ = output_plan(src, o["dtype"], o["mask_band"])
-    paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
-    resample_window(np.zeros((src.count, 4, 4), src.dtype), np.zeros((2, 2, 2), np.float32),
-                    o["kernel"], src.nodata, dt, ond)
+    m, model, terrain, grid, _ = _swing(mission, iid, calibration, None, None)
+    src = open_raw_image(m.images[iid].file, bands=o["bands"])
+    _, _, use_mask = output_plan(src, o["dtype"], o["mask_band"])
+    r, c = grid.height // 2, grid.width // 2
+    win = grid.window(slice(max(r - 4, 0), r + 4), slice(max(c - 4, 0), c + 4))
+    rectify_blocks(model, src, win, terrain, o["kernel"], o["tol"], o["tile"],
+                   dtype=o["dtype"], mask_plane=use_mask).compute(scheduler=get_sync)

@@ -272,6 +272,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    code = _main(argv)
+    if argv is None:       # the program ends here: leave its objects to the process's end
+        import gc          # rather than to the collector's last passes over every module
+        gc.freeze()        # (0.3-0.5 CPU-s after a rectification)
+    return code
+
+
+def _main(argv: list[str] | None) -> int:
     import warnings
 
     from swathflow.errors import SwathflowError
