@@ -173,6 +173,7 @@ def _warm(job) -> None:
     """Import the engine and load every compiled kernel the jobs call (numba's on-disk
     cache) once, before the workers fork (each would otherwise load them again): the first
     job's swing set-up, and an 8 x 8 px window in the middle of its grid rectified."""
+    import rioxarray  # noqa: F401  (the .rio accessor of every job's array)
     from dask.local import get_sync
 
     from swathflow.rectification.api import _swing
