@@ -12,6 +12,8 @@ texture at the output pixel centres) over the whole footprint and per 128-px til
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.11,0.4 \
         --baseline /work/main/.venv/bin/swathflow        # output sizes; another build beside
     .venv/bin/python benchmarks/bench_rectify.py --startup         # start-up, numba cache warm/cold
+    .venv/bin/python benchmarks/bench_rectify.py --startup --command /tmp/m \
+        --baseline /work/main/.venv/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
     .venv/bin/python benchmarks/bench_rectify.py --cube 100        # 100-band uint16 cube
     .venv/bin/python benchmarks/bench_rectify.py --igm             # image_to_ground on a DEM
     .venv/bin/python benchmarks/bench_rectify.py --memory          # 2048 x 20000 swing, peak RSS
@@ -309,7 +311,8 @@ def main():
               f"(bound 2048 MB), {r['seconds']:.0f} s, output grid {r['grid'][0]} x "
               f"{r['grid'][1]} ({r['out_mpx']:.0f} Mpx)")
     elif args.startup:
-        X.main("startup")
+        X.main("startup", mission_dir=args.command, preset=args.preset,
+               baseline=args.baseline)
     elif args.command:
         for gsd in ([float(g) for g in args.command_gsd.split(",")] if args.command_gsd
                     else [None]):

@@ -98,3 +98,32 @@ def test_footprint_grid_covers_the_image_corners():
     # tight: no more than one pixel of slack beyond the extreme corners on every side
     assert x.min() - xmin < 2.0 + 1e-6 and xmax - x.max() < 2.0 + 1e-6
     assert y.min() - ymin < 2.0 + 1e-6 and ymax - y.max() < 2.0 + 1e-6
+
+
+def test_to_ecef_on_a_dem_in_the_grid_crs_sits_on_the_dem(tmp_path):
+    """A DEM in the grid's own CRS (heights read straight from map x, y): the points are
+    on the DEM's plane (bilinear interpolation reproduces a plane exactly) and back at
+    their map position through the independent lon/lat route of ecef_to_map."""
+    from swathflow.formats.raster import write_geotiff
+    from swathflow.geometry.terrain import DEM
+    g = _grid()
+    x0, y0, cell = 259900.0, 3601100.0, 5.0
+    rows, cols = np.mgrid[0:80, 0:80]
+    xc, yc = x0 + (cols + 0.5) * cell, y0 - (rows + 0.5) * cell
+
+    def plane(x, y):
+        return 40.0 + 0.02 * (x - 260000.0) - 0.03 * (y - 3601000.0)
+    write_geotiff(tmp_path / "dem.tif", plane(xc, yc), "EPSG:32651",
+                  (cell, 0, x0, 0, -cell, y0))
+    dem = DEM.open(tmp_path / "dem.tif")
+    x, y = g.centres(slice(0, 300, 7), slice(0, 420, 11))
+    ecef = g.to_ecef(x, y, dem)
+    llh = ecef_to_geodetic(ecef)
+    assert np.allclose(llh[..., 2], plane(x, y), atol=1e-6)
+    xb, yb, _ = ecef_to_map(ecef, g.crs)
+    assert np.allclose(xb, x, atol=1e-6) and np.allclose(yb, y, atol=1e-6)
+    # the same DEM seen from another CRS's grid goes through lon/lat: same points
+    g2 = Grid("EPSG:3857", Affine(1, 0, 0, 0, -1, 0), (1, 1))
+    lon, lat = transformer(g.crs, "EPSG:4326").transform(x, y)
+    x2, y2 = transformer("EPSG:4326", g2.crs).transform(lon, lat)
+    assert np.allclose(g2.to_ecef(x2, y2, dem), ecef, atol=1e-4)

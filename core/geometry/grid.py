@@ -143,7 +143,12 @@ class Grid:
     def to_ecef(self, x, y, terrain) -> np.ndarray:
         """ECEF ``(..., 3)`` of map points on the terrain (ellipsoidal heights)."""
         from swathflow.geometry.geodesy import geodetic_to_ecef
-        lon, lat = _to_lonlat(self.crs).transform(np.asarray(x, float), np.asarray(y, float))
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        h = _map_heights(self.crs, terrain, x, y)
+        if h is not None:       # one projection call, not three (the same points to 1e-9 m)
+            ex, ey, ez = _to_ecef(self.crs).transform(*np.broadcast_arrays(x, y, h))
+            return np.stack([ex, ey, ez], axis=-1)
+        lon, lat = _to_lonlat(self.crs).transform(x, y)
         h = terrain.height(lat, lon)
         return geodetic_to_ecef(np.stack(np.broadcast_arrays(lat, lon, h), axis=-1))
 
@@ -155,6 +160,40 @@ class Grid:
 @lru_cache(maxsize=64)
 def _to_lonlat(crs: str):
     return transformer(crs, "EPSG:4326")
+
+
+@lru_cache(maxsize=64)
+def _to_ecef(crs: str):
+    """Map x, y and ellipsoidal height in ``crs`` -> ECEF, in one transformation."""
+    return transformer(pyproj.CRS.from_user_input(crs).to_3d(), "EPSG:4978")
+
+
+@lru_cache(maxsize=64)
+def _wgs84_projected(crs: str) -> bool:
+    """A projected 2-D CRS on WGS 84 (its 3-D form then carries WGS 84 ellipsoidal
+    heights, as :func:`~swathflow.geometry.geodesy.geodetic_to_ecef` takes them)."""
+    c = pyproj.CRS.from_user_input(crs)
+    return (c.is_projected and not c.is_compound and len(c.axis_info) == 2
+            and c.geodetic_crs is not None and c.geodetic_crs.equals("EPSG:4326"))
+
+
+@lru_cache(maxsize=64)
+def _same_crs(crs: str, wkt: str) -> bool:
+    return pyproj.CRS.from_user_input(crs).equals(pyproj.CRS.from_wkt(wkt))
+
+
+def _map_heights(crs: str, terrain, x, y):
+    """Ellipsoidal heights at map points of ``crs`` straight from the map coordinates (a
+    constant height, or a DEM in the same CRS), None where that needs longitude and
+    latitude (another terrain, a DEM in another CRS, a CRS not on WGS 84)."""
+    from swathflow.geometry.terrain import DEM, ConstantHeight
+    if not _wgs84_projected(crs):
+        return None
+    if type(terrain) is ConstantHeight:
+        return np.full(np.broadcast_shapes(x.shape, y.shape), float(terrain.h))
+    if type(terrain) is DEM and _same_crs(crs, terrain.crs_wkt):
+        return terrain.height_xy(x, y)
+    return None
 
 
 @lru_cache(maxsize=64)

@@ -160,6 +160,10 @@ class DEM(Terrain):
         lat = np.asarray(lat, float)
         lon = np.asarray(lon, float)
         x, y = transformer("EPSG:4326", self.crs_wkt).transform(lon, lat)
+        return self.height_xy(x, y)
+
+    def height_xy(self, x, y) -> np.ndarray:
+        """:meth:`height` at points given in the DEM's own CRS."""
         a, b, c, d, e, f = self.transform
         det = a * e - b * d
         col = (e * (x - c) - b * (y - f)) / det - 0.5

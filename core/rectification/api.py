@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 from collections.abc import Mapping
 
 import numpy as np
@@ -234,6 +235,23 @@ def _grid_of(da: xr.DataArray) -> Grid | None:
     return Grid(da.rio.crs.to_string(), da.rio.transform(), (da.rio.height, da.rio.width))
 
 
+def local_scheduler(collection):
+    """The scheduler function dask would use for ``collection`` (the configured one, else
+    the collection's default) when ``distributed`` was never imported, so no Client can
+    be active; None otherwise (dask then looks for a Client). Passing it to ``compute``
+    spares dask's own lookup, which imports ``distributed`` (0.2-0.4 CPU-s)."""
+    import dask
+    from dask.base import named_schedulers
+    if "distributed" in sys.modules:
+        return None
+    name = dask.config.get("scheduler", None)
+    if name is None:
+        return collection.__dask_scheduler__
+    if callable(name):
+        return name
+    return named_schedulers.get(name.lower()) if isinstance(name, str) else None
+
+
 def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: int = 512,
            compress: str = "deflate", overview_resampling: str = "average",
            scheduler=None) -> dict:
@@ -263,6 +281,8 @@ def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: in
         bands = data
     out_tags = {k: str(v) for k, v in da.attrs.items() if k not in _NOT_TAGS}
     out_tags.update({k: str(v) for k, v in (tags or {}).items()})
+    if scheduler is None:
+        scheduler = local_scheduler(bands)
     write_cogs([{"path": path, "array": bands, "grid": grid, "nodata": nodata,
                  "tags": out_tags, "mask": use_mask, "bands": _band_infos(da)}],
                blocksize=blocksize, compress=compress,

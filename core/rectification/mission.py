@@ -4,8 +4,11 @@
 side by side in forked worker processes."""
 from __future__ import annotations
 
+import contextlib
+import gc
 import json
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -65,23 +68,29 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     unknown = set(products) - {"glt", "igm"}
     if unknown:
         raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
-    mission = load_mission(mission_path)
-    ids = mission.image_ids
-    if images:
-        missing = [i for i in images if i not in ids]
-        if missing:
-            raise FormatError(f"{mission_path}: no image(s) {', '.join(missing)}; the mission "
-                              f"has {', '.join(ids)}")
-        ids = list(images)
-    os.makedirs(out_dir, exist_ok=True)
-    options = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=bands,
-                   dtype=dtype, mask_band=mask_band)
-    jobs = [(mission, iid, calibration, out_dir, tuple(products),
-             dict(options, bands=bands if bands not in (None, "") else
-                  mission_bands(mission, iid)))
-            for iid in ids]
+    with _start_up():
+        mission = load_mission(mission_path)
+        ids = mission.image_ids
+        if images:
+            missing = [i for i in images if i not in ids]
+            if missing:
+                raise FormatError(f"{mission_path}: no image(s) {', '.join(missing)}; the "
+                                  f"mission has {', '.join(ids)}")
+            ids = list(images)
+        os.makedirs(out_dir, exist_ok=True)
+        options = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=bands,
+                       dtype=dtype, mask_band=mask_band)
+        jobs = [(mission, iid, calibration, out_dir, tuple(products),
+                 dict(options, bands=bands if bands not in (None, "") else
+                      mission_bands(mission, iid)))
+                for iid in ids]
+        processes = _processes(workers, len(jobs))
+        if processes > 1:
+            _warm(jobs[0])
+            # shared with the forked workers: no collector passes over these objects there
+            gc.freeze()     # (nor copies of their pages); _run unfreezes them at its end
     summaries, cal_tag = [], ""
-    for s, tag, shape in _run(jobs, _processes(workers, len(jobs))):
+    for s, tag, shape in _run(jobs, processes):
         summaries.append(s)
         cal_tag = tag
         if progress:
@@ -90,6 +99,20 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     write_text(os.path.join(out_dir, "rectify.json"),
                json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")
     return summaries
+
+
+@contextlib.contextmanager
+def _start_up():
+    """No collector passes while the mission loads and the engine warms up (0.1-0.2 CPU-s
+    on the demo): what is made then (the modules imported on the way, the mission, the
+    loaded kernels) lives to the end anyway. The collector's state is restored after."""
+    on = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if on:
+            gc.enable()
 
 
 #: the jobs of the running :func:`rectify_mission`, read by its forked workers
@@ -126,11 +149,13 @@ def _processes(workers: int | None, n_jobs: int) -> int:
     n = min(workers or os.cpu_count() or 1, n_jobs)
     if n < 2 or "fork" not in mp.get_all_start_methods() or threading.active_count() > 1:
         return 1                  # forking beside other threads may copy a held lock
+    if "distributed" not in sys.modules:     # not imported: no client can be active (and
+        return n                             # importing it costs 0.2-0.3 s)
     try:
         from distributed import default_client
         default_client()
         return 1                                  # a cluster is there: use it
-    except (ImportError, ValueError):
+    except ValueError:
         return n
 
 
@@ -144,27 +169,41 @@ def _run(jobs, processes: int):
                 yield _one(k)
             return
         import multiprocessing as mp
-        _warm(jobs[0])
-        with mp.get_context("fork").Pool(processes) as pool:
-            yield from pool.imap(_one_synchronous, range(len(jobs)))
+        try:
+            with mp.get_context("fork").Pool(processes, initializer=_worker_signals) as pool:
+                yield from pool.imap(_one_synchronous, range(len(jobs)))
+                pool.close()                     # the workers end on their own (no SIGTERM)
+                pool.join()
+        finally:
+            gc.unfreeze()
     finally:
         _JOBS = []
 
 
+def _worker_signals() -> None:
+    """A forked worker ends quietly on SIGTERM (the pool's terminate, or the command's
+    process group stopped) and leaves Ctrl-C to the parent, which stops the pool."""
+    import signal
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _warm(job) -> None:
-    """Import the engine and load its compiled kernels for the first job's types once,
-    before the workers fork (each would otherwise load them again)."""
-    import dask.array  # noqa: F401
-    import numpy as np
-    import rasterio  # noqa: F401
-    from swathflow.rectification.kernel import resample_window
-    from swathflow.rectification.paint import paint_window
-    from swathflow.rectification.tiles import output_plan
-    mission, iid, _, _, _, o = job
+    """Import the engine and load every compiled kernel the jobs call (numba's on-disk
+    cache) once, before the workers fork (each would otherwise load them again): the first
+    job's swing set-up, and an 8 x 8 px window in the middle of its grid rectified."""
+    import rioxarray  # noqa: F401  (the .rio accessor of every job's array)
+    from dask.local import get_sync
+
+    from swathflow.rectification.api import _swing
+    from swathflow.rectification.tiles import output_plan, rectify_blocks
+    mission, iid, calibration, _, _, o = job
     if o["method"] != "exact":
         return
-    src = open_raw_image(mission.images[iid].file, bands=o["bands"])
-    dt, ond, _ = output_plan(src, o["dtype"], o["mask_band"])
-    paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
-    resample_window(np.zeros((src.count, 4, 4), src.dtype), np.zeros((2, 2, 2), np.float32),
-                    o["kernel"], src.nodata, dt, ond)
+    m, model, terrain, grid, _ = _swing(mission, iid, calibration, None, None)
+    src = open_raw_image(m.images[iid].file, bands=o["bands"])
+    _, _, use_mask = output_plan(src, o["dtype"], o["mask_band"])
+    r, c = grid.height // 2, grid.width // 2
+    win = grid.window(slice(max(r - 4, 0), r + 4), slice(max(c - 4, 0), c + 4))
+    rectify_blocks(model, src, win, terrain, o["kernel"], o["tol"], o["tile"],
+                   dtype=o["dtype"], mask_plane=use_mask).compute(scheduler=get_sync)

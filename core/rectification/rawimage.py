@@ -240,9 +240,8 @@ class RawImage:
         else:
             a = np.stack([self.data[i, l0:l1, e0:e1] for i in sel])
         if hasattr(a, "compute"):
-            import dask
-            with dask.config.set(scheduler="sync"):
-                a = a.compute()
+            from dask.local import get_sync      # a function: dask imports no distributed
+            a = a.compute(scheduler=get_sync)
         a = np.asarray(getattr(a, "values", a))
         if not a.dtype.isnative:
             a = a.astype(a.dtype.newbyteorder("="))
