@@ -231,41 +231,38 @@ def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: flo
     formal standard errors ``sigma_d`` (px); ``o_mean`` is ``o`` at the mask's centroid.
     The mask should stay a few pixels inside both images' valid areas.
     """
+    return _polish(ref, mov, mask, d0, iterations, tol, planar)[:5]
+
+
+def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-4,
+            planar: bool = True):
+    """:func:`gradient_refine` and ``ref`` shifted by the final ``d`` (cubic spline, as
+    :func:`_shift`). The Gauss-Newton loop is compiled
+    (swathflow.mosaicking.match_kernels.gauss_newton; no GIL held); the B-spline
+    prefilter is scipy's, once per block."""
+    from swathflow.mosaicking.match_kernels import gauss_newton
     ref = np.asarray(ref, float)
     mov = np.asarray(mov, float)
-    d = np.array(d0, float)
-    shift = _Shifter(ref)
-    y = mov[mask]
-    rr, cc = np.nonzero(mask)
-    rr = (rr - rr.mean()) / max(mask.shape[0], 1)
-    cc = (cc - cc.mean()) / max(mask.shape[1], 1)
-    rad_cols = [np.ones(y.size)] + ([rr, cc] if planar else [])
-    rad = np.column_stack(rad_cols)
-    g = 1.0
-    o = np.zeros(rad.shape[1])
-    cov = None
-    for _ in range(iterations):
-        rw = shift(d)
-        gr, gc = np.gradient(rw)
-        a = np.column_stack([-g * gr[mask], -g * gc[mask], rw[mask], rad])
-        r = y - (g * rw[mask] + rad @ o)
-        n = a.T @ a
-        try:
-            cov = np.linalg.inv(n)
-        except np.linalg.LinAlgError:
-            return d, (np.inf, np.inf), g, float(o[0]), np.inf
-        dx = cov @ (a.T @ r)
-        d += dx[:2]
-        g += dx[2]
-        o += dx[3:]
-        if np.all(np.abs(dx[:2]) < tol):
+    mask = np.asarray(mask, bool)
+    rows, cols = np.nonzero(mask)
+    y = mov[rows, cols]
+    rr = (rows - rows.mean()) / max(mask.shape[0], 1) if rows.size else rows * 0.0
+    cc = (cols - cols.mean()) / max(mask.shape[1], 1) if cols.size else cols * 0.0
+    rad = np.column_stack([np.ones(y.size)] + ([rr, cc] if planar else []))
+    h, w = ref.shape
+    pad = 12
+    while True:
+        coef = ndimage.spline_filter(np.pad(ref, pad, mode="edge"), order=3, mode="mirror")
+        st, d, g, o, cov, rms, shifted = gauss_newton(coef, pad, h, w, rows, cols, y, rad,
+                                                      np.array(d0, float), int(iterations),
+                                                      float(tol))
+        if st != 2 or pad > 64:
             break
-    rw = shift(d)
-    r = y - (g * rw[mask] + rad @ o)
-    dof = max(y.size - a.shape[1], 1)
-    rms = float(np.sqrt(r @ r / dof))
-    sig = np.sqrt(np.diag(cov)[:2]) * rms if cov is not None else (np.inf, np.inf)
-    return d, tuple(float(s) for s in sig), float(g), float(o[0]), rms
+        pad = 12 + int(np.ceil(np.max(np.abs(d)))) + 8      # the shift left the padding
+    if st != 0:
+        return d, (np.inf, np.inf), float(g), float(o[0]), np.inf, None
+    sig = np.sqrt(np.diag(cov)[:2]) * rms
+    return d, tuple(float(v) for v in sig), float(g), float(o[0]), float(rms), shifted
 
 
 def texture_measure(img, mask, noise: float) -> float:
@@ -320,9 +317,10 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     (pr, pc), peak = phase_correlation(fill_r, fill_m, joint)
     if abs(pr) > 1.5 or abs(pc) > 1.5:
         pr, pc = 0.0, 0.0          # a wild peak: start the polish from the integer shift
-    dres, sig, g, o, rms = gradient_refine(fill_r, fill_m, inner, (pr, pc))
+    dres, sig, g, o, rms, aligned = _polish(fill_r, fill_m, inner, (pr, pc))
+    if aligned is None:
+        aligned = _shift(fill_r, dres)
     # noise: the high-passed difference of the aligned images (slow radiometric trends out)
-    aligned = _shift(fill_r, dres)
     diff = fill_m - g * aligned
     diff = diff - ndimage.gaussian_filter(np.where(inner, diff, np.median(diff[inner])), 3.0)
     noise = max(_noise(diff[inner]), abs_floor * (np.ptp(ref[ref_ok]) + 1.0))

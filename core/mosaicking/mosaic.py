@@ -35,8 +35,8 @@ from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, La
                                          find_inputs, mission_strips, read_window,
                                          scan_inputs)
 from swathflow.mosaicking.network import Network, solve_network
-from swathflow.mosaicking.output import (mosaic_array, quicklook, render_tile, swing_cache,
-                                          write_mosaic)
+from swathflow.mosaicking.output import (mosaic_array, overview, quicklook, render_tile,
+                                          stretch, swing_cache, write_mosaic)
 from swathflow.mosaicking.overlaps import (_active_client, find_overlaps,
                                            match_all, match_pair, plan)
 from swathflow.mosaicking.seams import seam_lines, seam_visibility
@@ -69,8 +69,6 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
     """
     import rasterio
     t0 = time.perf_counter()
-    if report and match:
-        _preload_matplotlib()
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
         plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
                             max_shift, block, min_texture, workers, strips, log, control)
@@ -128,26 +126,6 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
     return rep
 
 
-def _preload_matplotlib() -> None:
-    """Import matplotlib (the report picture's, half a second) on a side thread while the
-    overlaps are matched: the matching's compiled kernels and GDAL's reads leave the GIL
-    free most of the time, so the import mostly fills idle core time."""
-    import sys
-    import threading
-    if "matplotlib.figure" in sys.modules:
-        return
-
-    def load():
-        try:
-            import matplotlib
-            matplotlib.use("Agg", force=False)
-            import matplotlib.backends.backend_agg  # noqa: F401
-            import matplotlib.figure  # noqa: F401
-        except ImportError:
-            pass
-    threading.Thread(target=load, name="swathflow-preload-matplotlib", daemon=True).start()
-
-
 def _header(layout: Layout, per_image, mode, feather) -> dict:
     return {"format": "swathflow-mosaic/1", "inputs": len(layout.swings), "grid": {
         "shape": list(layout.shape), "res": layout.res, "crs": layout.crs.to_string()
@@ -196,14 +174,21 @@ def _log_matching(log, rep) -> None:
 
 
 def _products(out, rep, png, report, layout) -> None:
-    """The quicklook PNG, the seams/residuals picture and the HTML report."""
+    """The quicklook PNG, the seams/residuals picture and the HTML report, from one read
+    of the mosaic's overviews."""
     stem = os.path.splitext(os.fspath(out))[0]
     t1 = time.perf_counter()
-    if png:
-        quicklook(out, stem + ".png")
-    if report and "overlaps" in rep:
-        from swathflow.mosaicking.report import seams_picture
-        seams_picture(out, rep, layout, stem + ".report.png")
-        from swathflow.mosaicking.report_html import mosaic_report_html
-        mosaic_report_html(out, rep, layout, stem + ".html")
+    figures = report and "overlaps" in rep
+    if png or figures:
+        from swathflow.mosaicking.drawing import png_bytes
+        data, f = overview(out, 1024)
+        grey = stretch(data)
+        encoded = png_bytes(grey)           # the quicklook, also the maps' backdrop
+        if png:
+            quicklook(out, stem + ".png", png=encoded)
+        if figures:
+            from swathflow.mosaicking.report import seams_picture
+            from swathflow.mosaicking.report_html import mosaic_report_html
+            seams_picture(out, rep, layout, stem + ".report.png", grey, f)
+            mosaic_report_html(out, rep, layout, stem + ".html", grey, f, encoded)
     rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)
