@@ -56,10 +56,12 @@ def _median(a, n):
 
 
 @njit(cache=True, nogil=True)
-def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels):
+def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels, stride=1):
     """``cost[S + dr, S + dc]``: mean ``|d - median(d)|`` of ``d = ref[x] - mov[x + s]`` over
     the pixels valid in both, for every shift ``s = (dr, dc)`` with ``|dr|, |dc| <= S``
-    (``mov`` is read with a margin of ``S``); ``inf`` where fewer than ``min_pixels``."""
+    (``mov`` is read with a margin of ``S``); ``inf`` where fewer than ``min_pixels``.
+    ``stride > 1``: over the pixels of every ``stride``-th row and column of ``ref`` only
+    (the shifts stay whole pixels)."""
     h, w = ref.shape
     n_s = 2 * S + 1
     cost = np.full((n_s, n_s), np.inf)
@@ -67,8 +69,8 @@ def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels):
     for i in range(n_s):
         for j in range(n_s):
             n = 0
-            for r in range(h):
-                for c in range(w):
+            for r in range(0, h, stride):
+                for c in range(0, w, stride):
                     if ref_ok[r, c] and mov_ok[r + i, c + j]:
                         buf[n] = ref[r, c] - mov[r + i, c + j]
                         n += 1
@@ -234,3 +236,45 @@ def gauss_newton(coef, pad, h, w, rows, cols, y, rad, d_start, iterations, tol):
         ss += (y[q] - model) ** 2
     rms = np.sqrt(ss / max(m - k, 1))
     return 0, d, g, o, cov, rms, rw
+
+
+@njit(cache=True, nogil=True)
+def _invalid_fraction(m, r0, r1, c0, c1, axis, k):
+    """1 - the valid fraction of row ``k`` (axis 0) or column ``k`` of ``m[r0:r1, c0:c1]``."""
+    n = 0
+    if axis == 0:
+        for c in range(c0, c1):
+            n += m[k, c]
+        return 1.0 - n / (c1 - c0)
+    for r in range(r0, r1):
+        n += m[r, k]
+    return 1.0 - n / (r1 - r0)
+
+
+@njit(cache=True, nogil=True)
+def valid_rectangle_bounds(m):
+    """(r0, r1, c0, c1) of swathflow.mosaicking.matching.valid_rectangle (greedy: drop the
+    border row or column with the largest invalid fraction until none is left);
+    r1 == r0 when nothing is left."""
+    r0, r1, c0, c1 = 0, m.shape[0], 0, m.shape[1]
+    bad = np.empty(4)
+    while r1 > r0 and c1 > c0:
+        bad[0] = _invalid_fraction(m, r0, r1, c0, c1, 0, r0)
+        bad[1] = _invalid_fraction(m, r0, r1, c0, c1, 0, r1 - 1)
+        bad[2] = _invalid_fraction(m, r0, r1, c0, c1, 1, c0)
+        bad[3] = _invalid_fraction(m, r0, r1, c0, c1, 1, c1 - 1)
+        k = 0
+        for q in range(1, 4):
+            if bad[q] > bad[k]:
+                k = q
+        if bad[k] == 0.0:
+            return r0, r1, c0, c1
+        if k == 0:
+            r0 += 1
+        elif k == 1:
+            r1 -= 1
+        elif k == 2:
+            c0 += 1
+        else:
+            c1 -= 1
+    return r0, r0, c0, c0

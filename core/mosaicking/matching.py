@@ -68,21 +68,23 @@ class OverlapMatch:
 
 
 # --- the paper's search ---------------------------------------------------------------------
-def mmgd_search(ref, ref_ok, mov, mov_ok, max_shift: int, min_pixels: int = 64):
+def mmgd_search(ref, ref_ok, mov, mov_ok, max_shift: int, min_pixels: int = 64,
+                stride: int = 1):
     """Minimum mean grey difference over integer shifts.
 
     ``ref`` (h, w) and ``mov`` (h + 2S, w + 2S) where ``mov`` is read with a margin of
     ``S = max_shift`` pixels on each side. For every candidate shift ``s`` the mean absolute
     difference ``|ref[x] - mov[x + s] - median(...)|`` is taken over the jointly valid
     pixels (the median removes a radiometric offset). Returns ``(s, cost_map)``; ``s`` is
-    None when no shift leaves ``min_pixels`` common pixels. Compiled
+    None when no shift leaves ``min_pixels`` common pixels. ``stride``: the cost over every
+    ``stride``-th row and column of ``ref`` only (``min_pixels`` counts those). Compiled
     (swathflow.mosaicking.match_kernels: no GIL held, so overlaps match on threads).
     """
     from swathflow.mosaicking.match_kernels import mmgd_costs
     S = int(max_shift)
     cost = mmgd_costs(np.ascontiguousarray(ref, float), np.ascontiguousarray(ref_ok, bool),
                       np.ascontiguousarray(mov, float), np.ascontiguousarray(mov_ok, bool),
-                      S, int(min_pixels))
+                      S, int(min_pixels), int(stride))
     if not np.isfinite(cost).any():
         return None, cost
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
@@ -126,25 +128,13 @@ def _taper(mask, edge: float = 6.0):
 
 def valid_rectangle(mask):
     """A large all-valid rectangle inside ``mask`` (greedy: repeatedly drop the border row or
-    column with the largest invalid fraction). Returns slices, or None if nothing is left."""
-    m = np.asarray(mask, bool)
-    r0, r1, c0, c1 = 0, m.shape[0], 0, m.shape[1]
-    while r1 > r0 and c1 > c0:
-        sub = m[r0:r1, c0:c1]
-        bad = np.array([1 - sub[0].mean(), 1 - sub[-1].mean(),
-                        1 - sub[:, 0].mean(), 1 - sub[:, -1].mean()])
-        if not bad.any():
-            return slice(r0, r1), slice(c0, c1)
-        k = int(np.argmax(bad))
-        if k == 0:
-            r0 += 1
-        elif k == 1:
-            r1 -= 1
-        elif k == 2:
-            c0 += 1
-        else:
-            c1 -= 1
-    return None
+    column with the largest invalid fraction; compiled). Returns slices, or None if nothing
+    is left."""
+    from swathflow.mosaicking.match_kernels import valid_rectangle_bounds
+    r0, r1, c0, c1 = valid_rectangle_bounds(np.ascontiguousarray(mask, bool))
+    if r1 <= r0 or c1 <= c0:
+        return None
+    return slice(int(r0), int(r1)), slice(int(c0), int(c1))
 
 
 def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 16):
@@ -290,12 +280,15 @@ def _noise(diff_values) -> float:
 
 def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1.0,
                 min_pixels: int = 256, abs_floor: float = 1e-6,
-                min_contrast: float = 0.15) -> BlockMatch:
+                min_contrast: float = 0.15, stride: int = 1) -> BlockMatch:
     """Offset of one block. ``ref`` (h, w); ``mov`` (h + 2S, w + 2S) read with a margin of
-    ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``)."""
+    ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``).
+    ``stride``: the integer search over every ``stride``-th row and column only (the
+    sub-pixel steps use every pixel): for a small search around a known answer."""
     S = int(max_shift)
     h, w = ref.shape
-    s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S, min_pixels=min_pixels // 2)
+    s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S,
+                          min_pixels=max(1, min_pixels // (2 * stride * stride)), stride=stride)
     if s is None:
         return BlockMatch(False, "too_small")
     finite = cost[np.isfinite(cost)]
