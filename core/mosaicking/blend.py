@@ -75,7 +75,7 @@ def corrected_swing(val, ok, row: int, col: int, offset, radiometric: float,
         pad = 12
         val = np.asarray(val, float)
         filled = val if ok.all() or not ok.any() else K.fill_rows(val, ok)
-        coef = ndimage.spline_filter(np.pad(filled, pad, mode="edge"), order=3, mode="mirror")
+        coef = K.prefilter(np.ascontiguousarray(filled), pad)    # scipy's, compiled
         # a cubic spline rings at steps (the outer edge of a swing, saturated targets): each
         # pixel is kept within the values of its 4 x 4 spline support (issue 13)
         vals, m = K.sample_clip(coef, np.ascontiguousarray(filled), ok, pad, float(f[0]),

@@ -228,8 +228,10 @@ def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-
             planar: bool = True):
     """:func:`gradient_refine` and ``ref`` shifted by the final ``d`` (cubic spline, as
     :func:`_shift`). The Gauss-Newton loop is compiled
-    (swathflow.mosaicking.match_kernels.gauss_newton; no GIL held); the B-spline
-    prefilter is scipy's, once per block."""
+    (swathflow.mosaicking.match_kernels.gauss_newton; no GIL held), and so is the
+    B-spline prefilter (swathflow.mosaicking.kernels.prefilter, scipy's to 1e-15), once
+    per block."""
+    from swathflow.mosaicking.kernels import prefilter
     from swathflow.mosaicking.match_kernels import gauss_newton
     ref = np.asarray(ref, float)
     mov = np.asarray(mov, float)
@@ -242,7 +244,7 @@ def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-
     h, w = ref.shape
     pad = 12
     while True:
-        coef = ndimage.spline_filter(np.pad(ref, pad, mode="edge"), order=3, mode="mirror")
+        coef = prefilter(np.ascontiguousarray(ref), pad)
         st, d, g, o, cov, rms, shifted = gauss_newton(coef, pad, h, w, rows, cols, y, rad,
                                                       np.array(d0, float), int(iterations),
                                                       float(tol))

@@ -211,7 +211,9 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                 t_render = time.perf_counter() - t0
                 if cog:
                     with rasterio.Env(GDAL_NUM_THREADS=str(n)):
-                        rio_copy(tmp, final, driver="COG", COMPRESS="DEFLATE",
+                        # deflate level 1 with the predictor: a third less CPU than
+                        # the default level 6, 1.5 % larger (48-swing benchmark)
+                        rio_copy(tmp, final, driver="COG", COMPRESS="DEFLATE", LEVEL="1",
                                  BLOCKSIZE=blocksize, OVERVIEW_RESAMPLING="AVERAGE",
                                  PREDICTOR="YES", BIGTIFF="IF_SAFER", NUM_THREADS=str(n))
             finally:
