@@ -126,10 +126,10 @@ class Canvas:
         out.append("</svg>")
         return "".join(out)
 
-    def png(self, path) -> None:
-        """Rasterise with Pillow (anti-aliased by drawing at twice the size)."""
+    def png(self, path, k: int = 1) -> None:
+        """Rasterise with Pillow (``k > 1``: anti-aliased by drawing at ``k`` times the
+        size; the text is anti-aliased either way)."""
         from PIL import Image, ImageDraw
-        k = 2
         img = Image.new("RGB", (self.width * k, self.height * k), "white")
         over = Image.new("RGBA", img.size, (0, 0, 0, 0))
         for it in self.items:
@@ -160,7 +160,8 @@ class Canvas:
                 _, x, y, s, size, anchor, col, rot = it
                 _text(img, draw, x * k, y * k, s, size * k, anchor, col, rot)
         img = Image.alpha_composite(img.convert("RGBA"), over).convert("RGB")
-        img = img.resize((self.width, self.height), Image.LANCZOS)
+        if k > 1:
+            img = img.resize((self.width, self.height), Image.LANCZOS)
         img.save(path, format="PNG", compress_level=3)
 
 
