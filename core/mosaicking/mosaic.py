@@ -32,7 +32,7 @@ import numpy as np
 
 from swathflow.io import write_text
 from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, Layout, Swing,
-                                         find_inputs, mission_strips, read_window,
+                                         _Handles, find_inputs, mission_strips, read_window,
                                          scan_inputs)
 from swathflow.mosaicking.network import Network, solve_network
 from swathflow.mosaicking.output import (mosaic_array, overview, quicklook, render_tile,
@@ -46,7 +46,7 @@ __all__ = ["Swing", "Layout", "scan_inputs", "find_overlaps", "match_pair", "sol
            "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP",
            "TAG_DIRECTION", "Network", "read_window", "swing_cache", "plan", "_active_client",
            "network_report", "match_all", "plan_mosaic", "finish_mosaic",
-           "mosaic_array"]
+           "mosaic_array", "swing_store"]
 
 
 def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
@@ -69,21 +69,33 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
     """
     import rasterio
     t0 = time.perf_counter()
-    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
-                            max_shift, block, min_texture, workers, strips, log, control)
-    return finish_mosaic(plan_, out, feather, mode, tile, workers, png, report, cog, t0,
-                         cache_mb)
+    handles = swing_store()
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+            plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
+                                max_shift, block, min_texture, workers, strips, log, control,
+                                handles)
+        return finish_mosaic(plan_, out, feather, mode, tile, workers, png, report, cog, t0,
+                             cache_mb, handles)
+    finally:
+        handles.close()
+
+
+def swing_store(keep_mb: int = 128) -> _Handles:
+    """The dataset handles of one mosaic run, keeping up to ``keep_mb`` of decoded swings
+    between the matching and the blend (each swing decoded once when they fit)."""
+    return _Handles(keep_bytes=int(keep_mb) * 2 ** 20)
 
 
 def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
                 mode: str = "feather", balance: bool = True, match: bool = True,
                 max_shift: int = 12, block: int = 128, min_texture: float = 1.0,
                 workers: int | None = None, strips: dict | None = None, log=None,
-                control: dict | None = None):
+                control: dict | None = None, handles=None):
     """The mosaic's inputs and corrections, before any blending: ``(layout, offsets,
     radiometric, report)`` (the overlaps matched and the network solved when ``match``;
-    arguments as :func:`mosaic`)."""
+    arguments as :func:`mosaic`; ``handles``: a :func:`swing_store` shared with
+    :func:`finish_mosaic`)."""
     t0 = time.perf_counter()
     layout = scan_inputs(paths, strips)
     n_sw = len(layout.swings)
@@ -91,7 +103,7 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
     if match:
         net, pairs, matches, keys = plan(layout, per_image, anchors, max_shift, block,
-                                         min_texture, workers, log, control)
+                                         min_texture, workers, log, control, handles)
         rep.update(network_report(layout, net, pairs, matches, control))
         rep["seconds_match"] = round(time.perf_counter() - t0, 3)
         # the offsets as mosaic.json gives them (4 decimals) are the ones applied, so a
@@ -107,17 +119,20 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
 
 def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: int = 1024,
                   workers: int | None = None, png: bool = True, report: bool = True,
-                  cog: bool = True, t0: float | None = None, cache_mb: int = 64) -> dict:
+                  cog: bool = True, t0: float | None = None, cache_mb: int = 64,
+                  handles=None) -> dict:
     """Blend a :func:`plan_mosaic` result into the COG ``out`` (tiles over dask threads,
     streamed, atomic, GDAL's block cache capped at ``cache_mb``), then the quicklook, the
     report picture and ``<out>.json`` (with GDAL's default cache: the overview reads are
-    many times slower under the cap)."""
+    many times slower under the cap). ``handles``: the :func:`swing_store` of the
+    matching, if any."""
     import rasterio
     t0 = time.perf_counter() if t0 is None else t0
     layout, off, rad, rep = planned
     rep = dict(rep)
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog))
+        rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog,
+                                handles=handles))
     _products(out, rep, png, report, layout)
     rep["seconds"] = round(time.perf_counter() - t0, 3)
     rep["mpx_per_s"] = round(layout.shape[0] * layout.shape[1] / 1e6 / rep["seconds"], 3)

@@ -171,10 +171,12 @@ def _stage_path(final, nbytes, cog, limit=256 * 2 ** 20):
 
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                  mode: str = "feather", tile: int = 1024, workers: int | None = None,
-                 dtype=None, nodata=None, cog: bool = True, blocksize: int = 512) -> dict:
+                 dtype=None, nodata=None, cog: bool = True, blocksize: int = 512,
+                 handles=None) -> dict:
     """Render the mosaic tile by tile on ``workers`` threads into ``out`` (a COG with
     overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles and the
-    swing cache."""
+    swing cache. ``handles``: the :class:`_Handles` to read the swings through (its own
+    if None)."""
     import rasterio
     from rasterio.shutil import copy as rio_copy
     from rasterio.shutil import delete as rio_delete
@@ -190,7 +192,8 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     H, W = layout.shape
     offsets = np.asarray(offsets, float)
     radiometric = np.asarray(radiometric, float)
-    handles = _Handles()
+    own = handles is None
+    handles = handles or _Handles()
     cache = swing_cache(layout, offsets, radiometric, feather, handles)
     tiles = _tile_order(layout, tile)
     profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=dtype.name,
@@ -222,7 +225,8 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                 elif cog and os.path.exists(tmp):
                     os.remove(tmp)
     finally:
-        handles.close()
+        if own:
+            handles.close()
     return {"seconds_render": t_render, "seconds_total": time.perf_counter() - t0,
             "shape": [H, W], "dtype": dtype.name}
 
