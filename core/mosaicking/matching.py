@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 
 __all__ = ["BlockMatch", "OverlapMatch", "mmgd_search", "phase_correlation",
            "gradient_refine", "texture_measure", "match_block", "combine_blocks"]
@@ -115,6 +114,7 @@ def _upsampled_dft(data, size, factor, offsets):
 
 def _taper(mask, edge: float = 6.0):
     """Apodisation: the mask softened at its borders times a Tukey-like rectangle edge."""
+    from scipy import ndimage
     t = ndimage.gaussian_filter(mask.astype(float), edge / 2.0) * mask
     h, w = mask.shape
     for axis, n in ((0, h), (1, w)):
@@ -188,6 +188,7 @@ class _Shifter:
         self.coef = None
 
     def __call__(self, d):
+        from scipy import ndimage
         from swathflow.mosaicking.blend import _b3
         f = -np.asarray(d, float)
         a = np.floor(f).astype(int)
@@ -261,6 +262,7 @@ def texture_measure(img, mask, noise: float) -> float:
     """Gradient in the weakest direction (structure tensor of the sigma=1 smoothed image)
     over ``noise``: small for flat areas and for one-directional texture (aperture problem).
     """
+    from scipy import ndimage
     sm = ndimage.gaussian_filter(np.asarray(img, float), 1.0)
     gr, gc = np.gradient(sm)
     m = ndimage.binary_erosion(mask, iterations=2) if mask.sum() > 100 else mask
@@ -287,6 +289,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``).
     ``stride``: the integer search over every ``stride``-th row and column only (the
     sub-pixel steps use every pixel): for a small search around a known answer."""
+    from scipy import ndimage
     S = int(max_shift)
     h, w = ref.shape
     s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S,
