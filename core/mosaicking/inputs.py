@@ -207,6 +207,14 @@ class _Handles:
                 self._whole_bytes -= d.nbytes + o.nbytes
         return hit
 
+    def keep_if_fits(self, swings) -> None:
+        """Keep whole decoded swings only when all of ``swings`` fit in ``keep_bytes``: an
+        LRU too small for the run's working set would decode whole swings again and again
+        where windows of them are needed."""
+        need = sum(s.height * s.width * (np.dtype(s.dtype).itemsize + 1) for s in swings)
+        if need > self.keep_bytes:
+            self.keep_bytes = 0
+
     def close(self):
         with self._lock:
             for ds in self._all:

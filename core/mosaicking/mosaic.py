@@ -81,9 +81,10 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
         handles.close()
 
 
-def swing_store(keep_mb: int = 128) -> _Handles:
-    """The dataset handles of one mosaic run, keeping up to ``keep_mb`` of decoded swings
-    between the matching and the blend (each swing decoded once when they fit)."""
+def swing_store(keep_mb: int = 256) -> _Handles:
+    """The dataset handles of one mosaic run, keeping the decoded swings between the
+    matching and the blend when all of them fit in ``keep_mb`` (each swing then decoded
+    once; :meth:`_Handles.keep_if_fits`, called by :func:`plan_mosaic`)."""
     return _Handles(keep_bytes=int(keep_mb) * 2 ** 20)
 
 
@@ -98,6 +99,8 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     :func:`finish_mosaic`)."""
     t0 = time.perf_counter()
     layout = scan_inputs(paths, strips)
+    if handles is not None:
+        handles.keep_if_fits(layout.swings)
     n_sw = len(layout.swings)
     rep = _header(layout, per_image, mode, feather)
     off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
