@@ -15,6 +15,8 @@
           COG, gdal_merge.py, and rasterio.merge.merge + a tiled GTiff write in `python -c`
           (the reference of the ratios; the peers do no blending).
 --peers16 the same on 16x the area (768 swings, 58 Mpx).
+--quick   with --peers/--peers16: only mosaic() in one process, the blend alone and
+          rasterio.merge (the long 16x run in a few minutes).
 --paper   You & Li's job (papers.md section 3): 24 strips of 6 km at 2 m pixels, swath of
           a 30 degree field of view from 650 m (348 m = 174 px), 20 % overlap, about 40 km2,
           strips displaced by 1-5 px; simulated as rectified swings and mosaicked end to end.
@@ -183,7 +185,7 @@ def _peer_commands(work, folder, paths):
     return out
 
 
-def bench_peers(work, n_strips=12, length=2048, label="48 swings"):
+def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
     print(f"\n== side by side, same inputs ({label}), one run each ==")
     d = os.path.join(work, f"peers{n_strips}")
     g = generate(d, n_strips, length)
@@ -196,10 +198,13 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings"):
     # once before measuring: the first run after an install compiles and caches the numba
     # kernels (a one-off cost of several seconds a user meets once, not per mosaic)
     _measured([sf, "mosaic", d, "--out", os.path.join(work, "warm.tif"), "--anchor", "0",
+               "-q", "--no-match"] if quick else
+              [sf, "mosaic", d, "--out", os.path.join(work, "warm.tif"), "--anchor", "0",
                "-q"], env)
-    w, c, r, _ = _measured([sf, "mosaic", d, "--out", os.path.join(work, "cli.tif"),
-                            "--anchor", "0", "-q"], env)
-    rows.append(("swathflow mosaic (CLI: match+network+feather, COG+PNG)", w, c, None, r))
+    if not quick:
+        w, c, r, _ = _measured([sf, "mosaic", d, "--out", os.path.join(work, "cli.tif"),
+                                "--anchor", "0", "-q"], env)
+        rows.append(("swathflow mosaic (CLI: match+network+feather, COG+PNG)", w, c, None, r))
     w, r, rep = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"))
     err = offset_errors(rep, g["shifts"]).max()
     rows.append(("swathflow mosaic() one process, threads (same work)", w, rep["cpu"],
@@ -207,7 +212,7 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings"):
     w, r, rb = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), match=False,
                                  png=False)
     rows.append(("swathflow blend only (feather, COG)", w, rb["cpu"], rb["seconds"], r))
-    for name, cmds in _peer_commands(work, d, paths):
+    for name, cmds in ([] if quick else _peer_commands(work, d, paths)):
         w = c = r = 0.0
         for argv in cmds:
             w1, c1, r1, _ = _measured(argv, env)
@@ -263,6 +268,9 @@ def main(argv=None):
     ap.add_argument("--paper", action="store_true")
     ap.add_argument("--peers16", action="store_true",
                     help="the side by side run on 16x the area of --peers (768 swings)")
+    ap.add_argument("--quick", action="store_true",
+                    help="--peers/--peers16: only swathflow's mosaic() and blend and "
+                         "rasterio.merge (no CLI run, no GDAL peers)")
     ap.add_argument("--regional", type=float, metavar="GPX", default=0.0,
                     help="the regional case: a mosaic of GPX gigapixels (cheap texture), "
                          "wall time and peak RSS, and four quarter runs compared pixel "
@@ -279,16 +287,18 @@ def main(argv=None):
     print(f"swathflow mosaic benchmark, {os.cpu_count()} cores, work folder {work}")
     print("reproduce: python benchmarks/bench_mosaic.py "
           + " ".join(f"--{k}" for k in ("memory", "peers", "paper", "peers16") if getattr(a, k))
+          + (" --quick" if a.quick else "")
           + (f" --regional {a.regional}" if a.regional else ""))
     try:
         if a.memory:
             bench_memory(work)
         if a.peers:
-            bench_peers(work)
+            bench_peers(work, quick=a.quick)
         if a.paper:
             bench_paper(work)
         if a.peers16:
-            bench_peers(work, n_strips=48, length=8192, label="16x area, 768 swings")
+            bench_peers(work, n_strips=48, length=8192, label="16x area, 768 swings",
+                        quick=a.quick)
         if a.regional:
             from bench_regional import bench_regional
             bench_regional(work, a.regional, at_once=a.quarters_at_once)

@@ -127,3 +127,23 @@ def test_mmgd_finds_a_known_shift():
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
     assert (i - S, j - S) == (2, -3)
     assert cost[i, j] < 1e-9
+
+
+@pytest.mark.parametrize("shape", [(50, 40), (1, 30), (30, 1), (3, 3), (2, 5), (300, 90)])
+def test_prefilter_is_scipys_spline_filter_of_the_edge_padded_image(shape):
+    a = np.random.default_rng(3).normal(size=shape) * 50 + 100
+    want = ndimage.spline_filter(np.pad(a, 12, mode="edge"), order=3, mode="mirror")
+    got = K.prefilter(a, 12)
+    assert got.shape == want.shape
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+
+
+def test_valid_rectangle_is_all_valid_and_greedy():
+    from swathflow.mosaicking.matching import valid_rectangle
+    m = np.ones((40, 30), bool)
+    m[:5] = False
+    m[:, -3:] = False
+    rs, cs = valid_rectangle(m)
+    assert m[rs, cs].all()
+    assert (rs.start, cs.stop) == (5, 27)        # the invalid border rows/columns dropped
+    assert valid_rectangle(np.zeros((5, 5), bool)) is None

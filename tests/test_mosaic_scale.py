@@ -209,3 +209,29 @@ def test_cli_anchor_gcp_needs_the_mission_and_calibration(shifted_scene, tmp_pat
                  "--anchor", "gcp"])
     assert code == 2 and "--anchor gcp needs the mission" in capsys.readouterr().err
     assert not (tmp_path / "x.tif").exists()
+
+
+def test_decoded_swings_give_the_windows_gdal_reads(shifted_scene):
+    """Windows sliced from the kept decoded swings (inside, across and outside a swing's
+    edges) are the values and validity of windowed reads; a store too small for the run
+    keeps nothing."""
+    from swathflow.mosaicking.inputs import _Handles, read_window
+    lay = M.scan_inputs(shifted_scene["paths"])
+    kept, plain = M.swing_store(), _Handles()
+    kept.keep_if_fits(lay.swings)
+    assert kept.keep_bytes > 0
+    try:
+        for sw in lay.swings[:4]:
+            for win in ((sw.row, sw.col, sw.row + sw.height, sw.col + sw.width),
+                        (sw.row - 7, sw.col + 5, sw.row + 40, sw.col + sw.width + 9),
+                        (sw.row + sw.height - 3, sw.col - 4, sw.row + sw.height + 5,
+                         sw.col + 3)):
+                a, b = read_window(kept, sw, *win), read_window(plain, sw, *win)
+                assert np.array_equal(a[1], b[1]) and np.array_equal(a[0], b[0])
+        assert len(kept._whole) == 4
+    finally:
+        kept.close()
+        plain.close()
+    small = M.swing_store(keep_mb=0)
+    small.keep_if_fits(lay.swings)
+    assert small.keep_bytes == 0

@@ -50,7 +50,8 @@ def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
     first (beside ``out``, or in a temporary folder)."""
     import rasterio
 
-    from swathflow.mosaicking.mosaic import finish_mosaic, mosaic_array, plan_mosaic
+    from swathflow.mosaicking.mosaic import (finish_mosaic, mosaic_array, plan_mosaic,
+                                             swing_store)
     from swathflow.rectification.api import grid_dataarray
     from swathflow.geometry.grid import Grid
     unknown = set(options) - set(_PLAN) - set(_FINISH)
@@ -65,13 +66,18 @@ def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
     if any(isinstance(s, xr.DataArray) for s in swings):
         os.makedirs(folder, exist_ok=True)
     paths = _as_paths(swings, folder)
-    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        planned = plan_mosaic(paths, feather=feather, mode=mode,
-                              **{k: v for k, v in options.items() if k in _PLAN})
-    report = planned[3]
-    if out is not None:
-        report = finish_mosaic(planned, out, feather, mode, tile, cache_mb=cache_mb,
-                               **{k: v for k, v in options.items() if k in _FINISH})
+    handles = swing_store()
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+            planned = plan_mosaic(paths, feather=feather, mode=mode, handles=handles,
+                                  **{k: v for k, v in options.items() if k in _PLAN})
+        report = planned[3]
+        if out is not None:
+            report = finish_mosaic(planned, out, feather, mode, tile, cache_mb=cache_mb,
+                                   handles=handles,
+                                   **{k: v for k, v in options.items() if k in _FINISH})
+    finally:
+        handles.close()
     layout, off, rad, _ = planned
     arr, _ = mosaic_array(layout, off, rad, feather, mode, tile)
     grid = Grid(layout.crs.to_string(), layout.transform, layout.shape)

@@ -16,7 +16,6 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 __all__ = ["Corrected", "corrected_swing", "shift_cubic", "SwingCache", "blend_tile"]
 
@@ -45,6 +44,7 @@ def shift_cubic(img, f, pad: int = 12):
     whole image: the prefilter, then one 4-tap correlation per axis (the same weights at
     every pixel). Equals ``ndimage.shift(img, -f, order=3, mode="nearest")`` (which pads
     by 12 edge pixels the same way) for ``|f| < pad - 2``, at about 4x less cost."""
+    from scipy import ndimage
     f = np.asarray(f, float)
     a = np.floor(f).astype(int)
     if np.any(np.abs(a) > pad - 3):
@@ -75,7 +75,7 @@ def corrected_swing(val, ok, row: int, col: int, offset, radiometric: float,
         pad = 12
         val = np.asarray(val, float)
         filled = val if ok.all() or not ok.any() else K.fill_rows(val, ok)
-        coef = ndimage.spline_filter(np.pad(filled, pad, mode="edge"), order=3, mode="mirror")
+        coef = K.prefilter(np.ascontiguousarray(filled), pad)    # scipy's, compiled
         # a cubic spline rings at steps (the outer edge of a swing, saturated targets): each
         # pixel is kept within the values of its 4 x 4 spline support (issue 13)
         vals, m = K.sample_clip(coef, np.ascontiguousarray(filled), ok, pad, float(f[0]),

@@ -149,13 +149,22 @@ def scan_inputs(paths, strips: dict | None = None) -> Layout:
 
 class _Handles:
     """Open datasets, one small LRU set per thread (GDAL handles must not be shared across
-    threads; an open dataset costs memory, so at most ``per_thread`` stay open)."""
+    threads; an open dataset costs memory, so at most ``per_thread`` stay open).
 
-    def __init__(self, per_thread: int = 16):
+    ``keep_bytes > 0``: whole swings read at full resolution are also kept decoded, shared
+    by every thread, in an LRU of at most ``keep_bytes`` (each swing is then decoded once
+    for the footprints' neighbours, the matching and the blending, instead of once per
+    overlap window and again for the blend)."""
+
+    def __init__(self, per_thread: int = 16, keep_bytes: int = 0):
+        from collections import OrderedDict
         self._local = threading.local()
         self._all = set()
         self._lock = threading.Lock()
         self.per_thread = per_thread
+        self.keep_bytes = int(keep_bytes)
+        self._whole: OrderedDict = OrderedDict()
+        self._whole_bytes = 0
 
     def get(self, path):
         import rasterio
@@ -177,11 +186,42 @@ class _Handles:
             old.close()
         return ds
 
+    def whole(self, sw: Swing):
+        """Band 1 of swing ``sw`` in its own type and its valid mask, decoded once while it
+        stays in the shared LRU; None without ``keep_bytes``."""
+        if self.keep_bytes <= 0:
+            return None
+        with self._lock:
+            hit = self._whole.get(sw.path)
+            if hit is not None:
+                self._whole.move_to_end(sw.path)
+                return hit
+        data = self.get(sw.path).read(1)
+        hit = (data, _valid(data, sw.nodata))
+        with self._lock:
+            if sw.path not in self._whole:
+                self._whole[sw.path] = hit
+                self._whole_bytes += data.nbytes + hit[1].nbytes
+            while self._whole_bytes > self.keep_bytes and len(self._whole) > 1:
+                _, (d, o) = self._whole.popitem(last=False)
+                self._whole_bytes -= d.nbytes + o.nbytes
+        return hit
+
+    def keep_if_fits(self, swings) -> None:
+        """Keep whole decoded swings only when all of ``swings`` fit in ``keep_bytes``: an
+        LRU too small for the run's working set would decode whole swings again and again
+        where windows of them are needed."""
+        need = sum(s.height * s.width * (np.dtype(s.dtype).itemsize + 1) for s in swings)
+        if need > self.keep_bytes:
+            self.keep_bytes = 0
+
     def close(self):
         with self._lock:
             for ds in self._all:
                 ds.close()
             self._all.clear()
+            self._whole.clear()
+            self._whole_bytes = 0
 
 
 def _valid(a, nodata):
@@ -207,9 +247,16 @@ def read_window(handles: _Handles, sw: Swing, r0: int, c0: int, r1: int, c1: int
     if a1 <= a0 or b1 <= b0:
         return val, ok
     from rasterio.windows import Window
+    i0, j0 = (a0 - r0) // step, (b0 - c0) // step
+    whole = handles.whole(sw) if step == 1 else None
+    if whole is not None:
+        data, good = whole
+        rows, cols = slice(a0 - sw.row, a1 - sw.row), slice(b0 - sw.col, b1 - sw.col)
+        val[i0:i0 + a1 - a0, j0:j0 + b1 - b0] = np.where(good[rows, cols], data[rows, cols], 0)
+        ok[i0:i0 + a1 - a0, j0:j0 + b1 - b0] = good[rows, cols]
+        return val, ok
     ds = handles.get(sw.path)
     win = Window(b0 - sw.col, a0 - sw.row, b1 - b0, a1 - a0)
-    i0, j0 = (a0 - r0) // step, (b0 - c0) // step
     if step == 1:
         data = ds.read(1, window=win)
     else:

@@ -211,3 +211,70 @@ def normalise(acc, wsum):
         for j in range(w):
             acc[i, j] = acc[i, j] / wsum[i, j] if wsum[i, j] > 0 else np.nan
     return acc
+
+
+_Z = np.sqrt(3.0) - 2.0          # the pole of the cubic B-spline
+
+
+@njit(cache=True, nogil=True)
+def _first_mirror(c, n, axis, k):
+    """The causal filter's first value of line ``k`` (scipy's mirror initialisation; the
+    sum stops where the pole's powers fall below 1e-18)."""
+    z = _Z
+    zn1 = z ** (n - 1)
+    a = (c[0, k] + zn1 * c[n - 1, k]) if axis == 0 else (c[k, 0] + zn1 * c[k, n - 1])
+    zi = z
+    for i in range(1, n - 1):
+        if abs(zi) < 1e-18:
+            break
+        if axis == 0:
+            a += zi * (c[i, k] + zn1 * c[n - 1 - i, k])
+        else:
+            a += zi * (c[k, i] + zn1 * c[k, n - 1 - i])
+        zi *= z
+    return a / (1.0 - zn1 * zn1)
+
+
+@njit(cache=True, nogil=True)
+def prefilter(val, pad):
+    """Cubic B-spline coefficients of ``val`` padded by ``pad`` edge pixels on each side:
+    ``ndimage.spline_filter(np.pad(val, pad, mode="edge"), order=3, mode="mirror")`` (the
+    same recursions and mirror initialisation, in one compiled pass per axis; equal to
+    scipy's to about 1e-12 relative)."""
+    h, w = val.shape
+    H, W = h + 2 * pad, w + 2 * pad
+    c = np.empty((H, W))
+    for i in range(H):
+        r = min(max(i - pad, 0), h - 1)
+        for j in range(W):
+            c[i, j] = 6.0 * 6.0 * val[r, min(max(j - pad, 0), w - 1)]   # both axes' gain
+    z = _Z
+    if H > 1:                                           # along the columns (axis 0)
+        first = np.empty(W)
+        for k in range(W):
+            first[k] = _first_mirror(c, H, 0, k)
+        for k in range(W):
+            c[0, k] = first[k]
+        for i in range(1, H):
+            for k in range(W):
+                c[i, k] += z * c[i - 1, k]
+        for k in range(W):
+            c[H - 1, k] = (z * c[H - 2, k] + c[H - 1, k]) * z / (z * z - 1.0)
+        for i in range(H - 2, -1, -1):
+            for k in range(W):
+                c[i, k] = z * (c[i + 1, k] - c[i, k])
+    else:
+        for k in range(W):
+            c[0, k] /= 6.0
+    if W > 1:                                           # along the rows (axis 1)
+        for i in range(H):
+            c[i, 0] = _first_mirror(c, W, 1, i)
+            for j in range(1, W):
+                c[i, j] += z * c[i, j - 1]
+            c[i, W - 1] = (z * c[i, W - 2] + c[i, W - 1]) * z / (z * z - 1.0)
+            for j in range(W - 2, -1, -1):
+                c[i, j] = z * (c[i, j + 1] - c[i, j])
+    else:
+        for i in range(H):
+            c[i, 0] /= 6.0
+    return c

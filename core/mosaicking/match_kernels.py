@@ -6,14 +6,62 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["mmgd_costs"]
+__all__ = ["mmgd_costs", "shift_block", "gauss_newton"]
 
 
 @njit(cache=True, nogil=True)
-def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels):
+def _select(a, lo, hi, k):
+    """Move the ``k``-th smallest of ``a[lo:hi + 1]`` to ``a[k]``, smaller ones before it
+    and larger ones after (Hoare's quickselect, median-of-three pivot; in place)."""
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        pivot = a[mid]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
+
+
+@njit(cache=True, nogil=True)
+def _median(a, n):
+    """The median of ``a[:n]`` as np.median takes it (mean of the two middle values for
+    even ``n``); reorders ``a[:n]``."""
+    k = n // 2
+    _select(a, 0, n - 1, k)
+    if n % 2:
+        return a[k]
+    lo = a[0]
+    for q in range(1, k):
+        if a[q] > lo:
+            lo = a[q]
+    return 0.5 * (lo + a[k])
+
+
+@njit(cache=True, nogil=True)
+def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels, stride=1):
     """``cost[S + dr, S + dc]``: mean ``|d - median(d)|`` of ``d = ref[x] - mov[x + s]`` over
     the pixels valid in both, for every shift ``s = (dr, dc)`` with ``|dr|, |dc| <= S``
-    (``mov`` is read with a margin of ``S``); ``inf`` where fewer than ``min_pixels``."""
+    (``mov`` is read with a margin of ``S``); ``inf`` where fewer than ``min_pixels``.
+    ``stride > 1``: over the pixels of every ``stride``-th row and column of ``ref`` only
+    (the shifts stay whole pixels)."""
     h, w = ref.shape
     n_s = 2 * S + 1
     cost = np.full((n_s, n_s), np.inf)
@@ -21,16 +69,212 @@ def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels):
     for i in range(n_s):
         for j in range(n_s):
             n = 0
-            for r in range(h):
-                for c in range(w):
+            for r in range(0, h, stride):
+                for c in range(0, w, stride):
                     if ref_ok[r, c] and mov_ok[r + i, c + j]:
                         buf[n] = ref[r, c] - mov[r + i, c + j]
                         n += 1
             if n < min_pixels or n == 0:
                 continue
-            med = np.median(buf[:n])
+            med = _median(buf, n)
             s = 0.0
             for k in range(n):
                 s += abs(buf[k] - med)
             cost[i, j] = s / n
     return cost
+
+
+@njit(cache=True, nogil=True)
+def _b3(x):
+    x = abs(x)
+    if x < 1.0:
+        return 2.0 / 3.0 - x * x + x * x * x / 2.0
+    if x < 2.0:
+        return (2.0 - x) ** 3 / 6.0
+    return 0.0
+
+
+@njit(cache=True, nogil=True)
+def shift_block(coef, pad, h, w, d0, d1, out, tmp):
+    """``out[x] = img[x - d]`` (h, w) from ``coef``, the cubic B-spline coefficients of
+    ``img`` padded by ``pad`` edge pixels: the separable 4-tap sum (the recipe of
+    swathflow.mosaicking.matching._Shifter). False (``out`` untouched) when the shift
+    reaches past the padding."""
+    f0, f1 = -d0, -d1
+    a0, a1 = int(np.floor(f0)), int(np.floor(f1))
+    if abs(a0) > pad - 3 or abs(a1) > pad - 3:
+        return False
+    k0 = np.empty(4)
+    k1 = np.empty(4)
+    for j in range(4):
+        k0[j] = _b3(f0 - a0 - (j - 1))
+        k1[j] = _b3(f1 - a1 - (j - 1))
+    r0, c0 = pad + a0 - 1, pad + a1 - 1
+    for r in range(h + 3):
+        for c in range(w):
+            s = 0.0
+            for j in range(4):
+                s += k1[j] * coef[r0 + r, c0 + c + j]
+            tmp[r, c] = s
+    for r in range(h):
+        for c in range(w):
+            s = 0.0
+            for j in range(4):
+                s += k0[j] * tmp[r + j, c]
+            out[r, c] = s
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _grad(a, r, c, axis):
+    """np.gradient of ``a`` at (r, c) along ``axis`` (central, one-sided at the edges)."""
+    n = a.shape[axis]
+    i = r if axis == 0 else c
+    if n < 2:
+        return 0.0
+    if i == 0:
+        return a[1, c] - a[0, c] if axis == 0 else a[r, 1] - a[r, 0]
+    if i == n - 1:
+        return a[n - 1, c] - a[n - 2, c] if axis == 0 else a[r, n - 1] - a[r, n - 2]
+    return (0.5 * (a[r + 1, c] - a[r - 1, c]) if axis == 0 else
+            0.5 * (a[r, c + 1] - a[r, c - 1]))
+
+
+@njit(cache=True, nogil=True)
+def _inverse(n):
+    """Inverse of a small symmetric matrix by Gauss-Jordan with partial pivoting; a
+    matrix of NaN when it is singular."""
+    k = n.shape[0]
+    a = n.copy()
+    inv = np.eye(k)
+    for col in range(k):
+        p = col
+        for r in range(col + 1, k):
+            if abs(a[r, col]) > abs(a[p, col]):
+                p = r
+        if not abs(a[p, col]) > 1e-300:
+            return np.full((k, k), np.nan)
+        if p != col:
+            for j in range(k):
+                a[col, j], a[p, j] = a[p, j], a[col, j]
+                inv[col, j], inv[p, j] = inv[p, j], inv[col, j]
+        piv = a[col, col]
+        for j in range(k):
+            a[col, j] /= piv
+            inv[col, j] /= piv
+        for r in range(k):
+            if r != col and a[r, col] != 0.0:
+                f = a[r, col]
+                for j in range(k):
+                    a[r, j] -= f * a[col, j]
+                    inv[r, j] -= f * inv[col, j]
+    return inv
+
+
+@njit(cache=True, nogil=True)
+def gauss_newton(coef, pad, h, w, rows, cols, y, rad, d_start, iterations, tol):
+    """The least-squares polish of swathflow.mosaicking.matching.gradient_refine: fit
+    ``y = g * ref[x - d] + rad @ o`` at the pixels (rows, cols) by Gauss-Newton from
+    ``d_start``, ``ref`` given by its spline coefficients ``coef`` (padded by ``pad``).
+    Returns (status, d, g, o, cov, rms, shifted): status 0 done, 1 singular normal
+    matrix, 2 the shift left the padding (the caller falls back); ``shifted`` is
+    ``ref[x - d]`` at the final ``d``."""
+    m = rows.shape[0]
+    p = rad.shape[1]
+    k = 3 + p
+    d = d_start.copy()
+    g = 1.0
+    o = np.zeros(p)
+    cov = np.full((k, k), np.nan)
+    rw = np.empty((h, w))
+    tmp = np.empty((h + 3, w))
+    a = np.empty(k)
+    for _ in range(iterations):
+        if not shift_block(coef, pad, h, w, d[0], d[1], rw, tmp):
+            return 2, d, g, o, cov, np.inf, rw
+        nm = np.zeros((k, k))
+        b = np.zeros(k)
+        for q in range(m):
+            r, c = rows[q], cols[q]
+            v = rw[r, c]
+            a[0] = -g * _grad(rw, r, c, 0)
+            a[1] = -g * _grad(rw, r, c, 1)
+            a[2] = v
+            model = g * v
+            for j in range(p):
+                a[3 + j] = rad[q, j]
+                model += rad[q, j] * o[j]
+            res = y[q] - model
+            for i in range(k):
+                b[i] += a[i] * res
+                for j in range(i, k):
+                    nm[i, j] += a[i] * a[j]
+        for i in range(k):
+            for j in range(i):
+                nm[i, j] = nm[j, i]
+        cov = _inverse(nm)
+        if np.isnan(cov[0, 0]):
+            return 1, d, g, o, cov, np.inf, rw
+        dx = np.zeros(k)
+        for i in range(k):
+            for j in range(k):
+                dx[i] += cov[i, j] * b[j]
+        d[0] += dx[0]
+        d[1] += dx[1]
+        g += dx[2]
+        for j in range(p):
+            o[j] += dx[3 + j]
+        if abs(dx[0]) < tol and abs(dx[1]) < tol:
+            break
+    if not shift_block(coef, pad, h, w, d[0], d[1], rw, tmp):
+        return 2, d, g, o, cov, np.inf, rw
+    ss = 0.0
+    for q in range(m):
+        model = g * rw[rows[q], cols[q]]
+        for j in range(p):
+            model += rad[q, j] * o[j]
+        ss += (y[q] - model) ** 2
+    rms = np.sqrt(ss / max(m - k, 1))
+    return 0, d, g, o, cov, rms, rw
+
+
+@njit(cache=True, nogil=True)
+def _invalid_fraction(m, r0, r1, c0, c1, axis, k):
+    """1 - the valid fraction of row ``k`` (axis 0) or column ``k`` of ``m[r0:r1, c0:c1]``."""
+    n = 0
+    if axis == 0:
+        for c in range(c0, c1):
+            n += m[k, c]
+        return 1.0 - n / (c1 - c0)
+    for r in range(r0, r1):
+        n += m[r, k]
+    return 1.0 - n / (r1 - r0)
+
+
+@njit(cache=True, nogil=True)
+def valid_rectangle_bounds(m):
+    """(r0, r1, c0, c1) of swathflow.mosaicking.matching.valid_rectangle (greedy: drop the
+    border row or column with the largest invalid fraction until none is left);
+    r1 == r0 when nothing is left."""
+    r0, r1, c0, c1 = 0, m.shape[0], 0, m.shape[1]
+    bad = np.empty(4)
+    while r1 > r0 and c1 > c0:
+        bad[0] = _invalid_fraction(m, r0, r1, c0, c1, 0, r0)
+        bad[1] = _invalid_fraction(m, r0, r1, c0, c1, 0, r1 - 1)
+        bad[2] = _invalid_fraction(m, r0, r1, c0, c1, 1, c0)
+        bad[3] = _invalid_fraction(m, r0, r1, c0, c1, 1, c1 - 1)
+        k = 0
+        for q in range(1, 4):
+            if bad[q] > bad[k]:
+                k = q
+        if bad[k] == 0.0:
+            return r0, r1, c0, c1
+        if k == 0:
+            r0 += 1
+        elif k == 1:
+            r1 -= 1
+        elif k == 2:
+            c0 += 1
+        else:
+            c1 -= 1
+    return r0, r0, c0, c0

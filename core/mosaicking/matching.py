@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 
 __all__ = ["BlockMatch", "OverlapMatch", "mmgd_search", "phase_correlation",
            "gradient_refine", "texture_measure", "match_block", "combine_blocks"]
@@ -68,21 +67,23 @@ class OverlapMatch:
 
 
 # --- the paper's search ---------------------------------------------------------------------
-def mmgd_search(ref, ref_ok, mov, mov_ok, max_shift: int, min_pixels: int = 64):
+def mmgd_search(ref, ref_ok, mov, mov_ok, max_shift: int, min_pixels: int = 64,
+                stride: int = 1):
     """Minimum mean grey difference over integer shifts.
 
     ``ref`` (h, w) and ``mov`` (h + 2S, w + 2S) where ``mov`` is read with a margin of
     ``S = max_shift`` pixels on each side. For every candidate shift ``s`` the mean absolute
     difference ``|ref[x] - mov[x + s] - median(...)|`` is taken over the jointly valid
     pixels (the median removes a radiometric offset). Returns ``(s, cost_map)``; ``s`` is
-    None when no shift leaves ``min_pixels`` common pixels. Compiled
+    None when no shift leaves ``min_pixels`` common pixels. ``stride``: the cost over every
+    ``stride``-th row and column of ``ref`` only (``min_pixels`` counts those). Compiled
     (swathflow.mosaicking.match_kernels: no GIL held, so overlaps match on threads).
     """
     from swathflow.mosaicking.match_kernels import mmgd_costs
     S = int(max_shift)
     cost = mmgd_costs(np.ascontiguousarray(ref, float), np.ascontiguousarray(ref_ok, bool),
                       np.ascontiguousarray(mov, float), np.ascontiguousarray(mov_ok, bool),
-                      S, int(min_pixels))
+                      S, int(min_pixels), int(stride))
     if not np.isfinite(cost).any():
         return None, cost
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
@@ -113,6 +114,7 @@ def _upsampled_dft(data, size, factor, offsets):
 
 def _taper(mask, edge: float = 6.0):
     """Apodisation: the mask softened at its borders times a Tukey-like rectangle edge."""
+    from scipy import ndimage
     t = ndimage.gaussian_filter(mask.astype(float), edge / 2.0) * mask
     h, w = mask.shape
     for axis, n in ((0, h), (1, w)):
@@ -126,25 +128,13 @@ def _taper(mask, edge: float = 6.0):
 
 def valid_rectangle(mask):
     """A large all-valid rectangle inside ``mask`` (greedy: repeatedly drop the border row or
-    column with the largest invalid fraction). Returns slices, or None if nothing is left."""
-    m = np.asarray(mask, bool)
-    r0, r1, c0, c1 = 0, m.shape[0], 0, m.shape[1]
-    while r1 > r0 and c1 > c0:
-        sub = m[r0:r1, c0:c1]
-        bad = np.array([1 - sub[0].mean(), 1 - sub[-1].mean(),
-                        1 - sub[:, 0].mean(), 1 - sub[:, -1].mean()])
-        if not bad.any():
-            return slice(r0, r1), slice(c0, c1)
-        k = int(np.argmax(bad))
-        if k == 0:
-            r0 += 1
-        elif k == 1:
-            r1 -= 1
-        elif k == 2:
-            c0 += 1
-        else:
-            c1 -= 1
-    return None
+    column with the largest invalid fraction; compiled). Returns slices, or None if nothing
+    is left."""
+    from swathflow.mosaicking.match_kernels import valid_rectangle_bounds
+    r0, r1, c0, c1 = valid_rectangle_bounds(np.ascontiguousarray(mask, bool))
+    if r1 <= r0 or c1 <= c0:
+        return None
+    return slice(int(r0), int(r1)), slice(int(c0), int(c1))
 
 
 def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 16):
@@ -198,6 +188,7 @@ class _Shifter:
         self.coef = None
 
     def __call__(self, d):
+        from scipy import ndimage
         from swathflow.mosaicking.blend import _b3
         f = -np.asarray(d, float)
         a = np.floor(f).astype(int)
@@ -231,47 +222,47 @@ def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: flo
     formal standard errors ``sigma_d`` (px); ``o_mean`` is ``o`` at the mask's centroid.
     The mask should stay a few pixels inside both images' valid areas.
     """
+    return _polish(ref, mov, mask, d0, iterations, tol, planar)[:5]
+
+
+def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-4,
+            planar: bool = True):
+    """:func:`gradient_refine` and ``ref`` shifted by the final ``d`` (cubic spline, as
+    :func:`_shift`). The Gauss-Newton loop is compiled
+    (swathflow.mosaicking.match_kernels.gauss_newton; no GIL held), and so is the
+    B-spline prefilter (swathflow.mosaicking.kernels.prefilter, scipy's to 1e-15), once
+    per block."""
+    from swathflow.mosaicking.kernels import prefilter
+    from swathflow.mosaicking.match_kernels import gauss_newton
     ref = np.asarray(ref, float)
     mov = np.asarray(mov, float)
-    d = np.array(d0, float)
-    shift = _Shifter(ref)
-    y = mov[mask]
-    rr, cc = np.nonzero(mask)
-    rr = (rr - rr.mean()) / max(mask.shape[0], 1)
-    cc = (cc - cc.mean()) / max(mask.shape[1], 1)
-    rad_cols = [np.ones(y.size)] + ([rr, cc] if planar else [])
-    rad = np.column_stack(rad_cols)
-    g = 1.0
-    o = np.zeros(rad.shape[1])
-    cov = None
-    for _ in range(iterations):
-        rw = shift(d)
-        gr, gc = np.gradient(rw)
-        a = np.column_stack([-g * gr[mask], -g * gc[mask], rw[mask], rad])
-        r = y - (g * rw[mask] + rad @ o)
-        n = a.T @ a
-        try:
-            cov = np.linalg.inv(n)
-        except np.linalg.LinAlgError:
-            return d, (np.inf, np.inf), g, float(o[0]), np.inf
-        dx = cov @ (a.T @ r)
-        d += dx[:2]
-        g += dx[2]
-        o += dx[3:]
-        if np.all(np.abs(dx[:2]) < tol):
+    mask = np.asarray(mask, bool)
+    rows, cols = np.nonzero(mask)
+    y = mov[rows, cols]
+    rr = (rows - rows.mean()) / max(mask.shape[0], 1) if rows.size else rows * 0.0
+    cc = (cols - cols.mean()) / max(mask.shape[1], 1) if cols.size else cols * 0.0
+    rad = np.column_stack([np.ones(y.size)] + ([rr, cc] if planar else []))
+    h, w = ref.shape
+    pad = 12
+    while True:
+        coef = prefilter(np.ascontiguousarray(ref), pad)
+        st, d, g, o, cov, rms, shifted = gauss_newton(coef, pad, h, w, rows, cols, y, rad,
+                                                      np.array(d0, float), int(iterations),
+                                                      float(tol))
+        if st != 2 or pad > 64:
             break
-    rw = shift(d)
-    r = y - (g * rw[mask] + rad @ o)
-    dof = max(y.size - a.shape[1], 1)
-    rms = float(np.sqrt(r @ r / dof))
-    sig = np.sqrt(np.diag(cov)[:2]) * rms if cov is not None else (np.inf, np.inf)
-    return d, tuple(float(s) for s in sig), float(g), float(o[0]), rms
+        pad = 12 + int(np.ceil(np.max(np.abs(d)))) + 8      # the shift left the padding
+    if st != 0:
+        return d, (np.inf, np.inf), float(g), float(o[0]), np.inf, None
+    sig = np.sqrt(np.diag(cov)[:2]) * rms
+    return d, tuple(float(v) for v in sig), float(g), float(o[0]), float(rms), shifted
 
 
 def texture_measure(img, mask, noise: float) -> float:
     """Gradient in the weakest direction (structure tensor of the sigma=1 smoothed image)
     over ``noise``: small for flat areas and for one-directional texture (aperture problem).
     """
+    from scipy import ndimage
     sm = ndimage.gaussian_filter(np.asarray(img, float), 1.0)
     gr, gc = np.gradient(sm)
     m = ndimage.binary_erosion(mask, iterations=2) if mask.sum() > 100 else mask
@@ -293,12 +284,16 @@ def _noise(diff_values) -> float:
 
 def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1.0,
                 min_pixels: int = 256, abs_floor: float = 1e-6,
-                min_contrast: float = 0.15) -> BlockMatch:
+                min_contrast: float = 0.15, stride: int = 1) -> BlockMatch:
     """Offset of one block. ``ref`` (h, w); ``mov`` (h + 2S, w + 2S) read with a margin of
-    ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``)."""
+    ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``).
+    ``stride``: the integer search over every ``stride``-th row and column only (the
+    sub-pixel steps use every pixel): for a small search around a known answer."""
+    from scipy import ndimage
     S = int(max_shift)
     h, w = ref.shape
-    s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S, min_pixels=min_pixels // 2)
+    s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S,
+                          min_pixels=max(1, min_pixels // (2 * stride * stride)), stride=stride)
     if s is None:
         return BlockMatch(False, "too_small")
     finite = cost[np.isfinite(cost)]
@@ -320,9 +315,10 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     (pr, pc), peak = phase_correlation(fill_r, fill_m, joint)
     if abs(pr) > 1.5 or abs(pc) > 1.5:
         pr, pc = 0.0, 0.0          # a wild peak: start the polish from the integer shift
-    dres, sig, g, o, rms = gradient_refine(fill_r, fill_m, inner, (pr, pc))
+    dres, sig, g, o, rms, aligned = _polish(fill_r, fill_m, inner, (pr, pc))
+    if aligned is None:
+        aligned = _shift(fill_r, dres)
     # noise: the high-passed difference of the aligned images (slow radiometric trends out)
-    aligned = _shift(fill_r, dres)
     diff = fill_m - g * aligned
     diff = diff - ndimage.gaussian_filter(np.where(inner, diff, np.median(diff[inner])), 3.0)
     noise = max(_noise(diff[inner]), abs_floor * (np.ptp(ref[ref_ok]) + 1.0))

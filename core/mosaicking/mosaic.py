@@ -32,11 +32,11 @@ import numpy as np
 
 from swathflow.io import write_text
 from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, Layout, Swing,
-                                         find_inputs, mission_strips, read_window,
+                                         _Handles, find_inputs, mission_strips, read_window,
                                          scan_inputs)
 from swathflow.mosaicking.network import Network, solve_network
-from swathflow.mosaicking.output import (mosaic_array, quicklook, render_tile, swing_cache,
-                                          write_mosaic)
+from swathflow.mosaicking.output import (mosaic_array, overview, quicklook, render_tile,
+                                          stretch, swing_cache, write_mosaic)
 from swathflow.mosaicking.overlaps import (_active_client, find_overlaps,
                                            match_all, match_pair, plan)
 from swathflow.mosaicking.seams import seam_lines, seam_visibility
@@ -46,7 +46,7 @@ __all__ = ["Swing", "Layout", "scan_inputs", "find_overlaps", "match_pair", "sol
            "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP",
            "TAG_DIRECTION", "Network", "read_window", "swing_cache", "plan", "_active_client",
            "network_report", "match_all", "plan_mosaic", "finish_mosaic",
-           "mosaic_array"]
+           "mosaic_array", "swing_store"]
 
 
 def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
@@ -69,31 +69,44 @@ def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
     """
     import rasterio
     t0 = time.perf_counter()
-    if report and match:
-        _preload_matplotlib()
-    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
-                            max_shift, block, min_texture, workers, strips, log, control)
-    return finish_mosaic(plan_, out, feather, mode, tile, workers, png, report, cog, t0,
-                         cache_mb)
+    handles = swing_store()
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+            plan_ = plan_mosaic(paths, per_image, anchors, feather, mode, balance, match,
+                                max_shift, block, min_texture, workers, strips, log, control,
+                                handles)
+        return finish_mosaic(plan_, out, feather, mode, tile, workers, png, report, cog, t0,
+                             cache_mb, handles)
+    finally:
+        handles.close()
+
+
+def swing_store(keep_mb: int = 256) -> _Handles:
+    """The dataset handles of one mosaic run, keeping the decoded swings between the
+    matching and the blend when all of them fit in ``keep_mb`` (each swing then decoded
+    once; :meth:`_Handles.keep_if_fits`, called by :func:`plan_mosaic`)."""
+    return _Handles(keep_bytes=int(keep_mb) * 2 ** 20)
 
 
 def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
                 mode: str = "feather", balance: bool = True, match: bool = True,
                 max_shift: int = 12, block: int = 128, min_texture: float = 1.0,
                 workers: int | None = None, strips: dict | None = None, log=None,
-                control: dict | None = None):
+                control: dict | None = None, handles=None):
     """The mosaic's inputs and corrections, before any blending: ``(layout, offsets,
     radiometric, report)`` (the overlaps matched and the network solved when ``match``;
-    arguments as :func:`mosaic`)."""
+    arguments as :func:`mosaic`; ``handles``: a :func:`swing_store` shared with
+    :func:`finish_mosaic`)."""
     t0 = time.perf_counter()
     layout = scan_inputs(paths, strips)
+    if handles is not None:
+        handles.keep_if_fits(layout.swings)
     n_sw = len(layout.swings)
     rep = _header(layout, per_image, mode, feather)
     off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
     if match:
         net, pairs, matches, keys = plan(layout, per_image, anchors, max_shift, block,
-                                         min_texture, workers, log, control)
+                                         min_texture, workers, log, control, handles)
         rep.update(network_report(layout, net, pairs, matches, control))
         rep["seconds_match"] = round(time.perf_counter() - t0, 3)
         # the offsets as mosaic.json gives them (4 decimals) are the ones applied, so a
@@ -109,43 +122,26 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
 
 def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: int = 1024,
                   workers: int | None = None, png: bool = True, report: bool = True,
-                  cog: bool = True, t0: float | None = None, cache_mb: int = 64) -> dict:
+                  cog: bool = True, t0: float | None = None, cache_mb: int = 64,
+                  handles=None) -> dict:
     """Blend a :func:`plan_mosaic` result into the COG ``out`` (tiles over dask threads,
     streamed, atomic, GDAL's block cache capped at ``cache_mb``), then the quicklook, the
     report picture and ``<out>.json`` (with GDAL's default cache: the overview reads are
-    many times slower under the cap)."""
+    many times slower under the cap). ``handles``: the :func:`swing_store` of the
+    matching, if any."""
     import rasterio
     t0 = time.perf_counter() if t0 is None else t0
     layout, off, rad, rep = planned
     rep = dict(rep)
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog))
+        rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog,
+                                handles=handles))
     _products(out, rep, png, report, layout)
     rep["seconds"] = round(time.perf_counter() - t0, 3)
     rep["mpx_per_s"] = round(layout.shape[0] * layout.shape[1] / 1e6 / rep["seconds"], 3)
     if report:
         write_text(os.path.splitext(os.fspath(out))[0] + ".json", json.dumps(rep, indent=1))
     return rep
-
-
-def _preload_matplotlib() -> None:
-    """Import matplotlib (the report picture's, half a second) on a side thread while the
-    overlaps are matched: the matching's compiled kernels and GDAL's reads leave the GIL
-    free most of the time, so the import mostly fills idle core time."""
-    import sys
-    import threading
-    if "matplotlib.figure" in sys.modules:
-        return
-
-    def load():
-        try:
-            import matplotlib
-            matplotlib.use("Agg", force=False)
-            import matplotlib.backends.backend_agg  # noqa: F401
-            import matplotlib.figure  # noqa: F401
-        except ImportError:
-            pass
-    threading.Thread(target=load, name="swathflow-preload-matplotlib", daemon=True).start()
 
 
 def _header(layout: Layout, per_image, mode, feather) -> dict:
@@ -196,14 +192,21 @@ def _log_matching(log, rep) -> None:
 
 
 def _products(out, rep, png, report, layout) -> None:
-    """The quicklook PNG, the seams/residuals picture and the HTML report."""
+    """The quicklook PNG, the seams/residuals picture and the HTML report, from one read
+    of the mosaic's overviews."""
     stem = os.path.splitext(os.fspath(out))[0]
     t1 = time.perf_counter()
-    if png:
-        quicklook(out, stem + ".png")
-    if report and "overlaps" in rep:
-        from swathflow.mosaicking.report import seams_picture
-        seams_picture(out, rep, layout, stem + ".report.png")
-        from swathflow.mosaicking.report_html import mosaic_report_html
-        mosaic_report_html(out, rep, layout, stem + ".html")
+    figures = report and "overlaps" in rep
+    if png or figures:
+        from swathflow.mosaicking.drawing import png_bytes
+        data, f = overview(out, 1024)
+        grey = stretch(data)
+        encoded = png_bytes(grey)           # the quicklook, also the maps' backdrop
+        if png:
+            quicklook(out, stem + ".png", png=encoded)
+        if figures:
+            from swathflow.mosaicking.report import seams_picture
+            from swathflow.mosaicking.report_html import mosaic_report_html
+            seams_picture(out, rep, layout, stem + ".report.png", grey, f)
+            mosaic_report_html(out, rep, layout, stem + ".html", grey, f, encoded)
     rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)

@@ -156,24 +156,27 @@ def _active_client():
         return None
 
 
-def _match_batch(layout: Layout, batch, max_shift, block, min_texture):
-    """Match a list of overlaps ``(i, j, win)`` with one set of open files and one BLAS
-    thread (BLAS threads on top of the matching's own parallelism cost 5x on 2 cores)."""
+def _match_batch(layout: Layout, batch, max_shift, block, min_texture, handles=None):
+    """Match a list of overlaps ``(i, j, win)`` with one set of open files (``handles``,
+    else its own) and one BLAS thread (BLAS threads on top of the matching's own
+    parallelism cost 5x on 2 cores)."""
     from threadpoolctl import threadpool_limits
-    handles = _Handles()
+    own = handles is None
+    handles = handles or _Handles()
     try:
         with threadpool_limits(1):
             return [match_pair(layout, i, j, win, handles, max_shift, block, 16, min_texture)
                     for i, j, win in batch]
     finally:
-        handles.close()
+        if own:
+            handles.close()
 
 
 def match_all(layout: Layout, pairs, max_shift: int = 12, block: int = 128,
-              min_texture: float = 1.0, workers: int | None = None) -> list:
+              min_texture: float = 1.0, workers: int | None = None, handles=None) -> list:
     """:func:`match_pair` for every overlap, in batches: on the active Dask distributed
     client's worker processes when there is one (the matching holds the GIL), else on
-    ``workers`` local threads."""
+    ``workers`` local threads sharing ``handles`` (:class:`_Handles`; its own if None)."""
     from concurrent.futures import ThreadPoolExecutor
     jobs = [(i, j, win) for i, j, win, *_ in pairs]
     client = _active_client()
@@ -189,28 +192,25 @@ def match_all(layout: Layout, pairs, max_shift: int = 12, block: int = 128,
     else:
         with ThreadPoolExecutor(n) as ex:
             done = list(ex.map(lambda b: _match_batch(layout, b, max_shift, block,
-                                                      min_texture), batches))
+                                                      min_texture, handles), batches))
     return [m for part in done for m in part]
 
 
 def plan(layout: Layout, per_image: bool = False, anchors=(), max_shift: int = 12,
          block: int = 128, min_texture: float = 1.0, workers: int | None = None,
-         log=None, control: dict | None = None):
+         log=None, control: dict | None = None, handles=None):
     """Match every overlap (:func:`match_all`) and solve the network. ``control``: image id
     -> ``(offset (drow, dcol), sigma (row, col))``, the image's absolute offset from its
-    control points, which ties the network to the ground. Returns (network, pairs,
-    matches, keys)."""
+    control points, which ties the network to the ground. ``handles``: the
+    :class:`_Handles` to read through (e.g. keeping decoded swings for the blend; its own
+    if None). Returns (network, pairs, matches, keys)."""
     keys = _node_keys(layout, per_image)
     nodes = list(dict.fromkeys(keys))
     node_of = {k: q for q, k in enumerate(nodes)}
-    handles = _Handles()
-    try:
-        pairs = find_overlaps(layout, groups=keys, handles=handles)
-    finally:
-        handles.close()
+    pairs = find_overlaps(layout, groups=keys, handles=handles)
     if log:
         log(f"{len(layout.swings)} swings, {len(nodes)} nodes, {len(pairs)} overlaps")
-    matches = match_all(layout, pairs, max_shift, block, min_texture, workers)
+    matches = match_all(layout, pairs, max_shift, block, min_texture, workers, handles)
     obs = [(node_of[keys[i]], node_of[keys[j]], m) for (i, j, _, _), m in zip(pairs, matches)]
     by_id = {s.image_id: k for k, s in enumerate(layout.swings)}
     absolute = [(node_of[keys[by_id[iid]]], off, sig) for iid, (off, sig) in

@@ -3,7 +3,6 @@ they are against the inside of the strips."""
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 __all__ = ["seam_lines", "seam_visibility"]
 
@@ -13,6 +12,7 @@ def seam_lines(footprints, band: int = 1):
     seam: the edge of a footprint lying inside another one (where "first valid wins" and
     feathering change source) and the boundary of the nearest-centre partition (where a
     hard cut changes source). In-memory: for tests and benchmarks."""
+    from scipy import ndimage
     fps = [np.asarray(f, bool) for f in footprints]
     cover = np.sum(fps, axis=0)
     seam = np.zeros(cover.shape, bool)
@@ -38,6 +38,7 @@ def seam_visibility(image, footprints, valid=None, band: int = 1):
     The gradient of a pixel is the larger absolute forward difference along rows or columns,
     so a step across a seam in any direction counts. Returns ``(seam, inner)``.
     """
+    from scipy import ndimage
     img = np.asarray(image, float)
     if valid is None:
         valid = np.isfinite(img)
