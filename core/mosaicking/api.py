@@ -5,13 +5,14 @@ called (on the current Dask client if one is active; the result is in
 ``attrs["report"]``), the tiles are blended only when the array is computed, on the
 current Dask scheduler. ``swathflow mosaic`` and the flow's mosaic task call it with
 ``out``, which also writes the COG, its quicklook, report picture and JSON with the
-engine's streaming writer (:func:`swathflow.mosaicking.mosaic.finish_mosaic`)."""
+engine's streaming writer (:func:`swathflow.mosaicking.mosaic.finish_mosaic`).
+:func:`write_mosaic` is that writing path alone, for COG files on disk: it returns the report
+and imports neither xarray nor dask (``swathflow mosaic`` calls it; :func:`mosaic` with
+``out`` runs the same code and builds the lazy array on top)."""
 from __future__ import annotations
 
 import os
 import tempfile
-
-import xarray as xr
 
 from swathflow.errors import FormatError
 
@@ -26,6 +27,7 @@ def _as_paths(swings, folder: str) -> list[str]:
     """COG paths of ``swings``; DataArrays are written into ``folder`` first (with their
     tags, image id and strip among them, which the mosaic reads)."""
     from swathflow.rectification.api import to_cog
+    import xarray as xr
     paths = []
     for i, s in enumerate(swings):
         if isinstance(s, xr.DataArray):
@@ -38,34 +40,15 @@ def _as_paths(swings, folder: str) -> list[str]:
     return paths
 
 
-def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
-           tile: int = 1024, cache_mb: int = 64, **options) -> xr.DataArray:
-    """The mosaic of ``swings`` as a lazy float32 DataArray over (y, x) with NaN nodata,
-    CRS and transform (rioxarray); the matching report (offsets with sigmas, overlaps) is
-    in ``attrs["report"]``. With ``out`` the mosaic COG (and its ``.png``, ``.report.png``
-    and ``.json``) is also written there, and the full report (timings) returned.
-    ``options`` go to :func:`swathflow.mosaicking.mosaic.plan_mosaic` (``per_image``,
-    ``anchors``, ``balance``, ``match``, ``control``, ``strips``...) and to the writer
-    (``png``, ``report``, ``cog``, ``workers``). DataArray swings are written to COGs
-    first (beside ``out``, or in a temporary folder)."""
+def _plan_and_write(paths, out, feather, mode, tile, cache_mb, options):
+    """Match and solve the network for COG ``paths``, then (with ``out``) write the mosaic:
+    ``(planned, report)``; the one code path of :func:`mosaic` and :func:`write_mosaic`."""
     import rasterio
 
-    from swathflow.mosaicking.mosaic import (finish_mosaic, mosaic_array, plan_mosaic,
-                                             swing_store)
-    from swathflow.rectification.api import grid_dataarray
-    from swathflow.geometry.grid import Grid
+    from swathflow.mosaicking.mosaic import finish_mosaic, plan_mosaic, swing_store
     unknown = set(options) - set(_PLAN) - set(_FINISH)
     if unknown:
         raise FormatError(f"mosaic: unknown option(s) {', '.join(sorted(unknown))}")
-    swings = list(swings)
-    if len(swings) == 0:
-        raise FormatError("mosaic: no swings given")
-    base = os.path.splitext(os.path.abspath(os.fspath(out)))[0] if out else os.path.join(
-        tempfile.mkdtemp(prefix="swathflow-mosaic-"), "mosaic")
-    folder = base + "-swings"
-    if any(isinstance(s, xr.DataArray) for s in swings):
-        os.makedirs(folder, exist_ok=True)
-    paths = _as_paths(swings, folder)
     handles = swing_store()
     try:
         with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
@@ -78,6 +61,45 @@ def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
                                    **{k: v for k, v in options.items() if k in _FINISH})
     finally:
         handles.close()
+    return planned, report
+
+
+def write_mosaic(paths, out, *, feather: int = 64, mode: str = "feather", tile: int = 1024,
+                 cache_mb: int = 64, **options) -> dict:
+    """Write the mosaic of the rectified swing COGs ``paths`` to ``out`` (COG, ``.png``,
+    ``.report.png``, ``.json``) and return its report: what :func:`mosaic` does with
+    ``out``, without building the lazy array (no xarray or dask import)."""
+    paths = [os.path.abspath(os.fspath(p)) for p in paths]
+    if not paths:
+        raise FormatError("mosaic: no swings given")
+    return _plan_and_write(paths, out, feather, mode, tile, cache_mb, options)[1]
+
+
+def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
+           tile: int = 1024, cache_mb: int = 64, **options):
+    """The mosaic of ``swings`` as a lazy float32 DataArray over (y, x) with NaN nodata,
+    CRS and transform (rioxarray); the matching report (offsets with sigmas, overlaps) is
+    in ``attrs["report"]``. With ``out`` the mosaic COG (and its ``.png``, ``.report.png``
+    and ``.json``) is also written there, and the full report (timings) returned.
+    ``options`` go to :func:`swathflow.mosaicking.mosaic.plan_mosaic` (``per_image``,
+    ``anchors``, ``balance``, ``match``, ``control``, ``strips``...) and to the writer
+    (``png``, ``report``, ``cog``, ``workers``). DataArray swings are written to COGs
+    first (beside ``out``, or in a temporary folder)."""
+    import xarray as xr
+
+    from swathflow.geometry.grid import Grid
+    from swathflow.mosaicking.mosaic import mosaic_array
+    from swathflow.rectification.api import grid_dataarray
+    swings = list(swings)
+    if len(swings) == 0:
+        raise FormatError("mosaic: no swings given")
+    base = os.path.splitext(os.path.abspath(os.fspath(out)))[0] if out else os.path.join(
+        tempfile.mkdtemp(prefix="swathflow-mosaic-"), "mosaic")
+    folder = base + "-swings"
+    if any(isinstance(s, xr.DataArray) for s in swings):
+        os.makedirs(folder, exist_ok=True)
+    paths = _as_paths(swings, folder)
+    planned, report = _plan_and_write(paths, out, feather, mode, tile, cache_mb, options)
     layout, off, rad, _ = planned
     arr, _ = mosaic_array(layout, off, rad, feather, mode, tile)
     grid = Grid(layout.crs.to_string(), layout.transform, layout.shape)

@@ -135,9 +135,10 @@ def rectify(args) -> int:
 
 def mosaic(args) -> int:
     """``swathflow mosaic SOURCE --out FILE.tif``: match strips, feather, write a COG
-    (``swathflow.mosaic(..., out)``, as the flow's mosaic task)."""
+    (``swathflow.mosaicking.api.write_mosaic``: the code of ``swathflow.mosaic(..., out)``
+    and of the flow's mosaic task, without building the lazy array)."""
     from swathflow.cluster import dask_client
-    from swathflow.mosaicking.api import mosaic as run
+    from swathflow.mosaicking.api import write_mosaic as run
     from swathflow.mosaicking.mosaic import find_inputs, mission_strips
     out = os.fspath(args.out)
     # absolute: the overlaps may be matched by worker processes elsewhere
@@ -159,7 +160,7 @@ def mosaic(args) -> int:
                   feather=args.feather, mode="cut" if args.no_feather else "feather",
                   balance=not args.no_balance, match=not args.no_match,
                   max_shift=args.max_shift, tile=args.tile, workers=workers, strips=strips,
-                  log=log).attrs["report"]
+                  log=log)
     if log:
         for nd in rep.get("nodes", []):
             log(f"  node {nd['node']}: offset (row, col) = {nd['offset']} px, "
