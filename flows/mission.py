@@ -29,7 +29,7 @@ warnings.filterwarnings("ignore", message="Dataset has no geotransform")
 
 from prefect import flow  # noqa: E402
 
-from swathflow.cluster import dask_client  # noqa: E402
+from swathflow.cluster import dask_client, local_cluster  # noqa: E402
 from swathflow.flows.progress import Progress  # noqa: E402
 from swathflow.tasks import stages, swings  # noqa: E402
 
@@ -120,8 +120,41 @@ def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs
         ctx = temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None})
     except Exception:  # older settings objects reject None: keep the default
         ctx = contextlib.nullcontext()
-    with ctx:
-        result = mission_flow(str(mission), str(out), calibration, dask_address, cluster,
-                              jobs, workers)
+    with ctx, _started(mission, dask_address, cluster, workers) as address:
+        result = mission_flow(str(mission), str(out), calibration, address,
+                              "local" if address else cluster, jobs, workers)
     fresh.record(mission, out, calibration, result)
     return result
+
+
+def _quietly(fn, *args) -> None:
+    try:
+        fn(*args)
+    except Exception:  # noqa: BLE001 - the flow does it again and reports the failure
+        pass
+
+
+@contextlib.contextmanager
+def _started(mission, dask_address, cluster, workers):
+    """Prefect's temporary server (when no server is configured), the local Dask cluster
+    (when no other is asked for) and the mission's loading, started side by side: each
+    mostly waits on its own processes, so together they take about the longest of them
+    rather than their sum. Yields the Dask scheduler's address for the flow (None: the
+    flow connects as asked). Anything failing here is left to the flow to report."""
+    import threading
+
+    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
+    jobs = [(swings.load, str(Path(mission).resolve()))]
+    if not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value():
+        from prefect.server.api.server import SubprocessASGIServer
+        jobs.append((SubprocessASGIServer().start,))
+    threads = [threading.Thread(target=_quietly, args=j, daemon=True) for j in jobs]
+    for t in threads:
+        t.start()
+    with contextlib.ExitStack() as stack:
+        address = dask_address
+        if not dask_address and cluster == "local":
+            address = stack.enter_context(local_cluster(workers)).scheduler_address
+        for t in threads:
+            t.join()
+        yield address
