@@ -59,6 +59,10 @@ def main(argv=None) -> int:
                     help="also the flow's fixed cost: the run again with every stage's "
                          "output fresh but the run manifest removed (Prefect, Dask, the "
                          "mission, every freshness check)")
+    ap.add_argument("--per-swing", type=int, metavar="N",
+                    help="only the rectify stage's CPU per swing in this process (N swings, "
+                         "sync scheduler): run it with main's interpreter beside this one "
+                         "to compare the engines")
     args = ap.parse_args(argv)
     work = Path(args.work or tempfile.mkdtemp(prefix="swathflow-bench-"))
     mission = work / f"{args.preset}-mission"
@@ -68,6 +72,8 @@ def main(argv=None) -> int:
         simulate(mission, preset=args.preset, seed=0)
         print(f"simulated {args.preset} in {time.perf_counter() - t:.1f} s")
     cal = str(mission / "truth" / "calibration.json")
+    if args.per_swing:
+        return _per_swing(mission, cal, args.per_swing)
     cli = str(Path(sys.executable).with_name("swathflow"))
     rows = []
     for n in [int(x) for x in args.workers.split(",")]:
@@ -111,6 +117,27 @@ def main(argv=None) -> int:
     print(f"reproduce: python benchmarks/bench_flow.py --preset {args.preset} "
           f"--workers {args.workers}" + (" --direct" if args.direct else "")
           + (" --fixed" if args.fixed else ""))
+    return 0
+
+
+def _per_swing(mission, cal, n: int) -> int:
+    """The rectify stage's CPU and wall seconds per swing, in this process (one warm-up
+    swing first: imports, numba's cache), on swings from the middle of the mission."""
+    import dask
+    from swathflow.tasks import stages
+    out = tempfile.mkdtemp(prefix="swathflow-bench-swings-")
+    ids = list(stages._load(str(mission)).images)
+    ids = ids[len(ids) // 2:][:n + 1]
+    with dask.config.set(scheduler="sync"):
+        stages.rectify.fn(str(mission), ids[0], cal, out)
+        c, t = time.process_time(), time.perf_counter()
+        for iid in ids[1:]:
+            stages.rectify.fn(str(mission), iid, cal, out)
+        c, t = time.process_time() - c, time.perf_counter() - t
+    shutil.rmtree(out, ignore_errors=True)
+    print(f"rectify per swing ({len(ids) - 1} swings, one process, load "
+          f"{os.getloadavg()[0]:.1f}): {c / (len(ids) - 1):.3f} CPU-s, "
+          f"{t / (len(ids) - 1):.3f} s wall ({sys.executable})")
     return 0
 
 
