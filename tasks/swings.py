@@ -40,13 +40,13 @@ def load(mission_path):
 
 
 def remember(mission_path, mission) -> None:
-    """Memoise an already loaded Mission of ``mission_path`` (as :func:`load` would)."""
+    """Memoise an already loaded Mission of ``mission_path``: :func:`load` returns it
+    while the folder's files keep their stamps."""
     _, key = _key(mission_path)
     with _MISSIONS_LOCK:
-        if key not in _MISSIONS:
-            if len(_MISSIONS) > 8:
-                _MISSIONS.clear()
-            _MISSIONS[key] = mission
+        if key not in _MISSIONS and len(_MISSIONS) > 8:
+            _MISSIONS.clear()
+        _MISSIONS[key] = mission
 
 
 def mission_files(mission) -> list:
