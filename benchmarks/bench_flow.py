@@ -4,7 +4,8 @@ by stage; a re-run with nothing to recompute (the `swathflow run` command itself
 optionally, the same stage functions called directly (no Prefect, no Dask).
 
 Reproduce:  python benchmarks/bench_flow.py --preset survey --workers 1,2
-            (also --preset demo, area; --direct adds the direct in-process run)
+            (also --preset demo, area; --direct adds the direct in-process run, --fixed
+            the flow's fixed cost: every stage's output fresh, only the run manifest gone)
 The mission is simulated once into --work (default: a temporary folder); the truth
 calibration is passed so every run does the same work (ingest, POS, rectify, mosaic).
 CPU seconds are the run's process and its reaped children (the Dask workers).
@@ -22,7 +23,12 @@ import tempfile
 import time
 from pathlib import Path
 
-_RUN = ("import json, sys\nfrom swathflow.flows.mission import run\n"
+# as `swathflow run` does it: the inputs checked (the mission loaded once, memoised for
+# the flow), then the flow; with the number of Dask workers the command line leaves to
+# the machine (one per core)
+_RUN = ("import json, sys\nfrom swathflow.flows.guard import check_run_inputs\n"
+        "from swathflow.flows.mission import run\n"
+        "check_run_inputs(sys.argv[1], sys.argv[3])\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
         "print('TIMINGS', json.dumps(r['timings']))\n")
 
@@ -49,6 +55,14 @@ def main(argv=None) -> int:
     ap.add_argument("--work", help="folder for the mission and outputs (kept)")
     ap.add_argument("--direct", action="store_true",
                     help="also call the stage functions directly in this process")
+    ap.add_argument("--fixed", action="store_true",
+                    help="also the flow's fixed cost: the run again with every stage's "
+                         "output fresh but the run manifest removed (Prefect, Dask, the "
+                         "mission, every freshness check)")
+    ap.add_argument("--per-swing", type=int, metavar="N",
+                    help="only the rectify stage's CPU per swing in this process (N swings, "
+                         "sync scheduler): run it with main's interpreter beside this one "
+                         "to compare the engines")
     args = ap.parse_args(argv)
     work = Path(args.work or tempfile.mkdtemp(prefix="swathflow-bench-"))
     mission = work / f"{args.preset}-mission"
@@ -58,29 +72,42 @@ def main(argv=None) -> int:
         simulate(mission, preset=args.preset, seed=0)
         print(f"simulated {args.preset} in {time.perf_counter() - t:.1f} s")
     cal = str(mission / "truth" / "calibration.json")
+    if args.per_swing:
+        return _per_swing(mission, cal, args.per_swing)
     cli = str(Path(sys.executable).with_name("swathflow"))
     rows = []
     for n in [int(x) for x in args.workers.split(",")]:
         out = work / f"out-flow-{n}"
         shutil.rmtree(out, ignore_errors=True)
+        load0 = os.getloadavg()[0]
         wall, cpu, text = _timed([sys.executable, "-c", _RUN, str(mission), str(out), cal,
                                   str(n)])
         stages = json.loads(text.split("TIMINGS", 1)[1])
         r_wall, r_cpu, r_text = _timed([cli, "run", str(mission), "--out", str(out),
                                         "--calibration", cal])
         assert "nothing to recompute" in r_text, r_text
-        rows.append((n, wall, cpu, r_wall, r_cpu, stages))
+        fixed = None
+        if args.fixed:
+            (out / "run.swathflow.json").unlink()
+            fixed = _timed([sys.executable, "-c", _RUN, str(mission), str(out), cal,
+                            str(n)])[:2]
+        rows.append((n, wall, cpu, r_wall, r_cpu, stages, (load0, os.getloadavg()[0]),
+                     fixed))
     direct = _direct(mission, cal, work / "out-direct") if args.direct else None
     print(f"swathflow flow benchmark: preset {args.preset}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
     names = list(rows[0][5])
     print(f"  {'workers':>7} {'run wall s':>10} {'run CPU s':>9} {'no-op wall':>10} "
           f"{'no-op CPU':>9} {'outside':>8}  " + " ".join(f"{k:>15}" for k in names))
-    for n, wall, cpu, rw, rc, st in rows:
+    for n, wall, cpu, rw, rc, st, load, fixed in rows:
         # outside the stages: imports, validation, Prefect's server, Dask's cluster
         print(f"  {n:>7} {wall:10.1f} {cpu:9.1f} {rw:10.2f} {rc:9.2f} "
               f"{wall - sum(st.values()):8.1f}  "
-              + " ".join(f"{st.get(k, float('nan')):15.1f}" for k in names))
+              + " ".join(f"{st.get(k, float('nan')):15.1f}" for k in names)
+              + f"   (load {load[0]:.1f} -> {load[1]:.1f})")
+        if fixed is not None:
+            print(f"  {'':>7} fixed cost (every stage fresh, run manifest removed): "
+                  f"{fixed[0]:.1f} s wall, {fixed[1]:.1f} CPU-s")
     if len(rows) > 1:
         print(f"  1 -> {rows[-1][0]} workers: {rows[0][1] / rows[-1][1]:.2f}x (run wall), "
               + ", ".join(f"{k} {rows[0][5][k] / max(rows[-1][5].get(k, 0), 1e-9):.2f}x"
@@ -88,7 +115,29 @@ def main(argv=None) -> int:
     if direct is not None:
         print(f"  direct (stage functions in one process, no Prefect/Dask): {direct:.1f} s")
     print(f"reproduce: python benchmarks/bench_flow.py --preset {args.preset} "
-          f"--workers {args.workers}" + (" --direct" if args.direct else ""))
+          f"--workers {args.workers}" + (" --direct" if args.direct else "")
+          + (" --fixed" if args.fixed else ""))
+    return 0
+
+
+def _per_swing(mission, cal, n: int) -> int:
+    """The rectify stage's CPU and wall seconds per swing, in this process (one warm-up
+    swing first: imports, numba's cache), on swings from the middle of the mission."""
+    import dask
+    from swathflow.tasks import stages
+    out = tempfile.mkdtemp(prefix="swathflow-bench-swings-")
+    ids = list(stages._load(str(mission)).images)
+    ids = ids[len(ids) // 2:][:n + 1]
+    with dask.config.set(scheduler="sync"):
+        stages.rectify.fn(str(mission), ids[0], cal, out)
+        c, t = time.process_time(), time.perf_counter()
+        for iid in ids[1:]:
+            stages.rectify.fn(str(mission), iid, cal, out)
+        c, t = time.process_time() - c, time.perf_counter() - t
+    shutil.rmtree(out, ignore_errors=True)
+    print(f"rectify per swing ({len(ids) - 1} swings, one process, load "
+          f"{os.getloadavg()[0]:.1f}): {c / (len(ids) - 1):.3f} CPU-s, "
+          f"{t / (len(ids) - 1):.3f} s wall ({sys.executable})")
     return 0
 
 

@@ -31,7 +31,7 @@ def dask_client(address: str | None = None, n_workers: int | None = None,
     ``address``; or, for ``cluster="slurm"``, on ``jobs`` worker jobs submitted through
     SLURM (waits up to ``timeout`` s for the first worker); or on a local cluster sized to
     the machine (one single-threaded worker process per core, at most 4)."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
     if address:
         with Client(address) as client:
             yield client
@@ -54,11 +54,19 @@ def dask_client(address: str | None = None, n_workers: int | None = None,
         return
     if cluster != "local":
         raise SwathflowError(f"unknown cluster {cluster!r}: use one of {', '.join(CLUSTERS)}")
+    with local_cluster(n_workers) as local, Client(local) as client:
+        yield client
+
+
+@contextlib.contextmanager
+def local_cluster(n_workers: int | None = None):
+    """A local Dask cluster sized to the machine (``n_workers`` single-threaded worker
+    processes; default one per core, at most 4), closed on exit."""
+    from distributed import LocalCluster
     n = n_workers or max(1, min(os.cpu_count() or 1, 4))
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                       # CRITICAL: a worker that outlives the scheduler by a heartbeat at
                       # shutdown logs a CommClosedError traceback after a successful run
                       # (task failures still reach the client as exceptions)
-                      dashboard_address=None, silence_logs=50) as local, \
-            Client(local) as client:
-        yield client
+                      dashboard_address=None, silence_logs=50) as local:
+        yield local

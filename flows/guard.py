@@ -179,9 +179,12 @@ def explain_os_error(exc: BaseException, out=None) -> str | None:
 def check_run_inputs(mission, calibration=None):
     """``swathflow run``'s inputs, checked before Prefect or Dask start: the mission (every
     problem listed at once) and the calibration file (readable, for the mission's
-    sensor). Returns the loaded mission."""
+    sensor). Returns the loaded mission, memoised for the flow's stages (which would
+    otherwise load and check it again)."""
     from swathflow.ingest.mission import load_mission
+    from swathflow.tasks.swings import remember
     m = load_mission(mission)
+    remember(mission, m)
     if calibration:
         from swathflow.formats.calibfile import read_calibration
         doc = read_calibration(calibration)

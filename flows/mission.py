@@ -9,6 +9,7 @@ DaskTaskRunner would start a Prefect server in every worker in local mode).
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 from pathlib import Path
 
@@ -28,9 +29,12 @@ warnings.filterwarnings("ignore", message="Dataset has no geotransform")
 
 from prefect import flow  # noqa: E402
 
-from swathflow.cluster import dask_client  # noqa: E402
+from swathflow.cluster import dask_client, local_cluster  # noqa: E402
 from swathflow.flows.progress import Progress  # noqa: E402
-from swathflow.tasks import stages  # noqa: E402
+from swathflow.tasks import stages, swings  # noqa: E402
+
+#: most swings per Dask task of the rectify stage
+BATCH = 16
 
 
 @flow(name="swathflow-mission", log_prints=False)
@@ -45,7 +49,7 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     out = str(Path(out).resolve())
     with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs,
                                             n_workers=workers) as client:
-        warm = [client.submit(_warm, mission, workers=[w], pure=False)
+        warm = [client.submit(swings.warm, workers=[w], pure=False)
                 for w in client.scheduler_info()["workers"]]
         prog.start("ingest")
         info = stages.ingest(mission)
@@ -59,7 +63,8 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         prog.finish("calibrate")
         prog.start("rectify", len(ids))
         rectified = rectify_swings(client, mission, ids, cal, out,
-                                   lambda done: prog.update("rectify", done, len(ids)))
+                                   lambda done: prog.update("rectify", done, len(ids)),
+                                   loaded=stages._load(mission))
         prog.finish("rectify", len(ids))
         del warm
         prog.start("mosaic")
@@ -74,35 +79,30 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
 
 
-def _rectify_one(image_id: str, mission: str, calibration: str, out: str) -> str:
-    """One swing, rectified and written INSIDE a Dask worker process: only paths travel
-    (the mission is loaded once per worker process and memoised; the tiles are computed
-    by the worker's own thread, so no pixels or models cross processes)."""
-    import dask
-    with dask.config.set(scheduler="sync"):
-        return stages.rectify.fn(mission, image_id, calibration, out)
-
-
-def _warm(mission: str) -> None:
-    """Load (and memoise) the mission in a worker process while the client does the
-    first stages."""
-    stages._load(mission)
-
-
 def rectify_swings(client, mission: str, ids: list, calibration: str, out: str,
-                   progress=None) -> list[str]:
-    """Every swing rectified by the Dask workers, one task per swing (a lost worker's
-    task is run again by Dask on another; a failed one is retried once); the finished
+                   progress=None, loaded=None) -> list[str]:
+    """Every swing rectified by the Dask workers, several per Dask task
+    (:func:`swathflow.tasks.swings.rectify_batch`: at most :data:`BATCH` swings, at least
+    four tasks per worker so the workers finish together; a lost worker's task is run
+    again by Dask on another, a failed one retried once, its finished swings kept).
+    ``loaded``: the client's loaded Mission, handed once to every worker's memo (no task
+    depends on it: a worker started later loads and validates the mission itself). The
     paths in ``ids`` order."""
     from distributed import as_completed
-    futures = client.map(_rectify_one, list(ids), mission=mission, calibration=calibration,
-                         out=out, pure=False, retries=1)
+    ids = list(ids)
+    n_workers = max(len(client.scheduler_info()["workers"]), 1)
+    size = max(1, min(BATCH, math.ceil(len(ids) / (4 * n_workers))))
+    batches = [ids[k:k + size] for k in range(0, len(ids), size)]
+    if loaded is not None:
+        client.run(swings.remember, mission, loaded, on_error="ignore")  # a lost worker loads it
+    futures = client.map(swings.rectify_batch, batches, mission_path=mission,
+                         calibration=calibration, out_dir=out, pure=False, retries=1)
     done = 0
-    for _ in as_completed(futures):
-        done += 1
+    for f in as_completed(futures):
+        done += len(f.result())
         if progress is not None:
             progress(done)
-    return [f.result() for f in futures]
+    return [p for f in futures for p in f.result()]
 
 
 def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs=None,
@@ -120,8 +120,41 @@ def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs
         ctx = temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None})
     except Exception:  # older settings objects reject None: keep the default
         ctx = contextlib.nullcontext()
-    with ctx:
-        result = mission_flow(str(mission), str(out), calibration, dask_address, cluster,
-                              jobs, workers)
+    with ctx, _started(mission, dask_address, cluster, workers) as address:
+        result = mission_flow(str(mission), str(out), calibration, address,
+                              "local" if address else cluster, jobs, workers)
     fresh.record(mission, out, calibration, result)
     return result
+
+
+def _quietly(fn, *args) -> None:
+    try:
+        fn(*args)
+    except Exception:  # noqa: BLE001 - the flow does it again and reports the failure
+        pass
+
+
+@contextlib.contextmanager
+def _started(mission, dask_address, cluster, workers):
+    """Prefect's temporary server (when no server is configured), the local Dask cluster
+    (when no other is asked for) and the mission's loading, started side by side: each
+    mostly waits on its own processes, so together they take about the longest of them
+    rather than their sum. Yields the Dask scheduler's address for the flow (None: the
+    flow connects as asked). Anything failing here is left to the flow to report."""
+    import threading
+
+    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
+    jobs = [(swings.load, str(Path(mission).resolve()))]
+    if not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value():
+        from prefect.server.api.server import SubprocessASGIServer
+        jobs.append((SubprocessASGIServer().start,))
+    threads = [threading.Thread(target=_quietly, args=j, daemon=True) for j in jobs]
+    for t in threads:
+        t.start()
+    with contextlib.ExitStack() as stack:
+        address = dask_address
+        if not dask_address and cluster == "local":
+            address = stack.enter_context(local_cluster(workers)).scheduler_address
+        for t in threads:
+            t.join()
+        yield address

@@ -6,49 +6,20 @@ output whose inputs have not changed (:mod:`swathflow.cache`), and never hashes 
 """
 from __future__ import annotations
 
-import threading
-import time
 from pathlib import Path
 
+import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from swathflow.cache import is_fresh, mark_done, stage_key
 from swathflow.errors import SwathflowError
+from swathflow.tasks import swings
 
 
-_MISSIONS: dict = {}
-_MISSIONS_LOCK = threading.Lock()
-
-
-def _load(mission_path: str):
-    """load_mission, memoised per process on the mission folder's file stamps: every task
-    of a run needs the mission, and loading it (POS, DEM, GCPs, checks) costs seconds."""
-    from swathflow.ingest.mission import load_mission
-    root = Path(mission_path).resolve()
-    stamp = tuple(sorted((str(p), p.stat().st_mtime_ns, p.stat().st_size)
-                         for p in root.rglob("*") if p.is_file()))
-    key = (str(root), hash(stamp))
-    with _MISSIONS_LOCK:
-        if key not in _MISSIONS:
-            if len(_MISSIONS) > 8:
-                _MISSIONS.clear()
-            _MISSIONS[key] = load_mission(root)
-        return _MISSIONS[key]
-
-
-def _mission_files(mission) -> list:
-    """The files every stage of a mission depends on (configuration, POS, terrain)."""
-    files = [mission.path / "mission.toml", mission.path / mission.config["pos"]["file"]]
-    dem = mission.config.get("terrain", {}).get("dem")
-    if dem:
-        files.append(mission.path / dem)
-    return files
-
-
-def _image_files(mission, iid) -> list:
-    e = mission.images[iid]
-    return [e.file, e.lines_file]
+_load = swings.load
+_mission_files = swings.mission_files
+_image_files = swings.image_files
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
@@ -59,12 +30,29 @@ def ingest(mission_path: str) -> dict:
             "gcps": 0 if m.gcps is None else int(len(m.gcps)), "crs": m.crs, "gsd": m.gsd}
 
 
+_EO_COLUMNS = ("line", "time", "lat", "lon", "h", "roll", "pitch", "heading")
+
+
+def _write_eo(path, time_, cols: dict) -> None:
+    """``<image>.eo.csv``: the line number, then every value with 10 decimals (empty for
+    NaN), as pandas' ``to_csv(float_format="%.10f")`` writes it, at a fraction of its
+    cost (pandas formats each value in Python)."""
+    table = np.column_stack([time_] + [cols[k] for k in _EO_COLUMNS[2:]])
+    row = ",".join(["%d"] + ["%.10f"] * table.shape[1])
+    with open(path, "w", encoding="utf-8", newline="") as f:
+        f.write(",".join(_EO_COLUMNS) + "\n")
+        if np.isfinite(table).all():
+            f.write("".join(row % ((i,) + tuple(v)) + "\n" for i, v in enumerate(table.tolist())))
+        else:
+            for i, v in enumerate(table.tolist()):
+                f.write(",".join([str(i)] + ["" if x != x else "%.10f" % x for x in v]) + "\n")
+
+
 @task(name="interpolate-pos", cache_policy=NO_CACHE)
 def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
     """Exterior orientation of every scan line: the POS interpolated to each line's time,
     written as ``OUT/pos/<image>.eo.csv`` (a product, and a check that the POS covers every
     line before the heavy stages start)."""
-    import pandas as pd
     from swathflow.io import atomic_path
     from swathflow.formats.pos import interpolate_pos as interp
     m = _load(mission_path)
@@ -75,11 +63,9 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
         if not is_fresh(out, key):
             lines = m.lines(iid)
             ds = interp(m.trajectory, lines["time"])     # built once with the mission
-            df = pd.DataFrame({"line": range(len(lines["time"])), "time": lines["time"],
-                               **{k: ds[k].values for k in ("lat", "lon", "h", "roll", "pitch",
-                                                          "heading")}})
+            cols = {k: np.asarray(ds[k].values, float) for k in _EO_COLUMNS[2:]}
             with atomic_path(out) as tmp:
-                df.to_csv(tmp, index=False, float_format="%.10f")
+                _write_eo(tmp, np.asarray(lines["time"], float), cols)
             mark_done(out, key)
         paths.append(str(out))
     return paths
@@ -123,19 +109,9 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
 def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
     """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration:
     ``to_cog(rectify(...))`` of the Python API in the raw image's dtype: every band of the
-    raw image, or those of ``[rectify] bands`` in mission.toml."""
-    from swathflow.rectification.api import rectify as rectified, to_cog
-    from swathflow.rectification.mission import mission_bands
-    m = _load(mission_path)
-    out = Path(out_dir) / "rectified" / f"{image_id}.tif"
-    key = stage_key("rectify", _mission_files(m) + _image_files(m, image_id) + [calibration])
-    if is_fresh(out, key):
-        return str(out)
-    t0 = time.perf_counter()
-    to_cog(rectified(m, image_id, calibration, bands=mission_bands(m, image_id), dtype=None),
-           out)
-    mark_done(out, key, seconds=round(time.perf_counter() - t0, 3))
-    return str(out)
+    raw image, or those of ``[rectify] bands`` in mission.toml
+    (:func:`swathflow.tasks.swings.rectify_swing`)."""
+    return swings.rectify_swing(_load(mission_path), image_id, calibration, out_dir)
 
 
 def mosaic_control(mission_path: str, calibration: str) -> dict:

@@ -48,6 +48,8 @@ def _check_against_truth(mission: Path, result: dict, tol_px: float = 0.25):
         dy, dx = phase_shift(np.where(ok, img, np.nanmean(img[ok])),
                              np.where(ok, win, np.nanmean(win[ok])))
         assert abs(dx) < tol_px and abs(dy) < tol_px, (path, dx, dy)
+    if "mosaic" not in result:          # the swings alone (a batch of the rectify stage)
+        return
     with rasterio.open(result["mosaic"]) as mos:
         assert mos.crs == t_crs and mos.width > 0
 
@@ -265,3 +267,26 @@ def test_changed_image_recomputes_exactly_what_depends_on_it(tiny_mission, tmp_p
     assert not third.get("fresh") and (out / "mosaic.tif").exists()
     kept = _files(out)
     assert all(kept[k] == after[k] for k in rect), "swings redone for a lost mosaic"
+
+
+def test_workers_rectify_in_batches_without_prefect(tiny_mission, tmp_path):
+    """The rectify stage's worker code imports neither Prefect nor the flow (a worker
+    would pay about a CPU second for it), and a batch rectifies its swings with the
+    mission handed over already loaded: the same paths as one swing at a time, each
+    against the truth."""
+    code = ("import sys\nimport swathflow.tasks.swings\n"
+            "print('prefect' if 'prefect' in sys.modules else '-')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120)
+    assert r.stdout.strip() == "-", r.stdout + r.stderr
+    from swathflow.ingest.mission import load_mission
+    from swathflow.tasks import swings
+    m = load_mission(tiny_mission)
+    swings.remember(tiny_mission, m)
+    assert swings.load(tiny_mission) is m
+    cal = str(tiny_mission / "truth" / "calibration.json")
+    out = tmp_path / "out"
+    ids = list(m.images)
+    paths = swings.rectify_batch(ids, str(tiny_mission), cal, str(out))
+    assert paths == [str(out / "rectified" / f"{i}.tif") for i in ids]
+    _check_against_truth(tiny_mission, {"rectified": paths})

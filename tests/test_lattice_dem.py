@@ -92,3 +92,70 @@ def test_off_image_cells_are_not_refined(scene):
         full = L.leaves(model, sub, dem, TOL)
         pruned = L.leaves(model, sub, dem, TOL, raw_shape=model.shape)
     assert pruned.exact_evaluations < full.exact_evaluations
+
+
+def _paint_absolute(lv, nl, ne):
+    from swathflow.rectification.paint import paint_leaves
+    co = paint_leaves(lv, 0, 0, nl, ne)
+    return np.stack([co[0], co[1]], axis=-1).astype(np.float64)
+
+
+def test_tile_evaluated_at_every_pixel_is_the_exact_model(scene):
+    """dense=True: every pixel on the image is the exact model's value, nodata exactly
+    where the exact model puts the pixel off the image; cells clearly off the image
+    are skipped (fewer evaluations than pixels)."""
+    model, dem, grid, exact = scene["model"], scene["dem"], scene["grid"], scene["exact"]
+    nl, ne = model.shape
+    sub = grid.window(slice(0, min(384, grid.height)), slice(0, min(384, grid.width)))
+    ex = exact[:sub.height, :sub.width]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lv = L.leaves(model, sub, dem, TOL, raw_shape=model.shape, dense=True)
+    assert lv.pixels is not None and lv.cells.size == 0
+    got = _paint_absolute(lv, nl, ne)
+    li, ei = ex[..., 0], ex[..., 1]
+    with np.errstate(invalid="ignore"):
+        on = (li >= -0.5) & (li <= nl - 0.5) & (ei >= -0.5) & (ei <= ne - 0.5)
+    assert on.sum() > 10_000 and (~on).sum() > 1_000
+    valid = np.isfinite(got[..., 0])
+    assert (valid == on).all()
+    assert np.abs(lv.pixels[on] - ex[on]).max() < 1e-9
+    assert np.abs(got[on] - ex[on]).max() < 1e-4           # painted as float32
+    assert lv.exact_evaluations < sub.height * sub.width
+
+
+class _Wiggle:
+    """The scene's model with a zig-zag of 0.3 raw px added to the line, 1.3 output
+    pixels from kink to kink (a POS far denser than the output pixels): the exact
+    mapping the lattice would have to refine down to single pixels everywhere."""
+
+    def __init__(self, model, grid):
+        self.model, self.grid = model, grid
+        self.shape = model.shape
+
+    def ground_to_image(self, g, clip=True):
+        from swathflow.geometry.grid import ecef_to_map
+        out = self.model.ground_to_image(g, clip=clip)
+        x, _, _ = ecef_to_map(np.asarray(g).reshape(-1, 3), self.grid.crs)
+        t = (x.reshape(out.shape[:-1]) / (1.3 * GSD)) % 2.0
+        return out + np.stack([0.3 * np.abs(t - 1.0), np.zeros_like(t)], axis=-1)
+
+
+def test_lattice_chooses_every_pixel_where_the_mapping_kinks_at_every_pixel(scene):
+    """Per tile, the cheaper way: the smooth scene keeps the adaptive lattice; the
+    wiggling one is evaluated at every pixel, and both stay within the bound of their
+    exact model."""
+    model, dem, grid = scene["model"], scene["dem"], scene["grid"]
+    nl, ne = model.shape
+    sub = grid.window(slice(0, min(256, grid.height)), slice(0, min(256, grid.width)))
+    rr, cc = np.indices(sub.shape)
+    for m, dense in ((model, False), (_Wiggle(model, sub), True)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            lv = L.leaves(m, sub, dem, TOL, raw_shape=model.shape)
+            ex = L.exact_raw(m, sub, dem, rr, cc)
+        assert (lv.pixels is not None) == dense
+        got = _paint_absolute(lv, nl, ne)
+        ok = np.isfinite(got[..., 0]) & np.isfinite(ex[..., 0])
+        assert ok.sum() > 5_000
+        assert np.abs(got[ok] - ex[ok]).max() < TOL

@@ -40,6 +40,30 @@ def paint_window(cells, corners, h, w, l0, e0, nl, ne):
 
 
 @njit(cache=True, nogil=True)
+def paint_pixels(pixels, l0, e0, nl, ne):
+    """:func:`paint_window` for a tile evaluated exactly at every pixel: ``pixels``
+    ``(h, w, 2)`` float64 absolute raw coordinates."""
+    h, w = pixels.shape[0], pixels.shape[1]
+    out = np.full((2, h, w), np.nan, np.float32)
+    for i in range(h):
+        for j in range(w):
+            li, ei = pixels[i, j, 0], pixels[i, j, 1]
+            if (li >= -0.5) and (li <= nl - 0.5) and (ei >= -0.5) and (ei <= ne - 0.5):
+                out[0, i, j] = li - l0
+                out[1, i, j] = ei - e0
+    return out
+
+
+def paint_leaves(lv, l0, e0, nl, ne):
+    """Window-relative raw coordinates ``(2, h, w)`` float32 of a tile's
+    :class:`~.lattice.Leaves` (:func:`paint_window`, or :func:`paint_pixels` for a tile
+    evaluated at every pixel)."""
+    if lv.pixels is not None:
+        return paint_pixels(lv.pixels, l0, e0, nl, ne)
+    return paint_window(lv.cells, lv.corners, lv.shape[0], lv.shape[1], l0, e0, nl, ne)
+
+
+@njit(cache=True, nogil=True)
 def paint_f64(cells, corners, h, w):
     """Absolute raw coordinates ``(h, w, 2)`` float64 of the leaves (no masking)."""
     out = np.full((h, w, 2), np.nan)

@@ -16,7 +16,7 @@ from swathflow.errors import FormatError
 from swathflow.geometry.terrain import open_terrain
 from swathflow.rectification.kernel import resample_window
 from swathflow.rectification.lattice import TOLERANCE_PX, leaves
-from swathflow.rectification.paint import paint_window
+from swathflow.rectification.paint import paint_leaves
 from swathflow.rectification.rawimage import RawImage, open_raw_image
 
 KERNELS = ("nearest", "bilinear", "cubic")
@@ -85,7 +85,7 @@ def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_P
     h, w = grid.shape
     if win is None:
         return np.full((2, h, w), np.nan, np.float32), None
-    return paint_window(lv.cells, lv.corners, h, w, win[0], win[2], nl, ne), win
+    return paint_leaves(lv, win[0], win[2], nl, ne), win
 
 
 def rectify_tile(model, source, grid, terrain, kernel: str = "bilinear",

@@ -1,0 +1,106 @@
+"""The rectify stage's work, importable without Prefect: the Dask workers run it (a worker
+that unpickled a function from a module importing Prefect would import Prefect, about
+1 CPU-s, for nothing), and :mod:`.stages` wraps it in its Prefect task.
+
+The mission is loaded once per process (:func:`load`, memoised on the folder's file
+stamps) or handed over already loaded (:func:`remember`: the flow sends the client's
+Mission to its workers once, instead of each worker validating the mission again);
+:func:`rectify_batch` rectifies several swings per Dask task.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+from swathflow.cache import is_fresh, mark_done, stage_key
+
+_MISSIONS: dict = {}
+_MISSIONS_LOCK = threading.Lock()
+
+
+def _key(mission_path) -> tuple[Path, tuple]:
+    root = Path(mission_path).resolve()
+    stamp = tuple(sorted((str(p), p.stat().st_mtime_ns, p.stat().st_size)
+                         for p in root.rglob("*") if p.is_file()))
+    return root, (str(root), hash(stamp))
+
+
+def load(mission_path):
+    """load_mission, memoised per process on the mission folder's file stamps: every task
+    of a run needs the mission, and loading it (POS, DEM, GCPs, checks) costs seconds."""
+    from swathflow.ingest.mission import load_mission
+    root, key = _key(mission_path)
+    with _MISSIONS_LOCK:
+        if key not in _MISSIONS:
+            if len(_MISSIONS) > 8:
+                _MISSIONS.clear()
+            _MISSIONS[key] = load_mission(root)
+        return _MISSIONS[key]
+
+
+def remember(mission_path, mission) -> None:
+    """Memoise an already loaded Mission of ``mission_path``: :func:`load` returns it
+    while the folder's files keep their stamps."""
+    _, key = _key(mission_path)
+    with _MISSIONS_LOCK:
+        if key not in _MISSIONS and len(_MISSIONS) > 8:
+            _MISSIONS.clear()
+        _MISSIONS[key] = mission
+
+
+def mission_files(mission) -> list:
+    """The files every stage of a mission depends on (configuration, POS, terrain)."""
+    files = [mission.path / "mission.toml", mission.path / mission.config["pos"]["file"]]
+    dem = mission.config.get("terrain", {}).get("dem")
+    if dem:
+        files.append(mission.path / dem)
+    return files
+
+
+def image_files(mission, iid) -> list:
+    e = mission.images[iid]
+    return [e.file, e.lines_file]
+
+
+def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str:
+    """Orthorectify one swing of the loaded ``mission`` to ``OUT/rectified/<image>.tif``
+    (COG) with the calibration: ``to_cog(rectify(...))`` of the Python API in the raw
+    image's dtype, every band or those of ``[rectify] bands``; a finished output whose
+    inputs are unchanged is kept."""
+    from swathflow.rectification.api import rectify as rectified, to_cog
+    from swathflow.rectification.mission import mission_bands
+    out = Path(out_dir) / "rectified" / f"{image_id}.tif"
+    key = stage_key("rectify", mission_files(mission) + image_files(mission, image_id)
+                    + [calibration])
+    if is_fresh(out, key):
+        return str(out)
+    t0 = time.perf_counter()
+    to_cog(rectified(mission, image_id, calibration, bands=mission_bands(mission, image_id),
+                     dtype=None), out)
+    mark_done(out, key, seconds=round(time.perf_counter() - t0, 3))
+    return str(out)
+
+
+def rectify_batch(image_ids, mission_path: str, calibration: str,
+                  out_dir: str) -> list[str]:
+    """Several swings, one after the other, in this process (a Dask worker: its tiles on
+    its own thread, so no pixels or models cross processes); the mission loaded once
+    (memoised, or handed over by :func:`remember`). The output paths in ``image_ids``
+    order."""
+    import dask
+    m = load(mission_path)
+    with dask.config.set(scheduler="sync"):
+        return [rectify_swing(m, iid, calibration, out_dir) for iid in image_ids]
+
+
+def warm() -> None:
+    """Import the rectification engine and load its compiled kernels (from numba's
+    cache) in a worker while the client does the first stages."""
+    import numpy as np
+
+    import swathflow.rectification.api  # noqa: F401
+    import swathflow.rectification.kernel  # noqa: F401
+    from swathflow.rectification.paint import paint_pixels, paint_window
+    paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
+    paint_pixels(np.zeros((2, 2, 2)), 0, 0, 4, 4)
