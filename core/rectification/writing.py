@@ -246,8 +246,9 @@ def _halve(src, nodata, use_nodata, average, is_int, out):
 def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str) -> None:
     """Write the overview levels of the tiled GeoTIFF ``part`` into ``paths`` (factor 2,
     4, ...: each level from the one above it), block by block: every output block of
-    ``blocksize`` pixels is reduced from the four blocks above it, all bands at once, so
-    memory is bounded by five blocks and each source block is read once."""
+    ``blocksize`` pixels is reduced from the four blocks above it (``blocksize`` even),
+    one at a time with all their bands, so memory is bounded by two blocks (and GDAL's
+    cache) and each source block is read once."""
     import rasterio
     from rasterio.windows import Window
     average = resampling.lower() == "average"
@@ -269,11 +270,16 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
                 for r0 in range(0, h, blocksize):
                     for c0 in range(0, w, blocksize):
                         nr, nc = min(blocksize, h - r0), min(blocksize, w - c0)
-                        win = Window(2 * c0, 2 * r0, min(2 * nc, src.width - 2 * c0),
-                                     min(2 * nr, src.height - 2 * r0))
-                        block = src.read(window=win)
                         out = np.empty((src.count, nr, nc), dt)
-                        _halve(block, float(fill), use_nd, average, dt.kind in "ui", out)
+                        for sr in range(2 * r0, min(2 * (r0 + nr), src.height), blocksize):
+                            for sc in range(2 * c0, min(2 * (c0 + nc), src.width), blocksize):
+                                block = src.read(window=Window(
+                                    sc, sr, min(blocksize, src.width - sc),
+                                    min(blocksize, src.height - sr)))
+                                i, j = (sr - 2 * r0) // 2, (sc - 2 * c0) // 2
+                                _halve(block, float(fill), use_nd, average, dt.kind in "ui",
+                                       out[:, i:i + -(-block.shape[1] // 2),
+                                           j:j + -(-block.shape[2] // 2)])
                         dst.write(out, window=Window(c0, r0, nc, nr))
         src_path = path
 
