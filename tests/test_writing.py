@@ -44,6 +44,7 @@ def test_overview_levels_halve_until_one_block():
     assert overview_factors(512, 512, 512) == []
     assert overview_factors(513, 100, 512) == [2]
     assert overview_factors(1100, 1301, 256) == [2, 4, 8]
+    assert overview_factors(2600, 8200, 512) == [2, 4, 8, 16]     # as GDAL's COG driver
 
 
 @pytest.mark.parametrize("dtype,nodata", [(np.uint16, 0), (np.float32, float("nan")),

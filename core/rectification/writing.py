@@ -200,10 +200,12 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
 
 
 def overview_factors(height: int, width: int, blocksize: int) -> list[int]:
-    """The COG driver's default overview levels: halve until a level fits in one block
-    (1400 x 1354 with 512 blocks: factors 2 and 4)."""
+    """The COG driver's default overview levels (GDAL 3.10): halve while the last level,
+    counted as ``size // factor``, exceeds one block (1400 x 1354 with 512 blocks: factors
+    2 and 4; 8200 x 2600: 2 to 16). The levels themselves are ``ceil(size / factor)``
+    pixels (gdaladdo's sizes), so each of their pixels covers whole pixels above it."""
     f, out = 1, []
-    while max(-(-height // f), -(-width // f)) > blocksize:
+    while max(height // f, width // f) > blocksize:
         f *= 2
         out.append(f)
     return out
