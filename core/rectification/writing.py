@@ -351,7 +351,8 @@ def _to_cog(part: str, final: str, target, georeferenced: bool, mask: bool, bloc
             with rasterio.open(part) as src:
                 factors = overview_factors(src.height, src.width, blocksize)
             levels = [stack.enter_context(_scratch(target, f"ovr{f}.tif")) for f in factors]
-            build_overviews(part, levels, blocksize, overview_resampling)
+            with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):     # not 5 % of the machine
+                build_overviews(part, levels, blocksize, overview_resampling)
             source = stack.enter_context(_scratch(target, "vrt"))
             with open(source, "w") as f:
                 f.write(_vrt_with_overviews(part, levels, georeferenced))
