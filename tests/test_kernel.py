@@ -91,29 +91,6 @@ def test_multiband_each_band_its_own_pattern():
     assert np.allclose(v[2, 0], 10)
 
 
-def test_lattice_painting_matches_bilinear_closed_form():
-    # one 8-pixel leaf over a 9 x 9 tile: corners of a bilinear function are reproduced
-    # everywhere; a 1-pixel leaf painted later overwrites its four pixels exactly
-    f = lambda r, c: np.stack([1.5 * r - 0.25 * c + 0.01 * r * c + 3, 0.5 * c + 2], axis=-1)
-    cells = np.array([[0, 0, 8], [4, 4, 1]], np.int64)
-    corners = np.array([[f(0, 0), f(0, 8), f(8, 0), f(8, 8)],
-                        [f(4, 4) + 0.3, f(4, 5) + 0.3, f(5, 4) + 0.3, np.full(2, np.nan)]])
-    full = K.lattice_coords_f64(cells, corners, 9, 9)
-    r, c = np.mgrid[0:9, 0:9]
-    want = f(r, c).astype(float)
-    want[4, 4] += 0.3
-    want[4, 5] += 0.3
-    want[5, 4] += 0.3
-    want[5, 5] = np.nan
-    assert np.allclose(full, want, equal_nan=True)
-    win = K.lattice_coords(cells, corners, 9, 9, 2, 1, 18, 6)
-    inside = (want[..., 0] >= -0.5) & (want[..., 0] <= 17.5) & (want[..., 1] >= -0.5) & \
-        (want[..., 1] <= 5.5)
-    assert np.array_equal(np.isfinite(win[0]), inside)
-    assert np.allclose(win[0][inside], want[..., 0][inside] - 2, atol=1e-5)
-    assert np.allclose(win[1][inside], want[..., 1][inside] - 1, atol=1e-5)
-
-
 # ----------------------------------------------------------------------------------------
 # raw images: ENVI BSQ / BIL / BIP with headers, multi-band GeoTIFF, band selection
 # ----------------------------------------------------------------------------------------

@@ -102,42 +102,39 @@ def _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata):
 
 
 #: output block of the cube kernels (rows, columns): its taps stay in L1, and neighbouring
-#: rows of a block read the same raw cache lines band after band
-BLOCK_ROWS, BLOCK_COLS = 8, 64
+#: rows of a block read the same raw cache lines band after band (16 x 64 measured 5-10 %
+#: faster than 8 x 64, 4 x 128 or 32 x 32 on the 100-band benchmark)
+BLOCK_ROWS, BLOCK_COLS = 16, 64
 
 
-#: output block of the cube kernels (rows, columns): its taps stay in L1, and neighbouring
-#: rows of a block read the same raw cache lines band after band
-BLOCK_ROWS, BLOCK_COLS = 8, 64
-
-
-@njit(cache=True, nogil=True)
-def _fill_bad(out, r0, nr, c0, nc, bc, ok, out_nodata):
-    """``out_nodata`` into every band of a block's pixels without a coordinate (band
-    loop outside: contiguous writes)."""
-    for b in range(out.shape[0]):
-        for rr in range(nr):
-            o = out[b, r0 + rr]
-            for cc in range(nc):
-                if not ok[rr * bc + cc]:
-                    o[c0 + cc] = out_nodata
+@njit(cache=True, nogil=True, inline="always")
+def _step(acc, nd_cmp):
+    """A value landing on ``nd_cmp`` moves up by one."""
+    if acc == nd_cmp:
+        return acc + 1
+    return acc
 
 
 @njit(cache=True, nogil=True)
 def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, valid):
     """:func:`gather_bands` for the common cube case, bilinear, written as one loop nest
-    with constant options so that the compiler optimises it fully (measured a third
-    faster than with the options as arguments or the taps in a helper): integer raw data
+    with constant options so that the compiler optimises it fully: integer raw data
     without a nodata value into an integer type at least as wide, band loop outside (BSQ,
     BIL), over output blocks of :data:`BLOCK_ROWS` x :data:`BLOCK_COLS` pixels (a whole
     output row per band would touch a new raw cache line at nearly every pixel of an
-    oblique swing). Pixels without a coordinate get ``out_nodata``; a value landing on
-    ``nd_cmp`` moves up by one (the caller ensures it is below the range's top; NaN: no
-    nodata value to avoid)."""
+    oblique swing). Per pixel one flat offset (the other three taps are ``+ de``, ``+ dl``,
+    ``+ dl + de``) and four weights; the bands go four at a time through the pixel loop,
+    so each pixel's offset and weights are loaded once per four bands (1.5-1.8x faster
+    than one band at a time; same arithmetic, identical values). ``nb >= 4``: the last
+    group of four ends at the last band (it may redo up to three bands, same values).
+    Small changes to this loop nest (the taps or the nodata fill in helpers, branch-free
+    rounding) measured 10-20 % slower. Pixels without a coordinate get ``out_nodata``; a
+    value landing on ``nd_cmp`` moves up by one (the caller ensures it is below the
+    range's top; NaN: no nodata value to avoid)."""
     _, h, w = coords.shape
     br, bc = BLOCK_ROWS, BLOCK_COLS
-    offs = np.empty((4, br * bc), np.int64)
-    wts = np.empty((4, br * bc), np.float64)
+    offs = np.empty(br * bc, np.int64)
+    wts = np.empty((br * bc, 4), np.float64)
     ok = np.empty(br * bc, np.bool_)
     dl = sl if nl > 1 else 0
     de = se if ne > 1 else 0
@@ -155,44 +152,69 @@ def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, va
                         bad += 1
                         ok[t] = False
                         valid[r0 + rr, c0 + cc] = 0
-                        offs[0, t] = 0
-                        offs[1, t] = 0
-                        offs[2, t] = 0
-                        offs[3, t] = 0
-                        wts[0, t] = 0
-                        wts[1, t] = 0
-                        wts[2, t] = 0
-                        wts[3, t] = 0
+                        offs[t] = 0
+                        wts[t, 0] = 0
+                        wts[t, 1] = 0
+                        wts[t, 2] = 0
+                        wts[t, 3] = 0
                         continue
                     ok[t] = True
                     valid[r0 + rr, c0 + cc] = 255
                     i, p = _taps_1d(li, nl, False)
                     j, q = _taps_1d(ei, ne, False)
-                    k = i * sl + j * se
-                    offs[0, t] = k
-                    offs[1, t] = k + de
-                    offs[2, t] = k + dl
-                    offs[3, t] = k + dl + de
-                    wts[0, t] = (1 - p) * (1 - q)
-                    wts[1, t] = (1 - p) * q
-                    wts[2, t] = p * (1 - q)
-                    wts[3, t] = p * q
-            for b in range(nb if bad < nr * nc else 0):     # none: every pixel is nodata
-                base = b * sb
+                    offs[t] = i * sl + j * se
+                    wts[t, 0] = (1 - p) * (1 - q)
+                    wts[t, 1] = (1 - p) * q
+                    wts[t, 2] = p * (1 - q)
+                    wts[t, 3] = p * q
+            if bad == nr * nc:                          # every pixel is nodata
+                for b in range(nb):
+                    for rr in range(nr):
+                        for cc in range(nc):
+                            out[b, r0 + rr, c0 + cc] = out_nodata
+                continue
+            b0 = 0
+            while b0 < nb:
+                b0 = min(b0, nb - 4)
+                s0 = b0 * sb
+                s1 = s0 + sb
+                s2 = s1 + sb
+                s3 = s2 + sb
                 for rr in range(nr):
-                    o = out[b, r0 + rr]
+                    o0 = out[b0, r0 + rr]
+                    o1 = out[b0 + 1, r0 + rr]
+                    o2 = out[b0 + 2, r0 + rr]
+                    o3 = out[b0 + 3, r0 + rr]
                     for cc in range(nc):
                         t = rr * bc + cc
-                        acc = (wts[0, t] * flat[base + offs[0, t]]
-                               + wts[1, t] * flat[base + offs[1, t]]
-                               + wts[2, t] * flat[base + offs[2, t]]
-                               + wts[3, t] * flat[base + offs[3, t]])
-                        acc = math.floor(acc + 0.5)
-                        if acc == nd_cmp:
-                            acc = acc + 1
-                        o[c0 + cc] = acc
+                        k = offs[t]
+                        w0 = wts[t, 0]
+                        w1 = wts[t, 1]
+                        w2 = wts[t, 2]
+                        w3 = wts[t, 3]
+                        a0 = (w0 * flat[s0 + k] + w1 * flat[s0 + k + de]
+                              + w2 * flat[s0 + k + dl] + w3 * flat[s0 + k + dl + de])
+                        a1 = (w0 * flat[s1 + k] + w1 * flat[s1 + k + de]
+                              + w2 * flat[s1 + k + dl] + w3 * flat[s1 + k + dl + de])
+                        a2 = (w0 * flat[s2 + k] + w1 * flat[s2 + k + de]
+                              + w2 * flat[s2 + k + dl] + w3 * flat[s2 + k + dl + de])
+                        a3 = (w0 * flat[s3 + k] + w1 * flat[s3 + k + de]
+                              + w2 * flat[s3 + k + dl] + w3 * flat[s3 + k + dl + de])
+                        a0 = math.floor(a0 + 0.5)
+                        a1 = math.floor(a1 + 0.5)
+                        a2 = math.floor(a2 + 0.5)
+                        a3 = math.floor(a3 + 0.5)
+                        o0[c0 + cc] = _step(a0, nd_cmp)
+                        o1[c0 + cc] = _step(a1, nd_cmp)
+                        o2[c0 + cc] = _step(a2, nd_cmp)
+                        o3[c0 + cc] = _step(a3, nd_cmp)
+                b0 += 4
             if bad:
-                _fill_bad(out, r0, nr, c0, nc, bc, ok, out_nodata)
+                for b in range(nb):
+                    for rr in range(nr):
+                        for cc in range(nc):
+                            if not ok[rr * bc + cc]:
+                                out[b, r0 + rr, c0 + cc] = out_nodata
     return out
 
 
@@ -392,10 +414,11 @@ def _gather(flat, strides, shape, coords, nearest, check, clamp, has_nodata, nod
         cmp = out_nodata if avoid else np.nan
         if sb == 1 and nb > 1:
             gather_int_bip(flat, nb, sl, se, nl, ne, coords, out, out_nodata, cmp, valid)
-        else:
+            return
+        if nb >= 4:
             gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, cmp, valid)
-    else:
-        gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodata,
+            return
+    gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodata,
                      nodata, out, out_nodata, lo, hi, is_int, clamp, avoid, valid,
                      sb == 1 and nb > 1)
 

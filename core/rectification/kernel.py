@@ -2,17 +2,14 @@
 
 Two passes per output tile, no ``(rows, cols, 2)`` float64 temporary:
 
-1. :func:`lattice_coords` fills the tile's raw coordinates from the leaf cells of the
-   adaptive lattice (:mod:`.lattice`): each leaf is a square of ``s + 1`` x ``s + 1`` output
-   pixels whose raw (line, element) is the bilinear interpolation of its four corner
-   values (a leaf of size 1 holds four exact values). Leaves are applied in order, later
-   (finer) ones overwriting the shared edges of coarser ones. Coordinates are stored as
-   float32 relative to the raw window read for the tile (a few hundred pixels: 3e-5 px
-   resolution), NaN off the raw image.
+1. :func:`.paint.paint_window` fills the tile's raw coordinates from the leaf cells of the
+   adaptive lattice (:mod:`.lattice`), interpolating each leaf's corners with
+   :func:`_bil`, as float32 relative to the raw window read for the tile (a few hundred
+   pixels: 3e-5 px resolution), NaN off the raw image.
 2. :func:`resample_window` resamples every band of the raw window at those coordinates
    (nearest, bilinear, Keys cubic), nodata-aware, into the output dtype: the mapping is
    computed once per tile and applied to every band. Nearest and bilinear go through the
-   gather kernels of :mod:`.gather` (taps once per output row, the window in its file's
+   gather kernels of :mod:`.gather` (taps once per output block, the window in its file's
    interleave); cubic through :func:`resample_bands`.
 
 Why numba: it installs as a wheel (no compiler on the machine), compiles plain loops over
@@ -49,67 +46,6 @@ def _bil(wr, wc, q00, q01, q10, q11):
     if a != 0.0:
         v += a * q11
     return v
-
-
-@njit(cache=True, nogil=True)
-def lattice_coords(cells, corners, h, w, l0, e0, nl, ne):
-    """Window-relative raw coordinates ``(2, h, w)`` float32 of a tile's pixels.
-
-    ``cells`` ``(n, 3)`` int64 (row, col, size) and ``corners`` ``(n, 4, 2)`` float64 (raw
-    line, element at the corners (r, c), (r, c + s), (r + s, c), (r + s, c + s)). Pixels
-    whose coordinate is NaN or off the raw image (``nl`` x ``ne``, by more than half a
-    pixel) are NaN; the others are returned minus the window origin ``(l0, e0)``."""
-    out = np.full((2, h, w), np.nan, np.float32)
-    for k in range(cells.shape[0]):
-        r = cells[k, 0]
-        c = cells[k, 1]
-        s = cells[k, 2]
-        for i in range(s + 1):
-            rr = r + i
-            if rr >= h:
-                break
-            wr = i / s
-            for j in range(s + 1):
-                cc = c + j
-                if cc >= w:
-                    break
-                wc = j / s
-                li = _bil(wr, wc, corners[k, 0, 0], corners[k, 1, 0], corners[k, 2, 0],
-                          corners[k, 3, 0])
-                ei = _bil(wr, wc, corners[k, 0, 1], corners[k, 1, 1], corners[k, 2, 1],
-                          corners[k, 3, 1])
-                if (li >= -0.5) and (li <= nl - 0.5) and (ei >= -0.5) and (ei <= ne - 0.5):
-                    out[0, rr, cc] = li - l0
-                    out[1, rr, cc] = ei - e0
-                else:
-                    out[0, rr, cc] = np.nan
-                    out[1, rr, cc] = np.nan
-    return out
-
-
-@njit(cache=True, nogil=True)
-def lattice_coords_f64(cells, corners, h, w):
-    """Absolute raw coordinates ``(h, w, 2)`` float64 of the leaves (no masking): the
-    inverse map as an array, for tests and products."""
-    out = np.full((h, w, 2), np.nan)
-    for k in range(cells.shape[0]):
-        r = cells[k, 0]
-        c = cells[k, 1]
-        s = cells[k, 2]
-        for i in range(s + 1):
-            rr = r + i
-            if rr >= h:
-                break
-            wr = i / s
-            for j in range(s + 1):
-                cc = c + j
-                if cc >= w:
-                    break
-                wc = j / s
-                for q in range(2):
-                    out[rr, cc, q] = _bil(wr, wc, corners[k, 0, q], corners[k, 1, q],
-                                          corners[k, 2, q], corners[k, 3, q])
-    return out
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -1,17 +1,29 @@
 """Streaming Cloud-Optimized GeoTIFF writing: memory bounded by the tiles in flight.
 
-Each output is streamed window by window into a tiled GeoTIFF beside its target, then laid
-out by GDAL's COG driver with internal overviews, atomically. Multi-band outputs carry
-their band descriptions and wavelengths; integer outputs without a nodata value carry an
-internal mask band (the last plane of the array, 0 / 255).
+Each output is streamed window by window into a tiled GeoTIFF beside its target (the
+``.part``). Its overviews are then computed here, level by level, each from the one above
+it, block by block and band by band (:func:`build_overviews`: a compiled 2 x 2 reduction,
+nodata-aware), into tiled GeoTIFFs of their own; a small VRT lists them as the overviews
+of the ``.part`` and GDAL's COG driver lays the whole out as a COG, atomically, copying
+the overviews instead of computing them (``OVERVIEWS=FORCE_USE_EXISTING``). GDAL's own
+overview step re-reads a pixel-interleaved source once per band through its block cache:
+135 CPU-s for a 1400 x 1354 x 100-band uint16 output, against about 11 s (mostly the
+deflate compression) this way. Multi-band outputs carry their band descriptions and
+wavelengths; integer outputs without a nodata value carry an internal mask band (the last
+plane of the array, 0 / 255; those still go through GDAL's overview step, which VRT
+overviews cannot describe for a mask).
 """
 from __future__ import annotations
 
+import contextlib
+import math
 import os
+import tempfile
 import warnings
 from collections.abc import Mapping
 
 import numpy as np
+from numba import njit
 from swathflow.geometry.grid import Grid
 from swathflow.io import atomic_path
 
@@ -126,10 +138,12 @@ def _part_profile(o, shape, bands, dtype, blocksize, compress) -> dict:
     rows, cols = shape[-2:]
     count = (bands or 1) - (1 if o.get("mask") else 0)
     small = rows * cols * (bands or 1) * dtype.itemsize < PART_RAW_BYTES
+    # band-interleaved: a band's block is one contiguous read for the overviews and the
+    # COG copy (a pixel-interleaved .part measured twice the COG copy's CPU at 100 bands)
     profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
                "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
                "blockysize": blocksize, "compress": "none" if small else compress,
-               "BIGTIFF": "IF_SAFER"}
+               "BIGTIFF": "IF_SAFER", "interleave": "band"}
     if not small and compress == "deflate":
         profile["zlevel"] = 1
     if o.get("grid") is not None:
@@ -147,11 +161,8 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     ``grid`` (None: ungeoreferenced, raw geometry), ``nodata``, ``tags``, ``dtype``. Each
     is streamed into a tiled GeoTIFF beside its target (memory bounded by the tiles in
     flight), then laid out by GDAL's COG driver with internal overviews, atomically."""
-    import contextlib
-
     import dask.array as da
     import rasterio
-    from rasterio.shutil import copy as rio_copy
     with contextlib.ExitStack() as stack:
         sources, targets, parts = [], [], []
         for o in outputs:
@@ -179,17 +190,188 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             parts.append((dst, part, final, o["path"]))
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
             _store_here(sources, targets, scheduler)
-        for dst, part, final, _ in parts:
+        for (dst, part, final, path), o in zip(parts, outputs):
             dst.close()
-            pred = {"PREDICTOR": "YES", "LEVEL": DEFLATE_LEVEL} if compress == "deflate" else {}
-            with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-                rio_copy(part, final, driver="COG", COMPRESS=compress.upper(),
-                         BLOCKSIZE=blocksize,
-                         OVERVIEW_RESAMPLING=overview_resampling.upper(),
-                         BIGTIFF="IF_SAFER", **pred)
+            _to_cog(part, final, os.fspath(path), o.get("grid") is not None,
+                    bool(o.get("mask")), blocksize, compress, overview_resampling)
     for _, _, _, path in parts:                      # the .part files are renamed, not kept
         with contextlib.suppress(FileNotFoundError):
             os.remove(os.fspath(path) + ".part")
 
 
+def overview_factors(height: int, width: int, blocksize: int) -> list[int]:
+    """The COG driver's default overview levels (GDAL 3.10): halve while the last level,
+    counted as ``size // factor``, exceeds one block (1400 x 1354 with 512 blocks: factors
+    2 and 4; 8200 x 2600: 2 to 16). The levels themselves are ``ceil(size / factor)``
+    pixels (gdaladdo's sizes), so each of their pixels covers whole pixels above it."""
+    f, out = 1, []
+    while max(height // f, width // f) > blocksize:
+        f *= 2
+        out.append(f)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _halve(src, nodata, use_nodata, average, is_int, out):
+    """One overview level of a block: ``out[b, i, j]`` from the 2 x 2 pixels
+    ``src[b, 2i:2i+2, 2j:2j+2]`` (fewer at the right and bottom edges). ``average``: the
+    mean of the valid ones (not NaN, not ``nodata`` when ``use_nodata``), rounded half up
+    for integer output, ``nodata`` (or NaN) where none is valid; else nearest: the pixel
+    at (2i + 1, 2j + 1), clamped to the block. (At the edges a pixel taken twice leaves
+    the mean unchanged.)"""
+    nb, h, w = src.shape
+    oh, ow = out.shape[1], out.shape[2]
+    for b in range(nb):
+        for i in range(oh):
+            r0 = 2 * i
+            r1 = min(r0 + 1, h - 1)
+            for j in range(ow):
+                c0 = 2 * j
+                c1 = min(c0 + 1, w - 1)
+                if not average:
+                    out[b, i, j] = src[b, r1, c1]
+                    continue
+                s = 0.0
+                n = 0
+                for v in (src[b, r0, c0], src[b, r0, c1], src[b, r1, c0], src[b, r1, c1]):
+                    if v == v and not (use_nodata and v == nodata):
+                        s += v
+                        n += 1
+                if n == 0:
+                    out[b, i, j] = nodata
+                elif is_int:
+                    out[b, i, j] = math.floor(s / n + 0.5)
+                else:
+                    out[b, i, j] = s / n
+
+
+def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str) -> None:
+    """Write the overview levels of the tiled GeoTIFF ``part`` into ``paths`` (factor 2,
+    4, ...: each level from the one above it), block by block: every output block of
+    ``blocksize`` pixels is reduced from the four blocks above it (``blocksize`` even),
+    one at a time with all their bands, so memory is bounded by two blocks (and GDAL's
+    cache) and each source block is read once."""
+    import rasterio
+    from rasterio.windows import Window
+    average = resampling.lower() == "average"
+    src_path = part
+    for path in paths:
+        with rasterio.open(src_path) as src:
+            profile = src.profile
+            h, w = -(-src.height // 2), -(-src.width // 2)
+            profile.update(height=h, width=w, compress="none", tiled=True,
+                           blockxsize=blocksize, blockysize=blocksize, BIGTIFF="IF_SAFER")
+            profile["transform"] = src.transform @ src.transform.scale(src.width / w,
+                                                                     src.height / h)
+            dt = np.dtype(src.dtypes[0])
+            nd = src.nodata
+            use_nd = nd is not None and not math.isnan(nd)
+            fill = nd if nd is not None else (np.nan if dt.kind == "f" else 0)
+            with warnings.catch_warnings(), rasterio.open(path, "w", **profile) as dst:
+                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+                for r0 in range(0, h, blocksize):
+                    for c0 in range(0, w, blocksize):
+                        nr, nc = min(blocksize, h - r0), min(blocksize, w - c0)
+                        out = np.empty((src.count, nr, nc), dt)
+                        for sr in range(2 * r0, min(2 * (r0 + nr), src.height), blocksize):
+                            for sc in range(2 * c0, min(2 * (c0 + nc), src.width), blocksize):
+                                block = src.read(window=Window(
+                                    sc, sr, min(blocksize, src.width - sc),
+                                    min(blocksize, src.height - sr)))
+                                i, j = (sr - 2 * r0) // 2, (sc - 2 * c0) // 2
+                                _halve(block, float(fill), use_nd, average, dt.kind in "ui",
+                                       out[:, i:i + -(-block.shape[1] // 2),
+                                           j:j + -(-block.shape[2] // 2)])
+                        dst.write(out, window=Window(c0, r0, nc, nr))
+        src_path = path
+
+
+def _vrt_with_overviews(part: str, levels: list[str], georeferenced: bool) -> str:
+    """A VRT of ``part`` (its georeferencing, nodata, band descriptions and metadata,
+    default and IMAGERY domains) whose bands list ``levels`` as their overviews."""
+    import xml.etree.ElementTree as ET
+
+    import rasterio
+    with rasterio.open(part) as src:
+        root = ET.Element("VRTDataset", rasterXSize=str(src.width), rasterYSize=str(src.height))
+        if georeferenced and src.crs is not None:
+            ET.SubElement(root, "SRS").text = src.crs.to_wkt()
+            ET.SubElement(root, "GeoTransform").text = ", ".join(
+                repr(float(v)) for v in src.transform.to_gdal())
+        _metadata(root, src.tags(), None)
+        for i in range(1, src.count + 1):
+            band = ET.SubElement(root, "VRTRasterBand", band=str(i),
+                                 dataType=_GDAL_TYPES[src.dtypes[i - 1]])
+            _metadata(band, src.tags(i), None)
+            _metadata(band, src.tags(i, ns="IMAGERY"), "IMAGERY")
+            if src.descriptions[i - 1]:
+                ET.SubElement(band, "Description").text = src.descriptions[i - 1]
+            if src.nodata is not None:
+                ET.SubElement(band, "NoDataValue").text = repr(float(src.nodata))
+            ET.SubElement(band, "ColorInterp").text = src.colorinterp[i - 1].name
+            simple = ET.SubElement(band, "SimpleSource")
+            ET.SubElement(simple, "SourceFilename", relativeToVRT="0").text = \
+                os.path.abspath(part)
+            ET.SubElement(simple, "SourceBand").text = str(i)
+            for lv in levels:
+                ov = ET.SubElement(band, "Overview")
+                ET.SubElement(ov, "SourceFilename", relativeToVRT="0").text = \
+                    os.path.abspath(lv)
+                ET.SubElement(ov, "SourceBand").text = str(i)
+    return ET.tostring(root, encoding="unicode")
+
+
+#: GDAL's names of the numpy types an output may have
+_GDAL_TYPES = {"uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16",
+               "uint32": "UInt32", "int32": "Int32", "float32": "Float32",
+               "float64": "Float64", "uint64": "UInt64", "int64": "Int64"}
+
+
+def _metadata(node, items: Mapping, domain: str | None) -> None:
+    import xml.etree.ElementTree as ET
+    if not items:
+        return
+    md = ET.SubElement(node, "Metadata", **({"domain": domain} if domain else {}))
+    for k, v in items.items():
+        ET.SubElement(md, "MDI", key=k).text = str(v)
+
+
+def _to_cog(part: str, final: str, target, georeferenced: bool, mask: bool, blocksize: int,
+            compress: str, overview_resampling: str) -> None:
+    """Lay ``part`` out as a COG at ``final``: overviews built here (:func:`build_overviews`)
+    and copied by GDAL's COG driver through a VRT; with a mask band, GDAL builds them."""
+    import rasterio
+    from rasterio.shutil import copy as rio_copy
+    pred = {"PREDICTOR": "YES", "LEVEL": DEFLATE_LEVEL} if compress == "deflate" else {}
+    opts = dict(driver="COG", COMPRESS=compress.upper(), BLOCKSIZE=blocksize,
+                OVERVIEW_RESAMPLING=overview_resampling.upper(), BIGTIFF="IF_SAFER", **pred)
+    with contextlib.ExitStack() as stack:
+        source = part
+        if not mask:
+            with rasterio.open(part) as src:
+                factors = overview_factors(src.height, src.width, blocksize)
+            levels = [stack.enter_context(_scratch(target, f"ovr{f}.tif")) for f in factors]
+            with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):     # not 5 % of the machine
+                build_overviews(part, levels, blocksize, overview_resampling)
+            source = stack.enter_context(_scratch(target, "vrt"))
+            with open(source, "w") as f:
+                f.write(_vrt_with_overviews(part, levels, georeferenced))
+            opts["OVERVIEWS"] = "FORCE_USE_EXISTING"
+        with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            rio_copy(source, final, **opts)
+
+
+@contextlib.contextmanager
+def _scratch(target: str, kind: str):
+    """A temporary file beside ``target``, named ``.<target name>.<pid>.<kind>`` (so a
+    killed run's leftovers are cleared by the next write of the target: see
+    :func:`swathflow.io.atomic_path`), removed afterwards."""
+    folder, base = os.path.split(os.path.abspath(target))
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.{os.getpid()}.", suffix=f".{kind}", dir=folder)
+    os.close(fd)
+    try:
+        yield tmp
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
