@@ -51,6 +51,16 @@ def pos_from(time, table, max_gap, t, k, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def line_at(line, n):
+    """A fractional raw line clamped to the image's ``n`` lines: ``(j, w)``, the line
+    below it (at most ``n - 2``) and the weight of the line after (the rays' line
+    interpolation of every sensor model)."""
+    line = min(max(line, 0.0), n - 1.0)
+    j = min(int(line), n - 2)
+    return j, line - j
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def nav_trig(pos):
     """Sines and cosines of roll, pitch, heading, latitude and longitude of a POS row."""
     r, p, h = pos[5] * DEG, pos[6] * DEG, pos[7] * DEG

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from swathflow.mosaicking.kernels import _b3  # the cubic B-spline, written once
+
 __all__ = ["mmgd_costs", "shift_block", "gauss_newton"]
 
 
@@ -82,16 +84,6 @@ def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels, stride=1):
                 s += abs(buf[k] - med)
             cost[i, j] = s / n
     return cost
-
-
-@njit(cache=True, nogil=True)
-def _b3(x):
-    x = abs(x)
-    if x < 1.0:
-        return 2.0 / 3.0 - x * x + x * x * x / 2.0
-    if x < 2.0:
-        return (2.0 - x) ** 3 / 6.0
-    return 0.0
 
 
 @njit(cache=True, nogil=True)

@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from swathflow.geometry.navkernel import body_to_ecef, nav_trig, pos_from
+from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
 
 DEG = math.pi / 180.0
 
@@ -185,9 +185,7 @@ def rays(image, geo, line_epoch, k0, pixel_pitch, y0, focal, c_out, d_out):
         line = image[i, 0]
         if not math.isfinite(line):
             return False
-        line = min(max(line, 0.0), n - 1.0)
-        j = min(int(line), n - 2)
-        w = line - j
+        j, w = line_at(line, n)
         t = cols[j, 0] * (1 - w) + cols[j + 1, 0] * w
         s = cols[j, 1] * (1 - w) + cols[j + 1, 1] * w
         q = cols[j, 2] * (1 - w) + cols[j + 1, 2] * w

@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit
 
-from swathflow.geometry.navkernel import body_to_ecef, nav_trig, pos_from
+from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -55,9 +55,8 @@ def rays(image, lines, nav, fixes, cam, c_out, d_out):
         line = image[i, 0]
         if not math.isfinite(line):
             return False
-        line = min(max(line, 0.0), n - 1.0)
-        j = min(int(line), n - 2)
-        t = ltime[j] + (ltime[j + 1] - ltime[j]) * (line - j)
+        j, w = line_at(line, n)
+        t = ltime[j] + (ltime[j + 1] - ltime[j]) * w
         if not pos_from(time, table, max_gap, t, epoch[j], pos):
             return False
         trig = nav_trig(pos)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
-from swathflow.geometry.navkernel import body_to_ecef, nav_trig, pos_from
+from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -27,9 +27,7 @@ def rays(image, rows, nav, scan, c_out, d_out):
         line = image[i, 0]
         if not math.isfinite(line):
             return False
-        line = min(max(line, 0.0), n - 1.0)
-        j = min(int(line), n - 2)
-        w = line - j
+        j, w = line_at(line, n)
         e = image[i, 1]
         t = rtime[j] + (rtime[j + 1] - rtime[j]) * w + e * dwell
         th = rstart[j] + (rstart[j + 1] - rstart[j]) * w + e * ifov + offset
