@@ -12,12 +12,13 @@ from numba import njit
 DEG = math.pi / 180.0
 
 
-def pos_table(trajectory) -> tuple[np.ndarray, np.ndarray]:
-    """POS times and the table the kernels interpolate: ECEF, lat, lon (deg), roll, pitch,
-    heading (deg), one row per epoch."""
+def pos_table(trajectory) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(time, table, max_gap)`` of a trajectory, as the kernels take it (``pos_from``):
+    the POS times, the table they interpolate (ECEF, lat, lon (deg), roll, pitch, heading
+    (deg), one row per epoch) and the longest gap interpolated across."""
     return (np.ascontiguousarray(trajectory.time, dtype=float),
             np.column_stack([trajectory.ecef, trajectory.lat, trajectory.lon,
-                             trajectory.attitude]))
+                             trajectory.attitude]), float(trajectory.max_gap))
 
 
 def epochs(time, t) -> np.ndarray:

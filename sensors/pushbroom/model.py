@@ -275,11 +275,9 @@ class PushbroomModel(GroundSolver, Partials, SensorModel):
         flat = np.ascontiguousarray(image.reshape(-1, 2))
         sh = self._shared
         if "nav" not in sh:
-            tr = self._trajectory
-            time, table = pos_table(tr)
-            sh["nav"] = (time, table, float(tr.max_gap))
+            sh["nav"] = pos_table(self._trajectory)
             lt = np.ascontiguousarray(self._ltime, dtype=float)
-            sh["line_epochs"] = (lt, epochs(time, lt))
+            sh["line_epochs"] = (lt, epochs(sh["nav"][0], lt))
         nf = self._ft.size
         fixes = (np.asarray(self._ft, float),
                  np.asarray(self._d_ned if nf else np.zeros((0, 3)), float).reshape(-1, 3),

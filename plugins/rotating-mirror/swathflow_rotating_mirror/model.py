@@ -161,12 +161,10 @@ class RotatingMirrorModel(SensorModel):
         flat = np.ascontiguousarray(image.reshape(-1, 2))
         sh = self._shared
         if "nav" not in sh:
-            tr = self._trajectory
-            time, table = pos_table(tr)
-            sh["nav"] = (time, table, float(tr.max_gap))
+            sh["nav"] = pos_table(self._trajectory)
             rtime = np.ascontiguousarray(self._lines["time"], dtype=float)
             sh["rows"] = (rtime, np.ascontiguousarray(self._start, dtype=float),
-                          epochs(time, rtime))
+                          epochs(sh["nav"][0], rtime))
         scan = (float(self._ifov), float(self._dwell), float(self._offset),
                 np.ascontiguousarray(self._R_bm), np.asarray(self._u_gps, float))
         c, d = np.empty((flat.shape[0], 3)), np.empty((flat.shape[0], 3))
