@@ -251,7 +251,10 @@ def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-
                                                       float(tol))
         if st != 2 or pad > 64:
             break
-        pad = 12 + int(np.ceil(np.max(np.abs(d)))) + 8      # the shift left the padding
+        need = float(np.max(np.abs(d)))       # the shift left the padding: pad it again,
+        if not np.isfinite(need) or need > max(h, w):   # unless it diverged (a shift
+            break                             # beyond the block: no overlap, a failure)
+        pad = 12 + int(np.ceil(need)) + 8
     if st != 0:
         return d, (np.inf, np.inf), float(g), float(o[0]), np.inf, None
     sig = np.sqrt(np.diag(cov)[:2]) * rms
