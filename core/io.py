@@ -98,3 +98,19 @@ def figure_svg(fig, prefix: str = "swathflow") -> str:
     text = text[text.index("<svg"):]
     text = re.sub(r'\s+xmlns:xlink="[^"]*"', "", text, count=1)
     return text.replace("xlink:href=", "href=")
+
+
+def png_bytes(img, level: int = 3) -> bytes:
+    """PNG file bytes (Pillow) of an 8-bit image: ``(rows, cols)`` grey, or
+    ``(2, rows, cols)`` grey + alpha. zlib ``level`` 3 is four times faster than the
+    default 6 and about 1 % larger on the mosaics' previews."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+    a = np.asarray(img, np.uint8)
+    im = (Image.fromarray(np.ascontiguousarray(a), "L") if a.ndim == 2 else
+          Image.fromarray(np.ascontiguousarray(np.moveaxis(a, 0, -1)), "LA"))
+    buf = io.BytesIO()
+    im.save(buf, "PNG", compress_level=level)
+    return buf.getvalue()

@@ -5,13 +5,12 @@ vectors magnified) and the matching statistics per swing."""
 from __future__ import annotations
 
 import base64
-import struct
-import zlib
 
 import numpy as np
 import pandas as pd
 
 from swathflow.calibration.report import _e, _table
+from swathflow.io import png_bytes
 
 MAP_PX = 640
 
@@ -22,15 +21,7 @@ def png_grey(a: np.ndarray) -> bytes:
     ok = np.isfinite(a)
     lo, hi = (np.percentile(a[ok], [1, 99]) if ok.any() else (0.0, 1.0))
     g = np.where(ok, np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1) * 255, 0).astype(np.uint8)
-    raw = b"".join(b"\x00" + row.tobytes() for row in g)
-
-    def chunk(tag, data):
-        c = tag + data
-        return struct.pack(">I", len(data)) + c + struct.pack(">I", zlib.crc32(c) & 0xFFFFFFFF)
-
-    head = struct.pack(">IIBBBBB", g.shape[1], g.shape[0], 8, 0, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head) + chunk(b"IDAT", zlib.compress(raw, 6))
-            + chunk(b"IEND", b""))
+    return png_bytes(g, level=6)
 
 
 def points_map(reference, points: pd.DataFrame, magnify: float = 20.0) -> str:
