@@ -19,7 +19,10 @@ pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 def slurm(tmp_path_factory):
     """A running single-node SLURM cluster; yields the environment that reaches it."""
     folder = tmp_path_factory.mktemp("slurm")
-    env = dict(os.environ, SLURMCTLD_PORT=str(free_port()), SLURMD_PORT=str(free_port()))
+    # OMP_NUM_THREADS=1 as a benchmarking shell exports it: start.sh must still give the node
+    # every CPU (it once wrote `nproc`, which honours that variable: 1 CPU, one job at a time)
+    env = dict(os.environ, SLURMCTLD_PORT=str(free_port()), SLURMD_PORT=str(free_port()),
+               OMP_NUM_THREADS="1")
     pids, old = {}, os.environ.get("SLURM_CONF")
     try:
         out = script("slurm/start.sh", str(folder), env=env, timeout=600)
@@ -28,6 +31,10 @@ def slurm(tmp_path_factory):
         assert {"slurmctld.pid", "slurmd.pid", "munge/munged.pid"} <= set(pids), pids
         env["SLURM_CONF"] = str(folder / "slurm.conf")
         os.environ["SLURM_CONF"] = env["SLURM_CONF"]   # for dask-jobqueue's sbatch calls
+        cpus = subprocess.run(["sinfo", "-h", "-N", "-o", "%c"], env=env, capture_output=True,
+                              text=True, timeout=30, check=True).stdout.split()
+        assert cpus == [str(os.cpu_count())], f"the node offers {cpus} CPUs, the machine has " \
+            f"{os.cpu_count()}"
         yield {"env": env, "folder": folder}
     finally:
         script("slurm/stop.sh", str(folder), env=env, timeout=120)

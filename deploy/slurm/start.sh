@@ -42,7 +42,11 @@ munged --socket="$SOCK" --key-file="$DIR/munge/munge.key" \
     --seed-file="$DIR/munge/munged.seed" --force
 
 NODE=$(hostname -s)
-CPUS=$(nproc)
+# the CPUs slurmd itself detects and registers (`slurmd -C`): not `nproc`, which honours
+# OMP_NUM_THREADS / OMP_THREAD_LIMIT and the CPU affinity of whoever runs this script (with
+# OMP_NUM_THREADS=1 exported the node had 1 CPU and a second 1-CPU job stayed PENDING)
+CPUS=$(slurmd -C 2>/dev/null | sed -n 's/.* CPUs=\([0-9]\+\).*/\1/p' | head -n 1 || true)
+CPUS=${CPUS:-$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc --all)}
 FREE_MB=$(awk '/MemAvailable/ {print int($2/1024)}' /proc/meminfo)
 MEM_MB=$(( FREE_MB * 3 / 4 ))
 cat > "$DIR/slurm.conf" <<EOF
