@@ -1,8 +1,10 @@
-"""A small vector canvas for the mosaic report: paths, text and an embedded raster, written
-as inline SVG (the HTML report) or rasterised with Pillow (the report PNG). It replaces
-matplotlib there because matplotlib's import and layout cost seconds per mosaic, several
-times the blending itself; the figures are simple (rectangles, lines, markers, axes).
-Every mark is an SVG ``<path>``; coordinates are pixels, y down."""
+"""The one small vector canvas of every report figure (the calibration report, its
+reference section and the mosaic report): paths, text and an embedded raster, written as
+inline SVG (the HTML reports) or rasterised with Pillow (the mosaic's report PNG). It
+replaces matplotlib because matplotlib's import and layout cost seconds per report, several
+times the blending of a mosaic or the adjustment of a calibration; the figures are simple
+(rectangles, lines, markers, arrows, axes, legends). Every mark is an SVG ``<path>``;
+coordinates are pixels, y down."""
 from __future__ import annotations
 
 import base64
@@ -13,7 +15,7 @@ import numpy as np
 
 from swathflow.io import png_bytes
 
-__all__ = ["Canvas", "Axes", "colour", "nice_ticks", "colour_bar", "png_bytes"]
+__all__ = ["Canvas", "Axes", "colour", "nice_ticks", "colour_bar", "legend", "png_bytes"]
 
 # matplotlib's "plasma" at 9 evenly spaced stops (interpolated linearly between them)
 _PLASMA = np.array([(13, 8, 135), (75, 3, 161), (125, 3, 168), (168, 34, 150),
@@ -59,10 +61,11 @@ class Canvas:
         self.items: list = []
 
     def path(self, pts, stroke=None, fill=None, width: float = 1.0, dash: bool = False,
-             opacity: float = 1.0, closed: bool = False) -> None:
+             opacity: float = 1.0, closed: bool = False, title: str | None = None) -> None:
+        """A polyline (``closed``: polygon); ``title``: its tooltip in the SVG."""
         pts = [(float(x), float(y)) for x, y in pts]
         if len(pts) >= 2 or fill:
-            self.items.append(("path", pts, stroke, fill, width, dash, opacity, closed))
+            self.items.append(("path", pts, stroke, fill, width, dash, opacity, closed, title))
 
     def rect(self, x, y, w, h, **kw) -> None:
         self.path([(x, y), (x + w, y), (x + w, y + h), (x, y + h)], closed=True, **kw)
@@ -70,12 +73,14 @@ class Canvas:
     def line(self, x0, y0, x1, y1, **kw) -> None:
         self.path([(x0, y0), (x1, y1)], **kw)
 
-    def marker(self, x, y, r: float = 3.5, fill="#1f77b4", square: bool = False) -> None:
+    def marker(self, x, y, r: float = 3.5, fill="#1f77b4", square: bool = False,
+               title: str | None = None) -> None:
         if square:
-            self.rect(x - r, y - r, 2 * r, 2 * r, fill=fill)
+            self.rect(x - r, y - r, 2 * r, 2 * r, fill=fill, title=title)
         else:
             a = np.linspace(0, 2 * np.pi, 13)[:-1]
-            self.path(list(zip(x + r * np.cos(a), y + r * np.sin(a))), fill=fill, closed=True)
+            self.path(list(zip(x + r * np.cos(a), y + r * np.sin(a))), fill=fill, closed=True,
+                      title=title)
 
     def arrow(self, x0, y0, x1, y1, stroke="#00bcd4", width: float = 1.5) -> None:
         self.line(x0, y0, x1, y1, stroke=stroke, width=width)
@@ -102,7 +107,7 @@ class Canvas:
                f'font-family="sans-serif">']
         for it in self.items:
             if it[0] == "path":
-                _, pts, stroke, fill, width, dash, op, closed = it
+                _, pts, stroke, fill, width, dash, op, closed, title = it
                 d = "M" + " L".join(f"{x:.1f} {y:.1f}" for x, y in pts) + (" Z" if closed
                                                                              else "")
                 attrs = [f'd="{d}"', f'fill="{fill or "none"}"']
@@ -112,7 +117,8 @@ class Canvas:
                     attrs.append('stroke-dasharray="2 2"')
                 if op < 1:
                     attrs.append(f'opacity="{op:g}"')
-                out.append(f"<path {' '.join(attrs)}/>")
+                out.append(f"<path {' '.join(attrs)}><title>{html.escape(title)}</title></path>"
+                           if title else f"<path {' '.join(attrs)}/>")
             elif it[0] == "text":
                 _, x, y, s, size, anchor, col, rot = it
                 tr = (f' transform="rotate(-90 {x:.1f} {y:.1f})" dominant-baseline="central"'
@@ -143,7 +149,7 @@ class Canvas:
         odraw = ImageDraw.Draw(over)
         for it in self.items:
             if it[0] == "path":
-                _, pts, stroke, fill, width, dash, op, closed = it
+                _, pts, stroke, fill, width, dash, op, closed, _ = it
                 p = [(x * k, y * k) for x, y in pts]
                 if op < 1 and fill:
                     odraw.polygon(p, fill=_rgb(fill) + (int(255 * op),))
@@ -203,13 +209,15 @@ class Axes:
     """A plot box on a canvas with linear x and y scales, frame, ticks and labels."""
 
     def __init__(self, cv: Canvas, box, xlim, ylim, title="", xlabel="", ylabel="",
-                 yflip: bool = False, xticks=None, ticks: bool = True):
+                 yflip: bool = False, xticks=None, ticks: bool = True,
+                 title_left: bool = False):
         self.cv, self.box = cv, box
         x0, y0, x1, y1 = box
         self.xlim, self.ylim, self.yflip = xlim, ylim, yflip
         cv.rect(x0, y0, x1 - x0, y1 - y0, stroke="#444444", width=0.8)
         if title:
-            cv.text((x0 + x1) / 2, y0 - 8, title, 12, "middle")
+            cv.text(x0 if title_left else (x0 + x1) / 2, y0 - 8, title, 12,
+                    "start" if title_left else "middle")
         if xlabel:
             cv.text((x0 + x1) / 2, y1 + 34, xlabel, 11, "middle")
         if ylabel:
@@ -255,3 +263,33 @@ def colour_bar(cv: Canvas, box, top: float, label: str) -> None:
             cv.line(x1, y, x1 + 4, y, stroke="#444444", width=0.8)
             cv.text(x1 + 7, y + 4, f"{v:g}", 10)
     cv.text(x1 + 44, (y0 + y1) / 2, label, 11, "middle", rotate=True)
+
+
+def legend(cv: Canvas, x1, y, entries, corner: str = "upper", across: bool = False) -> None:
+    """A legend whose right edge is at ``x1``: framed, one entry a row, its top
+    (``corner="upper"``) or bottom (``"lower"``) at ``y``; or ``across``, unframed, the
+    entries side by side on one row centred at ``y``. ``entries``: (kind, colour, label)
+    with kind ``"dot"``, ``"square"`` (open), ``"line"`` or ``"marker"`` (a larger dot)."""
+    if not entries:
+        return
+    row = 14.0
+    widths = [24 + 6.0 * len(e[2]) for e in entries]
+    if across:
+        x = x1 - sum(widths)
+        spots = []
+        for wd in widths:
+            spots.append((x + 8, y))
+            x += wd
+    else:
+        w, h = max(widths) + 4, row * len(entries) + 6
+        top = y if corner == "upper" else y - h
+        cv.rect(x1 - w, top, w, h, stroke="#cccccc", fill="#ffffff", width=0.8)
+        spots = [(x1 - w + 12, top + 3 + row * (k + 0.5)) for k in range(len(entries))]
+    for (cx, cy), (kind, col, label) in zip(spots, entries):
+        if kind == "line":
+            cv.line(cx - 7, cy, cx + 7, cy, stroke=col, width=1.5)
+        elif kind == "square":
+            cv.rect(cx - 3.5, cy - 3.5, 7, 7, stroke=col, width=1.0)
+        else:
+            cv.marker(cx, cy, 2.0 if kind == "dot" else 3.0, col)
+        cv.text(cx + 12, cy + 3.5, label, 9.5)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import contextlib
-import itertools
 import os
 import tempfile
 
@@ -76,28 +75,6 @@ def write_text(path, text: str) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
-
-
-_SVG_SALT = itertools.count()
-
-
-def figure_svg(fig, prefix: str = "swathflow") -> str:
-    """A matplotlib figure as an inline ``<svg>`` element for a self-contained HTML report:
-    no XML prolog or metadata, ids unique per figure (several share one document, salted
-    ``prefix-N``), ``href`` instead of ``xlink:href``."""
-    import io
-    import re
-
-    import matplotlib
-    buf = io.StringIO()
-    with matplotlib.rc_context({"svg.hashsalt": f"{prefix}-{next(_SVG_SALT)}",
-                                "svg.fonttype": "none"}):
-        fig.savefig(buf, format="svg", metadata={"Creator": None, "Date": None,
-                                                 "Format": None, "Type": None})
-    text = buf.getvalue()
-    text = text[text.index("<svg"):]
-    text = re.sub(r'\s+xmlns:xlink="[^"]*"', "", text, count=1)
-    return text.replace("xlink:href=", "href=")
 
 
 def png_bytes(img, level: int = 3) -> bytes:

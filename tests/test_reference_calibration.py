@@ -137,7 +137,8 @@ def test_reference_report_and_files(tiny_result):
     html = Path(paths["report"]).read_text()
     assert "Automatic control from the reference" in html
     assert "data:image/png;base64," in html                       # the map over the reference
-    assert html.count("<circle") + html.count("rejected</title>") == len(rc.points)
+    # one mark a point on the map, each with its tooltip: "name: x .. y .. px" or "name rejected"
+    assert html.count(" px</title>") + html.count(" rejected</title>") == len(rc.points)
     import pandas as pd
     pts = pd.read_csv(paths["points"])
     assert {"line", "element", "E", "N", "x", "y", "rejected"} <= set(pts.columns)

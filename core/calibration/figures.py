@@ -1,5 +1,6 @@
-"""The calibration report's figures, drawn with matplotlib (a figure on its own canvas, no
-pyplot state) and returned as inline SVG for one self-contained HTML file.
+"""The calibration report's figures, drawn on the reports' one canvas
+(:class:`swathflow.drawing.Canvas`, no matplotlib) and returned as inline SVG for one
+self-contained HTML file.
 
 Residuals are observed minus computed in pixels (x = element, y = line). Figures: residual
 vectors over the image per image, residual vectors over a map of the control points, and
@@ -8,63 +9,94 @@ per swing direction, before and after the adjustment.
 """
 from __future__ import annotations
 
-
 import numpy as np
 import pandas as pd
 
-from swathflow.io import figure_svg
+from swathflow.drawing import Axes, Canvas, legend
 
 COLORS = {"L": "#1f77b4", "R": "#d62728"}
 OTHER = "#555555"
 STAGES = ("before", "after")
 M_PER_DEG = 111_320.0
+# panel margins in canvas pixels: left (tick labels and the rotated label), right, top
+# (title and arrow key), bottom (tick labels and the label)
+LEFT, RIGHT, TOP, BOTTOM = 72, 24, 30, 46
 
 
-def _figure(ncols: int, nrows: int = 1, size=(5.2, 3.6)):
-    """A figure on its own canvas with fixed margins (in inches: constrained layout costs
-    half a second a figure)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    w, h = size[0] * ncols, size[1] * nrows
-    fig = Figure(figsize=(w, h), dpi=96)
-    FigureCanvasAgg(fig)
-    fig.subplots_adjust(left=0.75 / w, right=1 - 0.2 / w, bottom=0.6 / h, top=1 - 0.45 / h,
-                        wspace=1.3 / size[0], hspace=1.0 / size[1])
-    return fig, fig.subplots(nrows, ncols, squeeze=False)
+def _boxes(ncols: int, nrows: int, pw: float, ph: float, gap: float = 40, below: float = 0):
+    """A canvas with ``nrows`` x ``ncols`` plot boxes of ``pw`` x ``ph`` pixels (``below``:
+    more room under each, for a legend)."""
+    cw, ch = LEFT + pw + RIGHT + gap, TOP + ph + BOTTOM + below
+    cv = Canvas(ncols * cw - gap, nrows * ch)
+    return cv, [[(j * cw + LEFT, i * ch + TOP, j * cw + LEFT + pw, i * ch + TOP + ph)
+                 for j in range(ncols)] for i in range(nrows)]
 
 
+def _lim(v: np.ndarray, pad: float = 0.05, include_zero: bool = False) -> tuple[float, float]:
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return -1.0, 1.0
+    lo, hi = float(v.min()), float(v.max())
+    if include_zero:
+        lo, hi = min(lo, 0.0), max(hi, 0.0)
+    d = hi - lo if hi > lo else max(abs(hi), 1.0)
+    return lo - pad * d, hi + pad * d
 
 
-def _scale(u: np.ndarray, v: np.ndarray, length: float) -> tuple[float, float]:
-    """quiver scale (residual pixels per arrow unit) drawing the largest residual ``length``
-    long, and a round key length in pixels."""
+def _key(big: float) -> float:
+    """A round arrow-key length (px) not above the largest residual ``big``."""
+    k = float(10 ** np.floor(np.log10(big)))
+    return next(m * k for m in (5, 2, 1) if m * k <= big)
+
+
+def _fit(x, y, dx, dy, box, equal: bool = False):
+    """Axis limits showing the points (x, y) and the arrow tips ``dx``, ``dy`` canvas pixels
+    away from them inside ``box`` (``equal``: as many data units per pixel on both axes)."""
+    x0, y0, x1, y1 = box
+    xlim, ylim = _lim(x, 0.03), _lim(y, 0.03)
+    for _ in range(6):                                 # the scale grows with the limits
+        if equal:
+            xlim, ylim = _equal(xlim, ylim, box)
+        sx, sy = (xlim[1] - xlim[0]) / (x1 - x0), (ylim[1] - ylim[0]) / (y1 - y0)
+        xlim = _lim(np.concatenate([x, x + dx * sx]), 0.03)
+        ylim = _lim(np.concatenate([y, y + dy * sy]), 0.03)
+    return _equal(xlim, ylim, box) if equal else (xlim, ylim)
+
+
+def _equal(xlim, ylim, box):
+    """Limits widened so that a data unit is as long on both axes of ``box``."""
+    x0, y0, x1, y1 = box
+    s = max((xlim[1] - xlim[0]) / (x1 - x0), (ylim[1] - ylim[0]) / (y1 - y0))
+    cx, cy = sum(xlim) / 2, sum(ylim) / 2
+    return ((cx - s * (x1 - x0) / 2, cx + s * (x1 - x0) / 2),
+            (cy - s * (y1 - y0) / 2, cy + s * (y1 - y0) / 2))
+
+
+def _vectors(cv: Canvas, box, x, y, u, v, q: pd.DataFrame, colors, frac: float,
+             labels: tuple[str, str, str], equal: bool = False) -> None:
+    """A panel of residual arrows (u right, v up, in residual pixels) at the data points
+    (x, y): the longest ``frac`` of the box width, a key above the box's right end, the
+    limits widened to hold every arrow; dots mark control points, open squares check
+    points."""
+    ok = np.isfinite(u) & np.isfinite(v) & np.isfinite(x) & np.isfinite(y)
+    x, y, u, v = x[ok], y[ok], u[ok], v[ok]
+    colors, check = np.asarray(colors, dtype=object)[ok], (q["role"] == "check").to_numpy()[ok]
+    x0, y0, x1, _ = box
     mag = np.hypot(u, v)
-    mag = mag[np.isfinite(mag)]
     big = float(mag.max()) if mag.size and mag.max() > 0 else 1.0
-    key = float(10 ** np.floor(np.log10(big)))
-    key = next(k * key for k in (5, 2, 1) if k * key <= big)
-    return big / max(length, 1e-9), key
-
-
-def _quiver(ax, x, y, u, v, q: pd.DataFrame, color, xy: bool, extent: float) -> None:
-    """Arrows (u, v) at (x, y): in data units on equal axes (``xy``), else in screen
-    directions scaled to the axes width; dots mark control points, squares check points."""
-    ok = np.isfinite(u) & np.isfinite(v)
-    if xy:
-        scale, key = _scale(u[ok], v[ok], 0.12 * extent)
-        kw = {"angles": "xy", "scale_units": "xy", "scale": scale}
-    else:
-        scale, key = _scale(u[ok], v[ok], 0.08)
-        kw = {"angles": "uv", "scale_units": "width", "scale": scale}
-    colors = [color] * int(ok.sum()) if isinstance(color, str) else list(np.asarray(
-        color, dtype=object)[ok])
-    qv = ax.quiver(x[ok], y[ok], u[ok], v[ok], color=colors, width=0.003, **kw)
-    check = (q["role"] == "check").to_numpy() & ok
-    ax.scatter(x[ok & ~check], y[ok & ~check], s=10, c="k", marker="o", label="control")
-    if check.any():
-        ax.scatter(x[check], y[check], s=22, facecolors="none", edgecolors="k", marker="s",
-                   label="check")
-    ax.quiverkey(qv, 0.86, 1.04, key, f"{key:g} px", labelpos="E", coordinates="axes")
+    gain = frac * (x1 - x0) / big                     # canvas px per residual px
+    xlim, ylim = _fit(x, y, u * gain, v * gain, box, equal)
+    ax = Axes(cv, box, xlim, ylim, *labels, title_left=True)
+    for xi, yi, ui, vi, col, chk in zip(x, y, u, v, colors, check):
+        px, py = ax.x(xi), ax.y(yi)
+        cv.arrow(px, py, px + ui * gain, py - vi * gain, stroke=col, width=1.2)
+        if chk:
+            cv.rect(px - 3.5, py - 3.5, 7, 7, stroke="#000000", width=0.9)
+        else:
+            cv.marker(px, py, 1.8, "#000000")
+    key = _key(big)
+    cv.arrow(x1 - 60 - key * gain, y0 - 12, x1 - 60, y0 - 12, stroke="#444444", width=1.2)
+    cv.text(x1 - 54, y0 - 8, f"{key:g} px", 10)
 
 
 def image_vectors(res: pd.DataFrame, image_id: str) -> str:
@@ -72,16 +104,18 @@ def image_vectors(res: pd.DataFrame, image_id: str) -> str:
     part is the line residual y, its vertical part the element residual x); before above
     after, each panel with its own scale."""
     r = res[res["image_id"] == image_id]
-    fig, axes = _figure(1, 2, size=(10.0, 2.7))
-    for ax, stage in zip(axes[:, 0], STAGES):
+    cv, boxes = _boxes(1, 2, 860, 190)
+    for (box,), stage in zip(boxes, STAGES):
         q = r[r["stage"] == stage]
         color = COLORS.get(str(q["direction"].iloc[0]) if len(q) else "", OTHER)
-        _quiver(ax, q["line"].to_numpy(float), q["element"].to_numpy(float),
-                q["y"].to_numpy(float), q["x"].to_numpy(float), q, color, False, 1.0)
-        ax.set_title(f"{image_id}: {stage}", loc="left")
-        ax.set_xlabel("line (px)")
-        ax.set_ylabel("element (px)")
-    return figure_svg(fig)
+        _vectors(cv, box, q["line"].to_numpy(float), q["element"].to_numpy(float),
+                 q["y"].to_numpy(float), q["x"].to_numpy(float), q, [color] * len(q), 0.07,
+                 (f"{image_id}: {stage}", "line (px)", "element (px)"))
+    return cv.svg()
+
+
+def _direction_entries(directions) -> list[tuple[str, str, str]]:
+    return [("line", COLORS[d], f"direction {d}") for d in COLORS if d in set(directions)]
 
 
 def map_vectors(res: pd.DataFrame) -> str:
@@ -92,44 +126,47 @@ def map_vectors(res: pd.DataFrame) -> str:
     east = (res["lon"].to_numpy(float) - lon0) * M_PER_DEG * np.cos(np.radians(lat0))
     north = (res["lat"].to_numpy(float) - lat0) * M_PER_DEG
     res = res.assign(_e=east, _n=north)
-    fig, axes = _figure(2, size=(5.6, 4.6))
-    ext = max(np.ptp(east), np.ptp(north), 1.0)
-    for ax, stage in zip(axes[0], STAGES):
+    cv, boxes = _boxes(2, 1, 420, 340, below=18)
+    for box, stage in zip(boxes[0], STAGES):
         q = res[res["stage"] == stage]
         colors = [COLORS.get(str(d), OTHER) for d in q["direction"]]
-        _quiver(ax, q["_e"].to_numpy(float), q["_n"].to_numpy(float), q["x"].to_numpy(float),
-                q["y"].to_numpy(float), q, colors, True, ext)
-        ax.set_title(f"control points: {stage}", loc="left")
-        ax.set_xlabel(f"east (m) from {lon0:.5f}")
-        ax.set_ylabel(f"north (m) from {lat0:.5f}")
-        ax.set_aspect("equal", adjustable="datalim")
-        for d, c in COLORS.items():
-            if (q["direction"] == d).any():
-                ax.plot([], [], color=c, label=f"direction {d}")
-        ax.legend(loc="lower right", fontsize=8)
-    return figure_svg(fig)
+        _vectors(cv, box, q["_e"].to_numpy(float), q["_n"].to_numpy(float),
+                 q["x"].to_numpy(float), q["y"].to_numpy(float), q, colors, 0.12,
+                 (f"control points: {stage}", f"east (m) from {lon0:.5f}",
+                  f"north (m) from {lat0:.5f}"), equal=True)
+        entries = [("dot", "#000000", "control")]
+        if (q["role"] == "check").any():
+            entries.append(("square", "#000000", "check"))
+        legend(cv, box[2], box[3] + 54, entries + _direction_entries(q["direction"]),
+               across=True)
+    return cv.svg()
 
 
 def against(res: pd.DataFrame, column: str, label: str) -> str:
     """Residual x and y against ``column`` per direction: rows x, y; columns before, after."""
-    fig, axes = _figure(2, 2, size=(5.2, 2.8))
+    cv, boxes = _boxes(2, 2, 420, 170)
     values = res[column].to_numpy(float)
     origin = np.nanmin(values) if column == "time" else 0.0
+    xlim = _lim(values - origin)
     for j, stage in enumerate(STAGES):
         q = res[res["stage"] == stage]
+        directions = list(dict.fromkeys(q["direction"]))
         for i, comp in enumerate(("x", "y")):
-            ax = axes[i][j]
-            for d in dict.fromkeys(q["direction"]):
+            ax = Axes(cv, boxes[i][j], xlim, _lim(q[comp].to_numpy(float), include_zero=True),
+                      f"{comp} residual, {stage}",
+                      label if column != "time" else f"{label} from {origin:.1f} s",
+                      f"{comp} (px)", title_left=True)
+            x0, y0, x1, _ = ax.box
+            cv.line(x0, ax.y(0.0), x1, ax.y(0.0), stroke="#999999", width=0.8, dash=True)
+            for d in directions:
                 s = q[q["direction"] == d]
-                ax.scatter(s[column].to_numpy(float) - origin, s[comp], s=12,
-                           color=COLORS.get(str(d), OTHER), label=f"direction {d}")
-            ax.axhline(0.0, color="#999", lw=0.8, ls="--")
-            ax.set_title(f"{comp} residual, {stage}", loc="left")
-            ax.set_xlabel(label if column != "time" else f"{label} from {origin:.1f} s")
-            ax.set_ylabel(f"{comp} (px)")
-            if len(q):
-                ax.legend(fontsize=8, loc="upper right")
-    return figure_svg(fig)
+                col = COLORS.get(str(d), OTHER)
+                for xv, yv in zip(s[column].to_numpy(float) - origin, s[comp].to_numpy(float)):
+                    if np.isfinite(xv) and np.isfinite(yv):
+                        cv.marker(ax.x(xv), ax.y(yv), 2.6, col)
+            legend(cv, x1, y0 - 12, [("marker", COLORS.get(str(d), OTHER), f"direction {d}")
+                                     for d in directions], across=True)
+    return cv.svg()
 
 
 def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:

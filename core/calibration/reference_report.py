@@ -1,31 +1,31 @@
 """The report section of a calibration from a reference: a map of the automatic control
-points over the reference (an SVG over a grey PNG of the reference, each point a circle
-coloured by its residual after the adjustment, rejected points as red crosses, residual
-vectors magnified) and the matching statistics per swing."""
+points over the reference (drawn on the reports' canvas, swathflow.drawing: an SVG over a
+grey PNG of the reference, each point a dot coloured by its residual after the adjustment,
+rejected points as red crosses, residual vectors magnified) and the matching statistics
+per swing."""
 from __future__ import annotations
-
-import base64
 
 import numpy as np
 import pandas as pd
 
 from swathflow.calibration.report import _e, _table
-from swathflow.io import png_bytes
+from swathflow.drawing import Canvas, png_bytes
 
 MAP_PX = 640
 
 
-def png_grey(a: np.ndarray) -> bytes:
-    """An 8-bit grey PNG of ``a`` (stretched between its 1st and 99th percentiles; NaN
-    black)."""
+def grey(a: np.ndarray) -> np.ndarray:
+    """``a`` as 8-bit grey + alpha, (2, rows, cols): stretched between its 1st and 99th
+    percentiles, NaN black."""
     ok = np.isfinite(a)
     lo, hi = (np.percentile(a[ok], [1, 99]) if ok.any() else (0.0, 1.0))
     g = np.where(ok, np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1) * 255, 0).astype(np.uint8)
-    return png_bytes(g, level=6)
+    return np.stack([g, np.full_like(g, 255)])
 
 
 def points_map(reference, points: pd.DataFrame, magnify: float = 20.0) -> str:
-    """SVG text of the automatic points over the reference."""
+    """SVG text of the automatic points over the reference (each point's name and residual
+    as its tooltip)."""
     if not len(points):
         return "<p>No automatic point.</p>"
     g = reference.grid
@@ -35,34 +35,28 @@ def points_map(reference, points: pd.DataFrame, magnify: float = 20.0) -> str:
     c0, c1 = max(int(c.min()) - pad, 0), min(int(c.max()) + pad, g.width)
     sub = reference.image[r0:r1, c0:c1]
     step = max(1, int(np.ceil(max(sub.shape) / MAP_PX)))
-    thumb = sub[::step, ::step]
-    h, w = thumb.shape
-    img = base64.b64encode(png_grey(thumb)).decode()
+    thumb = grey(sub[::step, ::step])
+    h, w = thumb.shape[1:]
     zoom = max(1.0, MAP_PX / max(h, w))            # small maps are drawn larger
     x = (c - c0) / step * zoom
     y = (r - r0) / step * zoom
     h, w = int(round(h * zoom)), int(round(w * zoom))
     res = np.hypot(points["x"].to_numpy(float), points["y"].to_numpy(float))
     rej = points["rejected"].to_numpy(bool)
-    out = [f"<svg xmlns='http://www.w3.org/2000/svg' width='{w}' height='{h}' "
-           f"viewBox='0 0 {w} {h}'><image href='data:image/png;base64,{img}' width='{w}' "
-           f"height='{h}' preserveAspectRatio='none'/>"]
+    cv = Canvas(w, h)
+    cv.image(0, 0, w, h, thumb, png_bytes(thumb, level=6))
     for xi, yi, ri, rj, dx, dy, name in zip(x, y, res, rej, points["x"], points["y"],
                                             points["gcp_id"]):
         if rj:
-            out.append(f"<g stroke='#e00' stroke-width='2'><title>{_e(name)} rejected"
-                       f"</title><line x1='{xi - 4:.1f}' y1='{yi - 4:.1f}' x2='{xi + 4:.1f}' "
-                       f"y2='{yi + 4:.1f}'/><line x1='{xi - 4:.1f}' y1='{yi + 4:.1f}' "
-                       f"x2='{xi + 4:.1f}' y2='{yi - 4:.1f}'/></g>")
+            cv.line(xi - 4, yi - 4, xi + 4, yi + 4, stroke="#ee0000", width=2,
+                    title=f"{name} rejected")
+            cv.line(xi - 4, yi + 4, xi + 4, yi - 4, stroke="#ee0000", width=2)
             continue
-        col = "#2a2" if ri < 0.5 else "#fb0" if ri < 1.0 else "#f60"
-        out.append(f"<circle cx='{xi:.1f}' cy='{yi:.1f}' r='3' fill='{col}'><title>"
-                   f"{_e(name)}: x {dx:+.2f} y {dy:+.2f} px</title></circle>")
+        col = "#22aa22" if ri < 0.5 else "#ffbb00" if ri < 1.0 else "#ff6600"
+        cv.marker(xi, yi, 3, col, title=f"{name}: x {dx:+.2f} y {dy:+.2f} px")
         if np.isfinite(ri):
-            out.append(f"<line x1='{xi:.1f}' y1='{yi:.1f}' x2='{xi + magnify * dx:.1f}' "
-                       f"y2='{yi + magnify * dy:.1f}' stroke='{col}'/>")
-    out.append("</svg>")
-    return "".join(out)
+            cv.line(xi, yi, xi + magnify * dx, yi + magnify * dy, stroke=col)
+    return cv.svg()
 
 
 def reference_section(rc) -> str:

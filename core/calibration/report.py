@@ -1,5 +1,5 @@
-"""The calibration report: one self-contained HTML file (inline CSS, figures drawn with
-matplotlib and inlined as SVG; no external assets).
+"""The calibration report: one self-contained HTML file (inline CSS, figures drawn on the
+reports' canvas, swathflow.drawing, and inlined as SVG; no external assets).
 
 Layout follows the paper's tables (papers.md section 1): parameters, correlations,
 residual statistics before / after per image, direction and role (Tables 5-7), residual
@@ -188,7 +188,7 @@ def render_report(result) -> str:
 
 
 def _figures_html(res: pd.DataFrame) -> list[str]:
-    """The matplotlib figures as inline SVG (one self-contained file)."""
+    """The figures as inline SVG (one self-contained file)."""
     from .figures import report_figures
     figs = report_figures(res)
     if not figs:

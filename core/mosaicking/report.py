@@ -20,7 +20,7 @@ import os
 import numpy as np
 
 from swathflow.io import atomic_path
-from swathflow.mosaicking.drawing import Axes, Canvas, colour, colour_bar
+from swathflow.drawing import Axes, Canvas, colour, colour_bar
 
 __all__ = ["seams_picture", "map_figure", "graph_figure", "offsets_figure"]
 
