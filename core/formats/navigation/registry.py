@@ -6,17 +6,16 @@ returning a trajectory (see :mod:`swathflow.formats.pos`), the file suffixes it 
 it accepts and optionally a writer. Built-ins register through the group like any plugin and
 are also known statically, so an editable install never loses them. A plugin that fails to
 load, is not a :class:`PosFormat`, or clashes with a registered name warns and is skipped
-(the same rules as the sensor registry).
+(the sensor registry's rules: both use :func:`swathflow.entrypoints.discover`).
 """
 from __future__ import annotations
 
 import os
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from importlib.metadata import entry_points
 
+from swathflow.entrypoints import discover
 from swathflow.errors import FormatError
 
 GROUP = "swathflow.pos_formats"
@@ -51,41 +50,15 @@ class PosFormatWarning(UserWarning):
     """A navigation-format plugin could not be registered."""
 
 
-def _load(target: str):
-    from importlib import import_module
-    module, _, attr = target.partition(":")
-    obj = import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-def _warn(msg: str) -> None:
-    warnings.warn(PosFormatWarning(msg), stacklevel=4)
+def _problem(fmt) -> str | None:
+    if not isinstance(fmt, PosFormat) or not callable(fmt.read):
+        return "is not a PosFormat"
+    return None
 
 
 @lru_cache(maxsize=1)
 def _registry() -> dict[str, tuple[PosFormat, str]]:
-    found: dict[str, tuple[PosFormat, str]] = {}
-    for name, target in BUILTINS.items():
-        found[name] = (_load(target), target)
-    for ep in entry_points(group=GROUP):
-        if ep.name in found:
-            if found[ep.name][1] != ep.value:
-                _warn(f"POS format plugin {ep.name!r} from {ep.value} clashes with "
-                      f"{found[ep.name][1]}; skipped")
-            continue
-        try:
-            fmt = ep.load()
-        except Exception as exc:  # noqa: BLE001 - a broken plugin must never break the host
-            _warn(f"POS format plugin {ep.name!r} ({ep.value}) failed to load: "
-                  f"{type(exc).__name__}: {exc}")
-            continue
-        if not isinstance(fmt, PosFormat) or not callable(fmt.read):
-            _warn(f"POS format plugin {ep.name!r} ({ep.value}) is not a PosFormat; skipped")
-            continue
-        found[ep.name] = (fmt, ep.value)
-    return found
+    return discover(GROUP, BUILTINS, _problem, PosFormatWarning, "POS format")
 
 
 def list_formats() -> dict[str, PosFormat]:
