@@ -9,9 +9,8 @@ or fails the registry's check warns and is skipped: a broken plugin never breaks
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from importlib import import_module
-from importlib.metadata import entry_points
 
 
 def load_target(target: str):
@@ -23,18 +22,21 @@ def load_target(target: str):
     return obj
 
 
-def discover(group: str, builtins: Mapping[str, str], check: Callable[[object], str | None],
-             warning: type[Warning], kind: str) -> dict[str, tuple]:
-    """``{name: (object, target)}``: the ``builtins`` (name -> target), then the group's
-    other entry points. ``check(obj)`` returns None for a valid plugin, else what is wrong
-    with it ("is not a ...; skipped" is added); ``warning``: the registry's warning class;
-    ``kind``: its plugins' name in the warnings ("sensor", "POS format")."""
+def discover(builtins: Mapping[str, str], found_points: Iterable,
+             check: Callable[[object], str | None], warning: type[Warning],
+             kind: str) -> dict[str, tuple]:
+    """``{name: (object, target)}``: the ``builtins`` (name -> target), then the other
+    entry points of ``found_points`` (``importlib.metadata.entry_points(group=...)``, passed
+    in by the registry so that tests can replace it). ``check(obj)`` returns None for a
+    valid plugin, else what is wrong with it ("; skipped" is added); ``warning``: the
+    registry's warning class; ``kind``: its plugins' name in the warnings ("sensor",
+    "POS format")."""
     def warn(name: str, value: str, problem: str) -> None:
         warnings.warn(warning(f"{kind} plugin {name!r} ({value}) {problem}; skipped"),
                       stacklevel=4)
 
     found: dict[str, tuple] = {name: (load_target(t), t) for name, t in builtins.items()}
-    for ep in entry_points(group=group):
+    for ep in found_points:
         if ep.name in found:
             if found[ep.name][1] != ep.value:
                 warn(ep.name, ep.value, f"clashes with {found[ep.name][1]}")

@@ -8,6 +8,7 @@ is :func:`swathflow.entrypoints.discover`, shared with the navigation formats).
 from __future__ import annotations
 
 from functools import lru_cache
+from importlib.metadata import entry_points
 
 from swathflow.entrypoints import discover
 from swathflow.errors import SwathflowError
@@ -37,7 +38,8 @@ def _problem(cls) -> str | None:
 
 @lru_cache(maxsize=1)
 def _registry() -> dict[str, tuple[type[SensorModel], str]]:
-    return discover(GROUP, BUILTINS, _problem, SensorPluginWarning, "sensor")
+    return discover(BUILTINS, entry_points(group=GROUP), _problem, SensorPluginWarning,
+                    "sensor")
 
 
 def list_sensors() -> dict[str, type[SensorModel]]:

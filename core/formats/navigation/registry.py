@@ -14,6 +14,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
+from importlib.metadata import entry_points
 
 from swathflow.entrypoints import discover
 from swathflow.errors import FormatError
@@ -58,7 +59,8 @@ def _problem(fmt) -> str | None:
 
 @lru_cache(maxsize=1)
 def _registry() -> dict[str, tuple[PosFormat, str]]:
-    return discover(GROUP, BUILTINS, _problem, PosFormatWarning, "POS format")
+    return discover(BUILTINS, entry_points(group=GROUP), _problem, PosFormatWarning,
+                    "POS format")
 
 
 def list_formats() -> dict[str, PosFormat]:
