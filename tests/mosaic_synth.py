@@ -101,7 +101,7 @@ def grid_shape(n_strips, swath, length, overlap):
 def make_swings(folder, n_strips=5, swath=180, length=600, overlap=0.2, n_swings=3,
                 swing_overlap=24, shifts=None, rads=None, drift=0.0, noise=0.5, lake=None,
                 truth=texture, res=2.0, seed=0, dtype="float32", footprints=True,
-                cog=False, compress="deflate"):
+                compress="deflate"):
     """Write ``n_strips * n_swings`` swing GeoTIFFs into ``folder``.
 
     ``shifts`` (n_strips, 2): each strip's displacement in px (``image[x] = truth[x - t]``);
@@ -145,7 +145,7 @@ def make_swings(folder, n_strips=5, swath=180, length=600, overlap=0.2, n_swings
                 arr = np.where(fp, np.clip(np.round(val), 1, np.iinfo(dtype).max), 0).astype(dtype)
             p = os.path.join(folder, f"s{k:03d}_{s:03d}.tif")
             tr = Affine(res, 0, X0 + c0 * res, 0, -res, Y0 - r0 * res)
-            write_geotiff(p, arr, CRS, tr, nodata=nodata, cog=cog, compress=compress,
+            write_geotiff(p, arr, CRS, tr, nodata=nodata, compress=compress,
                           tags={"image_id": f"S{k}_{s}", "strip": k})
             paths.append(p)
             if footprints:

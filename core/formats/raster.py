@@ -1,5 +1,7 @@
-"""Small raster helpers: GeoTIFF / Cloud-Optimized GeoTIFF writing with CRS, transform and
-nodata (atomic), and reading a raster with its georeferencing.
+"""Small raster helpers: GeoTIFF writing with CRS, transform and nodata (atomic), and
+reading a raster with its georeferencing. Cloud-Optimized GeoTIFFs have one writer,
+:func:`swathflow.rectification.writing.write_cog` (streamed, our own overviews): this layer
+sits below it and lays none out itself.
 
 Conventions: ``transform`` is a :class:`affine.Affine` (or its 6 numbers ``a, b, c, d, e, f``)
 mapping (col, row) of the pixel's top-left CORNER to map coordinates (rasterio / GDAL).
@@ -53,7 +55,7 @@ def _as_bands(array) -> np.ndarray:
     return arr
 
 
-def _profile(arr, crs, transform, nodata, compress, blocksize, cog) -> dict:
+def _profile(arr, crs, transform, nodata, compress, blocksize) -> dict:
     count, height, width = arr.shape
     profile = dict(driver="GTiff", width=width, height=height, count=count,
                    dtype=arr.dtype.name, crs=_crs(crs), transform=_affine(transform),
@@ -62,46 +64,30 @@ def _profile(arr, crs, transform, nodata, compress, blocksize, cog) -> dict:
         profile["nodata"] = nodata
     if compress == "deflate" and arr.dtype.kind in "fui":
         profile["predictor"] = 3 if arr.dtype.kind == "f" else 2
-    if cog or (height >= blocksize and width >= blocksize):
+    if height >= blocksize and width >= blocksize:
         profile.update(tiled=True, blockxsize=blocksize, blockysize=blocksize)
     if arr.size * arr.itemsize > 3.5e9:
         profile["BIGTIFF"] = "YES"
     return profile
 
 
-def write_geotiff(path, array, crs, transform, nodata=None, cog: bool = False,
-                  tags: dict | None = None, compress: str = "deflate",
-                  blocksize: int = 256, overview_resampling: str = "average") -> None:
-    """Write ``array`` (2-D or bands x rows x cols) as a GeoTIFF, atomically.
+def write_geotiff(path, array, crs, transform, nodata=None, tags: dict | None = None,
+                  compress: str = "deflate", blocksize: int = 256) -> None:
+    """Write ``array`` (2-D or bands x rows x cols) as a GeoTIFF, atomically (tiled when it
+    spans a block both ways; a Cloud-Optimized GeoTIFF: ``rectification.writing.write_cog``).
 
-    ``crs``: anything pyproj accepts ("EPSG:32633", WKT, a CRS). ``cog=True`` writes a
-    Cloud-Optimized GeoTIFF (tiled, internal overviews, via GDAL's COG driver).
+    ``crs``: anything pyproj accepts ("EPSG:32633", WKT, a CRS).
     ``tags``: dataset-level metadata (values are stored as strings).
     """
     import rasterio
     arr = _as_bands(array)
-    profile = _profile(arr, crs, transform, nodata, compress, blocksize, cog)
+    profile = _profile(arr, crs, transform, nodata, compress, blocksize)
     tags = {k: str(v) for k, v in (tags or {}).items()}
     with atomic_path(path, suffix=".tif") as tmp:
-        if not cog:
-            with rasterio.open(tmp, "w", **profile) as dst:
-                dst.write(arr)
-                if tags:
-                    dst.update_tags(**tags)
-            return
-        # COG: write a tiled GTiff in memory, then let GDAL's COG driver lay it out
-        from rasterio.io import MemoryFile
-        from rasterio.shutil import copy as rio_copy
-        with MemoryFile() as mem:
-            with mem.open(**profile) as tmpds:
-                tmpds.write(arr)
-                if tags:
-                    tmpds.update_tags(**tags)
-            with mem.open() as src:
-                rio_copy(src, tmp, driver="COG", COMPRESS=compress.upper(),
-                         BLOCKSIZE=blocksize, OVERVIEW_RESAMPLING=overview_resampling.upper(),
-                         **({"PREDICTOR": "YES"} if compress == "deflate" else {}),
-                         **({"BIGTIFF": "YES"} if "BIGTIFF" in profile else {}))
+        with rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(arr)
+            if tags:
+                dst.update_tags(**tags)
 
 
 @dataclass(frozen=True, eq=False)
