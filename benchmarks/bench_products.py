@@ -1,6 +1,6 @@
-"""What the run's readable products cost: the calibration report (matplotlib figures inlined
-as SVG) on the simulated paper mission, and the STAC catalogue of the tiny mission's
-rectified swings and mosaic (footprints traced from the nodata mask).
+"""What the run's readable products cost: the calibration report (figures drawn on
+swathflow.drawing, inlined as SVG) on the simulated paper mission, and the STAC catalogue
+of the tiny mission's rectified swings and mosaic (footprints traced from the nodata mask).
 
     .venv/bin/python benchmarks/bench_products.py
 
