@@ -114,6 +114,11 @@ def image_vectors(res: pd.DataFrame, image_id: str) -> str:
     return cv.svg()
 
 
+def _named(direction) -> bool:
+    """A direction worth a legend entry (sensors without swing directions leave it empty)."""
+    return isinstance(direction, str) and direction not in ("", "nan", "None")
+
+
 def _direction_entries(directions) -> list[tuple[str, str, str]]:
     return [("line", COLORS[d], f"direction {d}") for d in COLORS if d in set(directions)]
 
@@ -165,7 +170,7 @@ def against(res: pd.DataFrame, column: str, label: str) -> str:
                     if np.isfinite(xv) and np.isfinite(yv):
                         cv.marker(ax.x(xv), ax.y(yv), 2.6, col)
             legend(cv, x1, y0 - 12, [("marker", COLORS.get(str(d), OTHER), f"direction {d}")
-                                     for d in directions], across=True)
+                                     for d in directions if _named(d)], across=True)
     return cv.svg()
 
 
