@@ -77,15 +77,15 @@ def _sgn(v):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _quadratic_root(j, fj, fj1, l1, f1, rough_line):
-    """Inverse quadratic root through (j, l1, j+1), the secant against the far bracket end
+def _quadratic_root(x0, x2, fj, fj1, l1, f1, rough_line):
+    """Inverse quadratic root through (x0, l1, x2), the secant against the far bracket end
     where it leaves the bracket; and whether the two disagree (solve exactly)."""
     same = _sgn(f1) == _sgn(fj)
-    ja = j + 1.0 if same else float(j)
+    ja = x2 if same else x0
     fa = fj1 if same else fj
     w = f1 / (f1 - fa) if f1 - fa != 0.0 else math.nan
     line = l1 + (w if math.isfinite(w) else 0.0) * (ja - l1)
-    x0, x1, x2 = float(j), l1, j + 1.0
+    x1 = l1
     q = (x0 * f1 * fj1 / ((fj - f1) * (fj - fj1)) + x1 * fj * fj1 / ((f1 - fj) * (f1 - fj1))
          + x2 * fj * f1 / ((fj1 - fj) * (fj1 - f1)))
     use = math.isfinite(q) and q >= x0 and q <= x2
@@ -94,10 +94,10 @@ def _quadratic_root(j, fj, fj1, l1, f1, rough_line):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _lagrange(line, j, l1, cam0, cam1, cam2, out):
-    """The camera vector at ``line``: quadratic through the lines j, l1, j + 1 (linear
-    where the chord point sits on an integer line)."""
-    x0, x1, x2 = float(j), l1, j + 1.0
+def _lagrange(line, x0, l1, x2, cam0, cam1, cam2, out):
+    """The camera vector at ``line``: quadratic through the lines x0, l1, x2 (linear
+    where the chord point sits on an end)."""
+    x1 = l1
     d01, d02, d12 = (x0 - x1) * (x0 - x2), (x1 - x0) * (x1 - x2), (x2 - x0) * (x2 - x1)
     if d01 != 0.0 and d02 != 0.0 and d12 != 0.0:
         a0 = (line - x1) * (line - x2) / d01
@@ -107,9 +107,31 @@ def _lagrange(line, j, l1, cam0, cam1, cam2, out):
             for k in range(3):
                 out[k] = a0 * cam0[k] + a1 * cam1[k] + a2 * cam2[k]
             return
-    t = line - x0
+    t = (line - x0) / (x2 - x0)
     for k in range(3):
         out[k] = cam0[k] + t * (cam2[k] - cam0[k])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _chord_solve(g, x0, f0, cam0, x2, f2, cam2, nvec, geo, rough_line, cam1, pos, out):
+    """The root inside ``[x0, x2]``, where the condition is smooth, from one exact
+    evaluation at the chord point (the inverse quadratic, the camera vector by Lagrange
+    through x0, the chord point, x2) into ``out``; NaN where that is rough or the POS
+    cannot be interpolated (the caller solves exactly)."""
+    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
+    d = f0 - f2
+    l1 = x0 + f0 / d * (x2 - x0) if d != 0.0 else math.nan
+    if not math.isfinite(l1):
+        l1 = (x0 + x2) / 2
+    if not _camera_of(l1, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen, cam1,
+                      pos):
+        return math.nan
+    f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
+    line, rough = _quadratic_root(x0, x2, f0, f2, l1, f1, rough_line)
+    if rough:
+        return math.nan
+    _lagrange(line, x0, l1, x2, cam0, cam1, cam2, out)
+    return line
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -140,11 +162,43 @@ def _secant(g, j, fj, fj1, nvec, geo, tol, max_iter, cam, pos):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
+def _split_at_epoch(g, a, fa, fb, k, nvec, geo, r_es, c, rough_line, cam0, cam1, cam2, pos,
+                    out):
+    """The root inside line ``[a, a+1]`` whose times hold one POS epoch ``k`` (a kink of
+    the condition): one exact evaluation at the epoch's fractional line picks the smooth
+    side with the sign change, :func:`_chord_solve` solves there. NaN where the line
+    holds no single epoch, or that solve is rough (the caller solves exactly)."""
+    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
+    t0, t1 = cols[a, 0], cols[a + 1, 0]
+    if not (k + 1 < time.shape[0] and time[k] > t0 and time[k] < t1) or (
+            k + 2 < time.shape[0] and time[k + 1] < t1):
+        return math.nan
+    le = a + (time[k] - t0) / (t1 - t0)
+    if not (le > a and le < a + 1):
+        return math.nan
+    if not _camera_of(le, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen, cam2,
+                      pos):
+        return math.nan
+    fe = cam2[0] * nvec[0] + cam2[1] * nvec[1] + cam2[2] * nvec[2]
+    if fe == 0.0:
+        for q in range(3):
+            out[q] = cam2[q]
+        return le
+    if _sgn(fe) == _sgn(fa):            # the root is after the epoch
+        _frame_vector(r_es, c, a + 1, g, cam0)
+        return _chord_solve(g, le, fe, cam2, a + 1.0, fb, cam0, nvec, geo, rough_line,
+                            cam1, pos, out)
+    _frame_vector(r_es, c, a, g, cam0)
+    return _chord_solve(g, float(a), fa, cam0, le, fe, cam2, nvec, geo, rough_line, cam1,
+                        pos, out)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_epoch, line_out, cam_out):
     """Fractional line and camera vector of points ``g`` crossing between ``j, j+1``
-    (``geo``: line columns, POS times and table, max gap, R_BP^T, R_HS, u_gps, u_sen).
-    Returns False where the POS could not be interpolated (the caller then takes the numpy
-    path, which reports it)."""
+    (``geo``: line columns, POS times and table, max gap, R_BP^T, R_HS, u_gps, u_sen;
+    ``line_epoch`` the POS epoch at every line's time). Returns False where the POS could
+    not be interpolated (the caller then takes the numpy path, which reports it)."""
     cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
     cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
     pos = np.empty(8)
@@ -158,15 +212,18 @@ def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
                           cam1, pos):
             return False
         f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
-        line, rough = _quadratic_root(a, fa, fb, l1, f1, rough_line)
-        if rough:       # not smooth inside the line (a POS sample in it): solve exactly
-            line = _secant(g[i], a, fa, fb, nvec, geo, 1e-9, 30, cam_out[i], pos)
+        line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
+        if rough:       # not smooth inside the line (a POS sample in it): solve each side
+            line = _split_at_epoch(g[i], a, fa, fb, line_epoch[a] + 1, nvec, geo, r_es, c,
+                                   rough_line, cam0, cam1, cam2, pos, cam_out[i])
+            if math.isnan(line):
+                line = _secant(g[i], a, fa, fb, nvec, geo, 1e-9, 30, cam_out[i], pos)
             if math.isnan(line):
                 return False
         else:
             _frame_vector(r_es, c, a, g[i], cam0)
             _frame_vector(r_es, c, a + 1, g[i], cam2)
-            _lagrange(line, a, l1, cam0, cam1, cam2, cam_out[i])
+            _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, cam_out[i])
         line_out[i] = line
     return True
 
