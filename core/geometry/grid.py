@@ -15,6 +15,7 @@ from typing import Iterator
 import numpy as np
 import pyproj
 from affine import Affine
+from numba import njit
 
 from swathflow.errors import FormatError
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
@@ -194,6 +195,88 @@ def _map_heights(crs: str, terrain, x, y):
     if type(terrain) is DEM and _same_crs(crs, terrain.crs_wkt):
         return terrain.height_xy(x, y)
     return None
+
+
+#: degree in rows and in columns of the polynomials of :class:`TileFrame` (5 x 5
+#: Chebyshev nodes: within 1e-8 m of pyproj on 545-pixel windows at 0.05 to 40 m)
+FRAME_DEGREE = 4
+
+
+class TileFrame:
+    """ECEF of the pixel centres (integer rows ``0..H-1``, columns ``0..W-1``) of a grid
+    on the terrain, without a projection call a point: ``P + h U``, where ``P`` (the
+    point on the ellipsoid) and ``U`` (the ellipsoid normal; ECEF is linear in the
+    ellipsoidal height) are the polynomials of degree :data:`FRAME_DEGREE` in row and
+    column through pyproj's values at Chebyshev nodes of the window, and ``h`` the
+    terrain's height at the map point (:func:`_map_heights`). Use :func:`tile_frame`."""
+
+    def __init__(self, grid: "Grid", terrain, H: int, W: int):
+        self.grid, self.terrain = grid, terrain
+        d = FRAME_DEGREE
+        k = np.arange(d + 1)
+        rn = (H - 1) / 2 * (1 - np.cos(np.pi * k / d))
+        cn = (W - 1) / 2 * (1 - np.cos(np.pi * k / d))
+        x, y = grid.xy(rn[:, None], cn[None, :])
+        x, y = np.broadcast_arrays(x, y)
+        t = _to_ecef(grid.crs)
+        p0 = np.stack(t.transform(x, y, np.zeros_like(x)), axis=-1)
+        p1 = np.stack(t.transform(x, y, np.full_like(x, 1000.0)), axis=-1)
+        self.origin = p0[d // 2, d // 2].copy()    # the polynomials carry offsets from it
+        self.nodes = np.ascontiguousarray(np.concatenate([p0 - self.origin, (p1 - p0) / 1000.0],
+                                                         axis=-1))
+        self.b_rows, self.b_cols = _basis(rn, H), _basis(cn, W)
+
+    def ecef(self, rows, cols) -> np.ndarray:
+        """ECEF ``(n, 3)`` of the pixel centres at integer ``rows, cols`` (NaN where the
+        terrain has no height)."""
+        rows = np.ascontiguousarray(rows, np.int64).ravel()
+        cols = np.ascontiguousarray(cols, np.int64).ravel()
+        x, y = self.grid.xy(rows, cols)
+        h = np.ascontiguousarray(_map_heights(self.grid.crs, self.terrain, x, y), float)
+        out = np.empty((rows.size, 3))
+        _frame_ecef(self.nodes, self.b_rows, self.b_cols, rows, cols, h, self.origin, out)
+        return out
+
+
+def _basis(nodes, n) -> np.ndarray:
+    """Lagrange basis ``(n, len(nodes))`` of the ``nodes`` at 0 .. n - 1."""
+    i = np.arange(n, dtype=float)[:, None]
+    out = np.ones((n, nodes.size))
+    for k in range(nodes.size):
+        for m in range(nodes.size):
+            if m != k:
+                out[:, k] *= (i[:, 0] - nodes[m]) / (nodes[k] - nodes[m])
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _frame_ecef(nodes, b_rows, b_cols, rows, cols, h, origin, out):
+    """``origin + sum_kl B_row[r, k] B_col[c, l] (P[k, l] + h U[k, l])`` a point."""
+    d = nodes.shape[0]
+    for i in range(rows.shape[0]):
+        r, c, hi = rows[i], cols[i], h[i]
+        x = y = z = 0.0
+        for k in range(d):
+            px = py = pz = 0.0
+            for m in range(d):
+                w = b_cols[c, m]
+                px += w * (nodes[k, m, 0] + hi * nodes[k, m, 3])
+                py += w * (nodes[k, m, 1] + hi * nodes[k, m, 4])
+                pz += w * (nodes[k, m, 2] + hi * nodes[k, m, 5])
+            w = b_rows[r, k]
+            x += w * px
+            y += w * py
+            z += w * pz
+        out[i, 0], out[i, 1], out[i, 2] = origin[0] + x, origin[1] + y, origin[2] + z
+
+
+def tile_frame(grid: "Grid", terrain, H: int, W: int) -> "TileFrame | None":
+    """A :class:`TileFrame` of the window ``H`` x ``W`` from the grid's origin, or None
+    where the heights need longitude and latitude (:func:`_map_heights`: then
+    :meth:`Grid.to_ecef`)."""
+    if _map_heights(grid.crs, terrain, np.zeros(1), np.zeros(1)) is None or H < 2 or W < 2:
+        return None
+    return TileFrame(grid, terrain, H, W)
 
 
 @lru_cache(maxsize=64)

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from swathflow.geometry.grid import tile_frame
 from swathflow.rectification.paint import touching
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
@@ -61,13 +62,17 @@ DENSE_SHARE = 0.5
 DENSE_CELL = 16
 
 
-def exact_raw(model, grid, terrain, rows, cols) -> np.ndarray:
+def exact_raw(model, grid, terrain, rows, cols, frame=None) -> np.ndarray:
     """Exact raw coordinates ``(n, 2)`` of grid pixel centres (rows, cols may lie off the
-    grid; the grid's transform extends)."""
-    x, y = grid.xy(rows, cols)
+    grid; the grid's transform extends); with ``frame`` (a
+    :class:`~swathflow.geometry.grid.TileFrame` of the grid) the ground points come from
+    it (integer rows and columns inside its window)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        g = grid.to_ecef(x, y, terrain)
+        if frame is not None:
+            g = frame.ecef(rows, cols)
+        else:
+            g = grid.to_ecef(*grid.xy(rows, cols), terrain)
         return model.ground_to_image(g, clip=False)
 
 
@@ -119,10 +124,21 @@ class _Exact:
         self.values = np.full((H, W, 2), np.nan)
         self.known = np.zeros((H, W), bool)
         self.count = 0
+        self.frame = tile_frame(grid, terrain, H, W)      # ground points without pyproj
+
+    def drop_frame(self):
+        """Forget the values and evaluate from now on with the grid's own
+        :meth:`~swathflow.geometry.grid.Grid.to_ecef` (pyproj) instead of the frame (which
+        agrees with it to a few nm, not to the last bit)."""
+        if self.frame is not None:
+            self.frame = None
+            self.known[:] = False
+            self.values[:] = np.nan
 
     def _evaluate(self, rr, cc):
         if rr.size:
-            self.values[rr, cc] = exact_raw(self.model, self.grid, self.terrain, rr, cc)
+            self.values[rr, cc] = exact_raw(self.model, self.grid, self.terrain, rr, cc,
+                                            self.frame)
             self.count += rr.size
 
     def __call__(self, r, c):
@@ -345,17 +361,6 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W):
     return leaf, corners, kids, sure_kids
 
 
-@njit(cache=True, nogil=True)
-def _corner_values(cells, v):
-    """The corner values ``(n, 4, 2)`` of ``cells`` (all known in ``v``)."""
-    out = np.empty((cells.shape[0], 4, 2))
-    for i in range(cells.shape[0]):
-        r, c, sr, sc = cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3]
-        out[i, 0], out[i, 1] = v[r, c], v[r, c + sc]
-        out[i, 2], out[i, 3] = v[r + sr, c], v[r + sr, c + sc]
-    return out
-
-
 def _dense_cheaper(exact, h: int, w: int, half: float) -> bool:
     """Whether at least :data:`DENSE_SHARE` of a sample of 2 x 2 cells (up to 8 x 8 of
     them, spread over the tile) miss ``half`` at their test points: the adaptive
@@ -445,7 +450,8 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     half = tol * TEST_SHARE                      # a share of the bound at the test points
     if dense is None:
         dense = _dense_cheaper(exact, h, w, half)
-    if dense:
+    if dense:           # the exact model itself at every pixel: ground points by pyproj
+        exact.drop_frame()
         px = _every_pixel(exact, h, w, step, raw_shape)
         return Leaves(np.zeros((0, 4), np.int64), np.zeros((0, 4, 2)), (h, w), exact.count,
                       px)
@@ -464,7 +470,7 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
         if len(sure):
             exact.cells(sure, tests=False)
             out_cells.append(sure)
-            out_corners.append(_corner_values(sure, exact.values))
+            out_corners.append(_cell_tests(sure, exact.values)[3][:, :4])
     if out_cells:
         cells_a = np.ascontiguousarray(np.concatenate(out_cells).astype(np.int64))
         corners_a = np.ascontiguousarray(np.concatenate(out_corners).astype(np.float64))

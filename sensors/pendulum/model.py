@@ -285,11 +285,11 @@ class PendulumModel(SensorModel):
         ``j + 1``, and the camera vector there is the quadratic through the camera vectors
         at the same three lines (exact at the integer lines from their frames). Where that
         root leaves the bracket or differs from the secant step against the far bracket end
-        by more than ``ROUGH_LINE`` (a POS epoch between the two line times puts a kink in
-        the condition: 30 % of the lattice's points on the demo mission), the line is split
-        at the epoch and the same solve is made on the side with the sign change
-        (:meth:`_split_at_epoch`); where that is rough too, or the line holds several
-        epochs, the point is solved exactly (secant iterations). This agrees with a fully
+        by more than ``ROUGH_LINE``, the point is solved exactly (secant iterations). A line
+        whose times hold one POS epoch (a kink in the condition: 30 % of the lattice's
+        points on the demo mission) is split at the epoch first, and the same solve made on
+        the side with the sign change (:meth:`_split_at_epoch`; where that is rough, as
+        above). This agrees with a fully
         converged solve to far below 0.001 px (checked in the tests; a linear
         interpolation alone left 1.2e-3 px on a wobbling swing).
         """
@@ -308,13 +308,14 @@ class PendulumModel(SensorModel):
         cam0 = np.einsum("nji,nj->ni", r_es[j], g - c[j])
         cam2 = np.einsum("nji,nj->ni", r_es[j + 1], g - c[j + 1])
         cam = _lagrange(line, x0, l1, x2, cam0, cam1, cam2)
-        if rough.size:
-            lr, cr = self._split_at_epoch(g[rough], j[rough], fj[rough], fj1[rough])
-            line[rough], cam[rough] = lr, cr
-            rest = rough[np.isnan(lr)]
-            if rest.size:
-                line[rest], cam[rest] = self._solve_exact(g[rest], j[rest], fj[rest],
-                                                          fj1[rest], tol=1e-9)
+        # a POS epoch inside the line puts a kink in the condition: solve each side
+        lr, cr = self._split_at_epoch(g, j, fj, fj1)
+        split = np.isfinite(lr)
+        line, cam = np.where(split, lr, line), np.where(split[:, None], cr, cam)
+        rough = rough[~split[rough]] if rough.size else rough
+        if rough.size:      # rough and no single epoch (or the split's solve was rough)
+            line[rough], cam[rough] = self._solve_exact(g[rough], j[rough], fj[rough],
+                                                        fj1[rough], tol=1e-9)
         return line, cam
 
     def _split_at_epoch(self, g, j, fj, fj1):
@@ -428,10 +429,10 @@ class PendulumModel(SensorModel):
         m = g.shape[0]
         line, cam = np.empty(m), np.empty((m, 3))
         geo = self._geo()
-        if "line_epoch" not in self._shared:
-            self._shared["line_epoch"] = np.searchsorted(geo[1], geo[0][:, 0], side="right") - 1
+        if "trig" not in self._shared:
+            self._shared["trig"] = kernel.trig_tables(geo)
         ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]), geo,
-                           r_es, c, ROUGH_LINE, self._shared["line_epoch"], line, cam)
+                           self._shared["trig"], r_es, c, ROUGH_LINE, line, cam)
         if not ok:
             return None
         return line, cam
