@@ -216,11 +216,10 @@ class TileFrame:
         k = np.arange(d + 1)
         rn = (H - 1) / 2 * (1 - np.cos(np.pi * k / d))
         cn = (W - 1) / 2 * (1 - np.cos(np.pi * k / d))
-        x, y = grid.xy(rn[:, None], cn[None, :])
-        x, y = np.broadcast_arrays(x, y)
-        t = _to_ecef(grid.crs)
-        p0 = np.stack(t.transform(x, y, np.zeros_like(x)), axis=-1)
-        p1 = np.stack(t.transform(x, y, np.full_like(x, 1000.0)), axis=-1)
+        x, y = grid.xy(rn[:, None, None], cn[None, :, None])
+        x, y, h = np.broadcast_arrays(x, y, np.array([0.0, 1000.0]))
+        p = np.stack(_to_ecef(grid.crs).transform(x, y, h), axis=-1)    # one call
+        p0, p1 = p[:, :, 0], p[:, :, 1]
         self.origin = p0[d // 2, d // 2].copy()    # the polynomials carry offsets from it
         self.nodes = np.ascontiguousarray(np.concatenate([p0 - self.origin, (p1 - p0) / 1000.0],
                                                          axis=-1))
@@ -240,13 +239,11 @@ class TileFrame:
 
 def _basis(nodes, n) -> np.ndarray:
     """Lagrange basis ``(n, len(nodes))`` of the ``nodes`` at 0 .. n - 1."""
-    i = np.arange(n, dtype=float)[:, None]
-    out = np.ones((n, nodes.size))
-    for k in range(nodes.size):
-        for m in range(nodes.size):
-            if m != k:
-                out[:, k] *= (i[:, 0] - nodes[m]) / (nodes[k] - nodes[m])
-    return out
+    d = np.arange(n, dtype=float)[:, None, None] - nodes[None, None, :]   # (n, 1, m)
+    den = nodes[:, None] - nodes[None, :]                                # (m, m)
+    off = ~np.eye(nodes.size, dtype=bool)
+    ratio = np.where(off, d / np.where(off, den, 1.0), 1.0)              # (n, m, m)
+    return ratio.prod(axis=-1)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -121,8 +121,8 @@ class _Exact:
 
     def __init__(self, model, grid, terrain, H, W):
         self.model, self.grid, self.terrain, self.W = model, grid, terrain, W
-        self.values = np.full((H, W, 2), np.nan)
-        self.known = np.zeros((H, W), bool)
+        self.values = np.empty((H, W, 2))      # read only where known (its pages stay
+        self.known = np.zeros((H, W), bool)    # untouched where nothing is evaluated)
         self.count = 0
         self.frame = tile_frame(grid, terrain, H, W)      # ground points without pyproj
 
@@ -133,7 +133,6 @@ class _Exact:
         if self.frame is not None:
             self.frame = None
             self.known[:] = False
-            self.values[:] = np.nan
 
     def _evaluate(self, rr, cc):
         if rr.size:

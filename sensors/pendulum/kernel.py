@@ -11,6 +11,7 @@ import numpy as np
 from numba import njit
 
 from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
+from swathflow.geometry.planesolve import bracket_one
 
 DEG = math.pi / 180.0
 
@@ -223,45 +224,68 @@ def _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, ca
                         cam1, pos, out)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def refine(g, j, fj, fj1, nvec, geo, trig, r_es, c, rough_line, line_out, cam_out):
-    """Fractional line and camera vector of points ``g`` crossing between ``j, j+1``
-    (``geo``: line columns, POS times and table, max gap, R_BP^T, R_HS, u_gps, u_sen;
-    ``trig``: :func:`trig_tables`). Returns False where the POS could not be interpolated
-    (the caller then takes the numpy path, which reports it)."""
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2, pos,
+                out):
+    """Fractional line of point ``g`` crossing between lines ``a, a+1`` (condition ``fa``,
+    ``fb`` there), its camera vector into ``out``; NaN where the POS could not be
+    interpolated (the caller then takes the numpy path, which reports it)."""
     cols, time, line_epoch = geo[0], geo[1], trig[2]
+    # a POS epoch inside the line puts a kink in the condition: solve each side
+    k = line_epoch[a] + 1
+    line = math.nan
+    if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
+        line = _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0,
+                               cam1, cam2, pos, out)
+    if math.isnan(line):
+        d = fa - fb
+        l1 = a + fa / d if d != 0.0 else math.nan
+        if not math.isfinite(l1):
+            l1 = a + 0.5
+        if not _camera_of(l1, g, geo, trig, cam1, pos):
+            return math.nan
+        f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
+        line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
+        if rough:
+            line = math.nan
+        else:
+            _frame_vector(r_es, c, a, g, cam0)
+            _frame_vector(r_es, c, a + 1, g, cam2)
+            _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, out)
+    if math.isnan(line):     # rough (or the split's solve was): solve exactly
+        line = _secant(g, a, fa, fb, nvec, geo, trig, 1e-9, 30, out, pos)
+    return line
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, pixel,
+                    clip, out):
+    """``PendulumModel.ground_to_image`` of points ``(n, 3)`` into ``out`` ``(n, 2)``:
+    the brackets between the lines' viewing planes (``planesolve.bracket_one`` over the
+    coarse ``grid``), :func:`_refine_one` (``geo``: line columns, POS times and table,
+    max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`), then the element
+    (``pixel``: k0, focal length, pixel pitch, elements); NaN behind the camera, where no
+    line sees the point and, with ``clip``, off the detector. False where the POS could
+    not be interpolated (the caller then takes the numpy path, which reports it)."""
     cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
-    pos, gi, out = np.empty(8), np.empty(3), np.empty(3)
-    for i in range(g.shape[0]):
-        a, fa, fb = j[i], fj[i], fj1[i]
-        gi[0], gi[1], gi[2] = g[i, 0], g[i, 1], g[i, 2]
-        # a POS epoch inside the line puts a kink in the condition: solve each side
-        k = line_epoch[a] + 1
-        line = math.nan
-        if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
-            line = _split_at_epoch(gi, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0,
-                                   cam1, cam2, pos, out)
+    pos, gi, cam = np.empty(8), np.empty(3), np.empty(3)
+    k0, focal, pitch, n_elements = pixel
+    for i in range(points.shape[0]):
+        gi[0], gi[1], gi[2] = points[i, 0], points[i, 1], points[i, 2]
+        out[i, 0] = out[i, 1] = math.nan
+        a, fa, fb, found = bracket_one(planes, grid, gi[0], gi[1], gi[2])
+        if not found:
+            continue
+        line = _refine_one(gi, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1,
+                           cam2, pos, cam)
         if math.isnan(line):
-            d = fa - fb
-            l1 = a + fa / d if d != 0.0 else math.nan
-            if not math.isfinite(l1):
-                l1 = a + 0.5
-            if not _camera_of(l1, gi, geo, trig, cam1, pos):
-                return False
-            f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
-            line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
-            if rough:
-                line = math.nan
-            else:
-                _frame_vector(r_es, c, a, gi, cam0)
-                _frame_vector(r_es, c, a + 1, gi, cam2)
-                _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, out)
-        if math.isnan(line):     # rough (or the split's solve was): solve exactly
-            line = _secant(gi, a, fa, fb, nvec, geo, trig, 1e-9, 30, out, pos)
-            if math.isnan(line):
-                return False
-        line_out[i] = line
-        cam_out[i, 0], cam_out[i, 1], cam_out[i, 2] = out[0], out[1], out[2]
+            return False
+        if not cam[2] < 0:                       # behind the camera
+            continue
+        elem = k0 + focal * cam[0] / (-cam[2]) / pitch
+        if clip and not (elem >= -0.5 and elem <= n_elements - 0.5):
+            continue
+        out[i, 0], out[i, 1] = line, elem
     return True
 
 

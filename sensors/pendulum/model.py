@@ -12,7 +12,7 @@ import numpy as np
 
 from swathflow.errors import FormatError
 from swathflow.geometry.linesolve import bracket_lines, plane_brackets, secant_lines
-from swathflow.geometry.planesolve import bracket_planes, coarse_grid
+from swathflow.geometry.planesolve import coarse_grid
 from swathflow.geometry.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
 
 from swathflow.sensors.base import CHUNK, Parameter, ParameterSet, SensorModel
@@ -406,36 +406,23 @@ class PendulumModel(SensorModel):
         return out.reshape(shape + (2,))
 
     def _ground_to_image(self, g, clip: bool) -> np.ndarray:
-        """Compiled path (numba): the same brackets and refinement as the numpy path."""
-        n = g.shape[0]
-        out = np.full((n, 2), np.nan)
+        """Compiled path (numba, ``kernel.ground_to_image``): the same brackets and
+        refinement as the numpy path, one point at a time."""
+        out = np.empty((g.shape[0], 2))
         g = np.ascontiguousarray(g, dtype=float)
-        j, fj, fj1 = np.empty(n, np.intp), np.empty(n), np.empty(n)
-        found = np.empty(n, np.bool_)
-        if "coarse_grid" not in self._shared:
-            self._shared["coarse_grid"] = coarse_grid(self.n_lines)
-        bracket_planes(g, self._planes, self._shared["coarse_grid"], j, fj, fj1, found)
-        k = np.flatnonzero(found)
-        if k.size:
-            refined = self._refine_compiled(g[k], j[k], fj[k], fj1[k])
-            if refined is None:       # the POS could not be interpolated: numpy reports it
-                return self._ground_to_image_numpy(g, clip)
-            out[k] = self._pixels(*refined, clip)
-        return out
-
-    def _refine_compiled(self, g, j, fj, fj1):
-        """``_refine`` through the numba kernel; None where the POS has a gap there."""
-        r_es, c = self._line_frames()
-        m = g.shape[0]
-        line, cam = np.empty(m), np.empty((m, 3))
+        sh = self._shared
+        if "coarse_grid" not in sh:
+            sh["coarse_grid"] = coarse_grid(self.n_lines)
         geo = self._geo()
-        if "trig" not in self._shared:
-            self._shared["trig"] = kernel.trig_tables(geo)
-        ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]), geo,
-                           self._shared["trig"], r_es, c, ROUGH_LINE, line, cam)
-        if not ok:
-            return None
-        return line, cam
+        if "trig" not in sh:
+            sh["trig"] = kernel.trig_tables(geo)
+        r_es, c = self._line_frames()
+        pixel = (self._k0, self._f, self._pp, float(self.n_elements))
+        if self.n_lines >= 2 and kernel.ground_to_image(
+                g, self._planes, sh["coarse_grid"], np.array([0.0, self._f, self._y0]), geo,
+                sh["trig"], r_es, c, ROUGH_LINE, pixel, bool(clip), out):
+            return out
+        return self._ground_to_image_numpy(g, clip)   # the POS has a gap there: it reports
 
     def _geo(self) -> tuple:
         """The kernels' view of the geometry: line columns, POS times and table (ECEF,
