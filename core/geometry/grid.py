@@ -19,6 +19,7 @@ from numba import njit
 
 from swathflow.errors import FormatError
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
+from swathflow.geometry.terrain import bilinear_one
 
 
 def resolve_crs(spec, lat: float, lon: float) -> str:
@@ -224,16 +225,22 @@ class TileFrame:
         self.nodes = np.ascontiguousarray(np.concatenate([p0 - self.origin, (p1 - p0) / 1000.0],
                                                          axis=-1))
         self.b_rows, self.b_cols = _basis(rn, H), _basis(cn, W)
+        # the heights as _map_heights takes them: a constant, or the DEM in the grid's CRS
+        t = grid.transform
+        self.heights = ((t.a, t.c, t.e, t.f), np.zeros((0, 0)), (0.0,) * 6,
+                        float(getattr(terrain, "h", 0.0)))
+        if hasattr(terrain, "data"):
+            self.heights = ((t.a, t.c, t.e, t.f), np.ascontiguousarray(terrain.data, float),
+                            tuple(float(v) for v in terrain.transform), 0.0)
 
     def ecef(self, rows, cols) -> np.ndarray:
         """ECEF ``(n, 3)`` of the pixel centres at integer ``rows, cols`` (NaN where the
         terrain has no height)."""
         rows = np.ascontiguousarray(rows, np.int64).ravel()
         cols = np.ascontiguousarray(cols, np.int64).ravel()
-        x, y = self.grid.xy(rows, cols)
-        h = np.ascontiguousarray(_map_heights(self.grid.crs, self.terrain, x, y), float)
         out = np.empty((rows.size, 3))
-        _frame_ecef(self.nodes, self.b_rows, self.b_cols, rows, cols, h, self.origin, out)
+        _frame_ecef(self.nodes, self.b_rows, self.b_cols, rows, cols, self.heights,
+                    self.origin, out)
         return out
 
 
@@ -247,16 +254,24 @@ def _basis(nodes, n) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _frame_ecef(nodes, b_rows, b_cols, rows, cols, h, origin, out):
-    """``origin + sum_kl B_row[r, k] B_col[c, l] (P[k, l] + h U[k, l])`` a point."""
-    d = nodes.shape[0]
+def _frame_ecef(nodes, b_rows, b_cols, rows, cols, heights, origin, out):
+    """``origin + sum_kl B_row[r, k] B_col[c, l] (P[k, l] + h U[k, l])`` a point, ``h``
+    the constant height or the DEM's (``heights``: the grid's a, c, e, f; the DEM's
+    data, or an empty array, and transform; the constant)."""
+    (ga, gc, ge, gf), dem, (a, b, c, d, e, f), h_const = heights
+    det = a * e - b * d
     for i in range(rows.shape[0]):
-        r, c, hi = rows[i], cols[i], h[i]
+        r, cl = rows[i], cols[i]
+        hi = h_const
+        if dem.size:                 # as Grid.xy, then DEM.height_xy
+            x, y = gc + ga * (cl + 0.5), gf + ge * (r + 0.5)
+            hi = bilinear_one(dem, (-d * (x - c) + a * (y - f)) / det - 0.5,
+                              (e * (x - c) - b * (y - f)) / det - 0.5)
         x = y = z = 0.0
-        for k in range(d):
+        for k in range(nodes.shape[0]):
             px = py = pz = 0.0
-            for m in range(d):
-                w = b_cols[c, m]
+            for m in range(nodes.shape[1]):
+                w = b_cols[cl, m]
                 px += w * (nodes[k, m, 0] + hi * nodes[k, m, 3])
                 py += w * (nodes[k, m, 1] + hi * nodes[k, m, 4])
                 pz += w * (nodes[k, m, 2] + hi * nodes[k, m, 5])

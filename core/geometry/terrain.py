@@ -190,19 +190,23 @@ def bilinear(data: np.ndarray, row, col) -> np.ndarray:
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _bilinear(data, row, col, out):
-    """:func:`bilinear` one point at a time (the same arithmetic as its numpy form)."""
-    nr, nc = data.shape
+    """:func:`bilinear` one point at a time (:func:`bilinear_one`)."""
     for i in range(row.shape[0]):
-        r, c = row[i], col[i]
-        if not (r >= 0 and r <= nr - 1 and c >= 0 and c <= nc - 1):
-            out[i] = np.nan
-            continue
-        r0 = min(max(int(math.floor(r)), 0), max(nr - 2, 0))
-        c0 = min(max(int(math.floor(c)), 0), max(nc - 2, 0))
-        r1, c1 = min(r0 + 1, nr - 1), min(c0 + 1, nc - 1)
-        wr, wc = r - r0, c - c0
-        out[i] = (data[r0, c0] * (1 - wr) * (1 - wc) + data[r0, c1] * (1 - wr) * wc
-                  + data[r1, c0] * wr * (1 - wc) + data[r1, c1] * wr * wc)
+        out[i] = bilinear_one(data, row[i], col[i])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def bilinear_one(data, r, c):
+    """:func:`bilinear` of one point (the same arithmetic as its numpy form had)."""
+    nr, nc = data.shape
+    if not (r >= 0 and r <= nr - 1 and c >= 0 and c <= nc - 1):
+        return np.nan
+    r0 = min(max(int(math.floor(r)), 0), max(nr - 2, 0))
+    c0 = min(max(int(math.floor(c)), 0), max(nc - 2, 0))
+    r1, c1 = min(r0 + 1, nr - 1), min(c0 + 1, nc - 1)
+    wr, wc = r - r0, c - c0
+    return (data[r0, c0] * (1 - wr) * (1 - wc) + data[r0, c1] * (1 - wr) * wc
+            + data[r1, c0] * wr * (1 - wc) + data[r1, c1] * wr * wc)
 
 
 def open_terrain(spec) -> Terrain:
