@@ -18,16 +18,17 @@ DEG = math.pi / 180.0
 
 def trig_tables(geo) -> tuple:
     """The sines and cosines the kernels' :func:`_camera_of` starts from: of the POS
-    table's latitude, longitude, roll, pitch and heading at every epoch ``(n, 10)``, of
-    the swing and pitch compensation at every line ``(lines, 4)``; and every line's POS
-    epoch (the search's start)."""
+    table's latitude, longitude, roll, pitch and heading at the epochs ``k0 ..`` the
+    image's lines span ``(n, 10)``, of the swing and pitch compensation at every line
+    ``(lines, 4)``; every line's POS epoch (the search's start); and ``k0``."""
     cols, time, table = geo[0], geo[1], geo[2]
-    a = np.radians(table[:, 3:8])
+    epoch = np.searchsorted(time, cols[:, 0], side="right") - 1
+    k0 = max(int(epoch.min()), 0)
+    a = np.radians(table[k0:max(int(epoch.max()), k0) + 2, 3:8])
     pos_trig = np.ascontiguousarray(np.stack([np.sin(a), np.cos(a)], axis=-1).reshape(-1, 10))
     line_trig = np.ascontiguousarray(np.stack([np.sin(cols[:, 1:3]), np.cos(cols[:, 1:3])],
                                               axis=-1).reshape(-1, 4))
-    epoch = np.searchsorted(time, cols[:, 0], side="right") - 1
-    return pos_trig, line_trig, epoch
+    return pos_trig, line_trig, epoch, k0
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -44,12 +45,23 @@ def _sin_cos(a, d, sa, ca):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _epoch_sin_cos(table, pos, pos_trig, k, kt, c):
+    """sin and cos of the interpolated POS angle ``pos[c]`` (degrees; columns 3-7 of the
+    table) from those at epoch ``k`` (row ``kt`` of ``pos_trig``, -1: not there)."""
+    a = table[k, c] * DEG
+    if kt < 0:
+        return math.sin(pos[c] * DEG), math.cos(pos[c] * DEG)
+    return _sin_cos(a, pos[c] * DEG - a, pos_trig[kt, 2 * (c - 3)],
+                    pos_trig[kt, 2 * (c - 3) + 1])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _camera_of(line, g, geo, trig, cam, pos):
     """The camera-frame vector of ground point ``g`` seen from fractional ``line`` (the
     POS interpolated linearly, its angles' sines from the epochs' by :func:`_sin_cos`).
     False where the POS cannot be interpolated (outside the trajectory, in a gap)."""
     cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
-    pos_trig, line_trig, line_epoch = trig
+    pos_trig, line_trig, line_epoch, k0 = trig
     n = cols.shape[0]
     line = min(max(line, 0.0), n - 1.0)
     i = min(int(line), n - 2)
@@ -70,17 +82,20 @@ def _camera_of(line, g, geo, trig, cam, pos):
     for c in range(8):
         pos[c] = table[k, c] + (table[k + 1, c] - table[k, c]) * wk
     x, y, z = g[0] - pos[0], g[1] - pos[1], g[2] - pos[2]
-    sl, cl = _sin_cos(table[k, 3] * DEG, pos[3] * DEG - table[k, 3] * DEG, pos_trig[k, 0], pos_trig[k, 1])
-    so, co = _sin_cos(table[k, 4] * DEG, pos[4] * DEG - table[k, 4] * DEG, pos_trig[k, 2], pos_trig[k, 3])
+    kt = k - k0                    # in the table (the epochs the lines span), or -1
+    if kt >= pos_trig.shape[0]:
+        kt = -1
+    sl, cl = _epoch_sin_cos(table, pos, pos_trig, k, kt, 3)
+    so, co = _epoch_sin_cos(table, pos, pos_trig, k, kt, 4)
     e_ = -so * x + co * y
     n_ = -sl * co * x - sl * so * y + cl * z
     d_ = -cl * co * x - cl * so * y - sl * z
     x, y, z = n_, e_, d_
-    sh, ch = _sin_cos(table[k, 7] * DEG, pos[7] * DEG - table[k, 7] * DEG, pos_trig[k, 8], pos_trig[k, 9])
+    sh, ch = _epoch_sin_cos(table, pos, pos_trig, k, kt, 7)
     x, y = ch * x + sh * y, -sh * x + ch * y
-    sp, cp = _sin_cos(table[k, 6] * DEG, pos[6] * DEG - table[k, 6] * DEG, pos_trig[k, 6], pos_trig[k, 7])
+    sp, cp = _epoch_sin_cos(table, pos, pos_trig, k, kt, 6)
     x, z = cp * x - sp * z, sp * x + cp * z
-    sr, cr = _sin_cos(table[k, 5] * DEG, pos[5] * DEG - table[k, 5] * DEG, pos_trig[k, 4], pos_trig[k, 5])
+    sr, cr = _epoch_sin_cos(table, pos, pos_trig, k, kt, 5)
     y, z = cr * y + sr * z, -sr * y + cr * z
     x, y, z = x - u_gps[0], y - u_gps[1], z - u_gps[2]
     x, y, z = (x * r_bp_t[0, 0] + y * r_bp_t[1, 0] + z * r_bp_t[2, 0],
