@@ -15,9 +15,11 @@ from typing import Iterator
 import numpy as np
 import pyproj
 from affine import Affine
+from numba import njit
 
 from swathflow.errors import FormatError
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
+from swathflow.geometry.terrain import bilinear_one
 
 
 def resolve_crs(spec, lat: float, lon: float) -> str:
@@ -194,6 +196,99 @@ def _map_heights(crs: str, terrain, x, y):
     if type(terrain) is DEM and _same_crs(crs, terrain.crs_wkt):
         return terrain.height_xy(x, y)
     return None
+
+
+#: degree in rows and in columns of the polynomials of :class:`TileFrame` (5 x 5
+#: Chebyshev nodes: within 1e-8 m of pyproj on 545-pixel windows at 0.05 to 40 m)
+FRAME_DEGREE = 4
+
+
+class TileFrame:
+    """ECEF of the pixel centres (integer rows ``0..H-1``, columns ``0..W-1``) of a grid
+    on the terrain, without a projection call a point: ``P + h U``, where ``P`` (the
+    point on the ellipsoid) and ``U`` (the ellipsoid normal; ECEF is linear in the
+    ellipsoidal height) are the polynomials of degree :data:`FRAME_DEGREE` in row and
+    column through pyproj's values at Chebyshev nodes of the window, and ``h`` the
+    terrain's height at the map point (:func:`_map_heights`). Use :func:`tile_frame`."""
+
+    def __init__(self, grid: "Grid", terrain, H: int, W: int):
+        self.grid, self.terrain = grid, terrain
+        d = FRAME_DEGREE
+        k = np.arange(d + 1)
+        rn = (H - 1) / 2 * (1 - np.cos(np.pi * k / d))
+        cn = (W - 1) / 2 * (1 - np.cos(np.pi * k / d))
+        x, y = grid.xy(rn[:, None, None], cn[None, :, None])
+        x, y, h = np.broadcast_arrays(x, y, np.array([0.0, 1000.0]))
+        p = np.stack(_to_ecef(grid.crs).transform(x, y, h), axis=-1)    # one call
+        p0, p1 = p[:, :, 0], p[:, :, 1]
+        self.origin = p0[d // 2, d // 2].copy()    # the polynomials carry offsets from it
+        self.nodes = np.ascontiguousarray(np.concatenate([p0 - self.origin, (p1 - p0) / 1000.0],
+                                                         axis=-1))
+        self.b_rows, self.b_cols = _basis(rn, H), _basis(cn, W)
+        # the heights as _map_heights takes them: a constant, or the DEM in the grid's CRS
+        t = grid.transform
+        self.heights = ((t.a, t.c, t.e, t.f), np.zeros((0, 0)), (0.0,) * 6,
+                        float(getattr(terrain, "h", 0.0)))
+        if hasattr(terrain, "data"):
+            self.heights = ((t.a, t.c, t.e, t.f), np.ascontiguousarray(terrain.data, float),
+                            tuple(float(v) for v in terrain.transform), 0.0)
+
+    def ecef(self, rows, cols) -> np.ndarray:
+        """ECEF ``(n, 3)`` of the pixel centres at integer ``rows, cols`` (NaN where the
+        terrain has no height)."""
+        rows = np.ascontiguousarray(rows, np.int64).ravel()
+        cols = np.ascontiguousarray(cols, np.int64).ravel()
+        out = np.empty((rows.size, 3))
+        _frame_ecef(self.nodes, self.b_rows, self.b_cols, rows, cols, self.heights,
+                    self.origin, out)
+        return out
+
+
+def _basis(nodes, n) -> np.ndarray:
+    """Lagrange basis ``(n, len(nodes))`` of the ``nodes`` at 0 .. n - 1."""
+    d = np.arange(n, dtype=float)[:, None, None] - nodes[None, None, :]   # (n, 1, m)
+    den = nodes[:, None] - nodes[None, :]                                # (m, m)
+    off = ~np.eye(nodes.size, dtype=bool)
+    ratio = np.where(off, d / np.where(off, den, 1.0), 1.0)              # (n, m, m)
+    return ratio.prod(axis=-1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _frame_ecef(nodes, b_rows, b_cols, rows, cols, heights, origin, out):
+    """``origin + sum_kl B_row[r, k] B_col[c, l] (P[k, l] + h U[k, l])`` a point, ``h``
+    the constant height or the DEM's (``heights``: the grid's a, c, e, f; the DEM's
+    data, or an empty array, and transform; the constant)."""
+    (ga, gc, ge, gf), dem, (a, b, c, d, e, f), h_const = heights
+    det = a * e - b * d
+    for i in range(rows.shape[0]):
+        r, cl = rows[i], cols[i]
+        hi = h_const
+        if dem.size:                 # as Grid.xy, then DEM.height_xy
+            x, y = gc + ga * (cl + 0.5), gf + ge * (r + 0.5)
+            hi = bilinear_one(dem, (-d * (x - c) + a * (y - f)) / det - 0.5,
+                              (e * (x - c) - b * (y - f)) / det - 0.5)
+        x = y = z = 0.0
+        for k in range(nodes.shape[0]):
+            px = py = pz = 0.0
+            for m in range(nodes.shape[1]):
+                w = b_cols[cl, m]
+                px += w * (nodes[k, m, 0] + hi * nodes[k, m, 3])
+                py += w * (nodes[k, m, 1] + hi * nodes[k, m, 4])
+                pz += w * (nodes[k, m, 2] + hi * nodes[k, m, 5])
+            w = b_rows[r, k]
+            x += w * px
+            y += w * py
+            z += w * pz
+        out[i, 0], out[i, 1], out[i, 2] = origin[0] + x, origin[1] + y, origin[2] + z
+
+
+def tile_frame(grid: "Grid", terrain, H: int, W: int) -> "TileFrame | None":
+    """A :class:`TileFrame` of the window ``H`` x ``W`` from the grid's origin, or None
+    where the heights need longitude and latitude (:func:`_map_heights`: then
+    :meth:`Grid.to_ecef`)."""
+    if _map_heights(grid.crs, terrain, np.zeros(1), np.zeros(1)) is None or H < 2 or W < 2:
+        return None
+    return TileFrame(grid, terrain, H, W)
 
 
 @lru_cache(maxsize=64)

@@ -61,25 +61,24 @@ def _chord_steps(planes, x, y, z, lo, hi, flo, fhi):
     return lo, hi, flo, fhi
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def bracket_planes(points, planes, grid, j_out, fj_out, fj1_out, found_out):
-    """For every point the line ``j`` with a sign change of its plane condition between
-    ``j`` and ``j + 1`` (``found_out`` False where the image's end lines agree in sign)."""
-    for i in range(points.shape[0]):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        lo, hi, flo, fhi = _coarse(planes, grid, x, y, z)
-        if math.copysign(1.0, flo) != math.copysign(1.0, fhi):
-            lo, hi, flo, fhi = _chord_steps(planes, x, y, z, lo, hi, flo, fhi)
-        slo = _sgn(flo)
-        found = (slo != _sgn(fhi)) and math.isfinite(flo) and math.isfinite(fhi)
-        while found and hi - lo > 1:
-            mid = (lo + hi) // 2
-            fm = _plane(planes, mid, x, y, z)
-            if _sgn(fm) == slo:
-                lo, flo = mid, fm
-            else:
-                hi, fhi = mid, fm
-        j_out[i], fj_out[i], fj1_out[i], found_out[i] = lo, flo, fhi, found
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def bracket_one(planes, grid, x, y, z):
+    """The line ``j`` with a sign change of point (x, y, z)'s plane condition between
+    ``j`` and ``j + 1``: ``(j, f_j, f_j+1, found)`` (found False where the image's end
+    lines agree in sign)."""
+    lo, hi, flo, fhi = _coarse(planes, grid, x, y, z)
+    if math.copysign(1.0, flo) != math.copysign(1.0, fhi):
+        lo, hi, flo, fhi = _chord_steps(planes, x, y, z, lo, hi, flo, fhi)
+    slo = _sgn(flo)
+    found = (slo != _sgn(fhi)) and math.isfinite(flo) and math.isfinite(fhi)
+    while found and hi - lo > 1:
+        mid = (lo + hi) // 2
+        fm = _plane(planes, mid, x, y, z)
+        if _sgn(fm) == slo:
+            lo, flo = mid, fm
+        else:
+            hi, fhi = mid, fm
+    return lo, flo, fhi, found
 
 
 def coarse_grid(n_lines: int, nodes: int = 8) -> np.ndarray:

@@ -5,10 +5,12 @@ silently: pyproj ships no geoid grids and would fall back to a no-op transformat
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from swathflow.errors import FormatError, SwathflowError
 from swathflow.geometry.geodesy import transformer
@@ -176,22 +178,35 @@ class DEM(Terrain):
 
 
 def bilinear(data: np.ndarray, row, col) -> np.ndarray:
-    """Bilinear interpolation at fractional pixel-centre coordinates; NaN outside."""
-    row = np.asarray(row, float)
-    col = np.asarray(col, float)
+    """Bilinear interpolation at fractional pixel-centre coordinates; NaN outside
+    (compiled: :func:`_bilinear`)."""
+    row, col = np.broadcast_arrays(np.asarray(row, float), np.asarray(col, float))
+    out = np.empty(row.shape)
+    data = np.ascontiguousarray(data, dtype=float)
+    _bilinear(data, np.ascontiguousarray(row).reshape(-1), np.ascontiguousarray(col).reshape(-1),
+              out.reshape(-1))
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _bilinear(data, row, col, out):
+    """:func:`bilinear` one point at a time (:func:`bilinear_one`)."""
+    for i in range(row.shape[0]):
+        out[i] = bilinear_one(data, row[i], col[i])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def bilinear_one(data, r, c):
+    """:func:`bilinear` of one point (the same arithmetic as its numpy form had)."""
     nr, nc = data.shape
-    ok = (row >= 0) & (row <= nr - 1) & (col >= 0) & (col <= nc - 1)
-    r = np.where(ok, row, 0.0)
-    c = np.where(ok, col, 0.0)
-    r0 = np.clip(np.floor(r).astype(np.intp), 0, max(nr - 2, 0))
-    c0 = np.clip(np.floor(c).astype(np.intp), 0, max(nc - 2, 0))
-    r1 = np.minimum(r0 + 1, nr - 1)
-    c1 = np.minimum(c0 + 1, nc - 1)
-    wr = r - r0
-    wc = c - c0
-    v = (data[r0, c0] * (1 - wr) * (1 - wc) + data[r0, c1] * (1 - wr) * wc
-         + data[r1, c0] * wr * (1 - wc) + data[r1, c1] * wr * wc)
-    return np.where(ok, v, np.nan)
+    if not (r >= 0 and r <= nr - 1 and c >= 0 and c <= nc - 1):
+        return np.nan
+    r0 = min(max(int(math.floor(r)), 0), max(nr - 2, 0))
+    c0 = min(max(int(math.floor(c)), 0), max(nc - 2, 0))
+    r1, c1 = min(r0 + 1, nr - 1), min(c0 + 1, nc - 1)
+    wr, wc = r - r0, c - c0
+    return (data[r0, c0] * (1 - wr) * (1 - wc) + data[r0, c1] * (1 - wr) * wc
+            + data[r1, c0] * wr * (1 - wc) + data[r1, c1] * wr * wc)
 
 
 def open_terrain(spec) -> Terrain:

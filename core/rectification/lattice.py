@@ -44,6 +44,10 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
+
+from swathflow.geometry.grid import tile_frame
+from swathflow.rectification.paint import touching
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
 TOLERANCE_PX = 0.05
@@ -58,13 +62,17 @@ DENSE_SHARE = 0.5
 DENSE_CELL = 16
 
 
-def exact_raw(model, grid, terrain, rows, cols) -> np.ndarray:
+def exact_raw(model, grid, terrain, rows, cols, frame=None) -> np.ndarray:
     """Exact raw coordinates ``(n, 2)`` of grid pixel centres (rows, cols may lie off the
-    grid; the grid's transform extends)."""
-    x, y = grid.xy(rows, cols)
+    grid; the grid's transform extends); with ``frame`` (a
+    :class:`~swathflow.geometry.grid.TileFrame` of the grid) the ground points come from
+    it (integer rows and columns inside its window)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        g = grid.to_ecef(x, y, terrain)
+        if frame is not None:
+            g = frame.ecef(rows, cols)
+        else:
+            g = grid.to_ecef(*grid.xy(rows, cols), terrain)
         return model.ground_to_image(g, clip=False)
 
 
@@ -113,99 +121,243 @@ class _Exact:
 
     def __init__(self, model, grid, terrain, H, W):
         self.model, self.grid, self.terrain, self.W = model, grid, terrain, W
-        self.values = np.full((H, W, 2), np.nan)
-        self.known = np.zeros((H, W), bool)
+        self.values = np.empty((H, W, 2))      # read only where known (its pages stay
+        self.known = np.zeros((H, W), bool)    # untouched where nothing is evaluated)
         self.count = 0
+        self.frame = tile_frame(grid, terrain, H, W)      # ground points without pyproj
+
+    def drop_frame(self):
+        """Forget the values and evaluate from now on with the grid's own
+        :meth:`~swathflow.geometry.grid.Grid.to_ecef` (pyproj) instead of the frame (which
+        agrees with it to a few nm, not to the last bit)."""
+        if self.frame is not None:
+            self.frame = None
+            self.known[:] = False
+
+    def _evaluate(self, rr, cc):
+        if rr.size:
+            self.values[rr, cc] = exact_raw(self.model, self.grid, self.terrain, rr, cc,
+                                            self.frame)
+            self.count += rr.size
 
     def __call__(self, r, c):
-        r = np.asarray(r, np.intp)
-        c = np.asarray(c, np.intp)
-        need = ~self.known[r, c]
-        if need.any():
-            mark = np.zeros(self.known.size, bool)      # sorted, unique: as np.unique,
-            mark[r[need] * self.W + c[need]] = True      # without its hash table
-            key = np.flatnonzero(mark)
-            rr, cc = key // self.W, key % self.W
-            self.values[rr, cc] = exact_raw(self.model, self.grid, self.terrain, rr, cc)
-            self.known[rr, cc] = True
-            self.count += key.size
+        """The values at points ``r, c``, evaluating those not yet known (one model
+        call)."""
+        r = np.ascontiguousarray(r, np.int64).ravel()
+        c = np.ascontiguousarray(c, np.int64).ravel()
+        self._evaluate(*_unknown(r, c, self.known))
         return self.values[r, c]
 
-
-def _off_image(points, err, raw_shape):
-    """Cells whose test points and corners ``points`` ``(k, n, 2)`` all lie beyond one edge
-    of the raw image (``raw_shape`` lines x elements) by more than ``OFF_MARGIN_PX`` plus
-    twice the cell's interpolation error there: every pixel of such a cell is off the
-    image (NaN), however its coordinates are interpolated. NaN points never qualify."""
-    nl, ne = raw_shape
-    m = OFF_MARGIN_PX + 2 * np.where(np.isfinite(err), err, np.inf)
-    lo = points.min(axis=1)                      # NaN propagates: never off
-    hi = points.max(axis=1)
-    with np.errstate(invalid="ignore"):
-        return ((lo[:, 0] > nl - 0.5 + m) | (hi[:, 0] < -0.5 - m)
-                | (lo[:, 1] > ne - 0.5 + m) | (hi[:, 1] < -0.5 - m))
+    def cells(self, cells, tests: bool = True):
+        """Evaluate the corners (and, with ``tests``, the test points) of ``cells`` not
+        yet known, in one model call."""
+        self._evaluate(*_cell_unknown(cells, self.known, tests))
 
 
-def _tests(exact, cells):
-    """Test the cells ``(n, 4)`` (r, c, sr, sc) at their edge midpoints and centre: the
-    error of interpolation across columns (top and bottom midpoints), across rows (left
-    and right midpoints) and both (centre), NaN as inf, 0 where a size is 1; the corners
-    ``(n, 4, 2)``; the points' values ``(n, 9, 2)`` (NaN where a test does not exist)."""
-    v = exact.values
-    r, c, sr, sc = cells.T
-    hr, hc = sr // 2, sc // 2
-    q00, q01, q10, q11 = v[r, c], v[r, c + sc], v[r + sr, c], v[r + sr, c + sc]
-    tc, tr = sc >= 2, sr >= 2
-    tm = tc & tr
-    groups = [(tc, r, c + hc, (q00 + q01) / 2), (tc, r + sr, c + hc, (q10 + q11) / 2),
-              (tr, r + hr, c, (q00 + q10) / 2), (tr, r + hr, c + sc, (q01 + q11) / 2),
-              (tm, r + hr, c + hc, (q00 + q01 + q10 + q11) / 4)]
-    exact(np.concatenate([gr[m] for m, gr, _, _ in groups]),      # one model call
-          np.concatenate([gc[m] for m, _, gc, _ in groups]))
-    errs, pts = [], []
-    for m, gr, gc, interp in groups:
-        ex = np.where(m[:, None], v[gr, gc], np.nan)
-        d = np.abs(ex - interp).max(axis=-1)
-        errs.append(np.where(m, np.where(np.isnan(d), np.inf, d), 0.0))
-        pts.append(ex)
-    err_c = np.maximum(errs[0], errs[1])
-    err_r = np.maximum(errs[2], errs[3])
-    q = np.stack([q00, q01, q10, q11], axis=1)
-    return err_c, err_r, errs[4], q, np.concatenate([q, np.stack(pts, axis=1)], axis=1)
+@njit(cache=True, nogil=True)
+def _unknown(r, c, known):
+    """The points of ``r, c`` not yet ``known``, each once; marks them known (the caller
+    evaluates them at once)."""
+    rr = np.empty(r.shape[0], np.int64)
+    cc = np.empty(r.shape[0], np.int64)
+    k = 0
+    for i in range(r.shape[0]):
+        if not known[r[i], c[i]]:
+            known[r[i], c[i]] = True
+            rr[k], cc[k] = r[i], c[i]
+            k += 1
+    return rr[:k], cc[:k]
 
 
-def _directions(cells, split, near, err_r, err_c, half):
-    """Which cells to halve across rows and across columns: across the one direction
-    that misses where the other passes with a margin of two; across both otherwise
-    (both miss, only the centre missed, or the cell traces the footprint's edge)."""
-    can_r, can_c = cells[:, 2] >= 2, cells[:, 3] >= 2
-    r_fail, c_fail = err_r >= half, err_c >= half
-    pick_r = r_fail & (err_c < half / 2)
-    pick_c = c_fail & (err_r < half / 2)
+@njit(cache=True, nogil=True)
+def _cell_unknown(cells, known, tests):
+    """:func:`_unknown` of the corners of ``cells`` ``(n, 4)`` and, with ``tests``, of
+    their test points (edge midpoints across a side of 2 or more, centre)."""
+    n = cells.shape[0]
+    r = np.empty(9 * n, np.int64)
+    c = np.empty(9 * n, np.int64)
+    k = 0
+    for i in range(n):
+        r0, c0, sr, sc = cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3]
+        hr, hc = sr // 2, sc // 2
+        r[k:k + 4] = (r0, r0, r0 + sr, r0 + sr)
+        c[k:k + 4] = (c0, c0 + sc, c0, c0 + sc)
+        k += 4
+        if tests and sc >= 2:
+            r[k], c[k], r[k + 1], c[k + 1] = r0, c0 + hc, r0 + sr, c0 + hc
+            k += 2
+        if tests and sr >= 2:
+            r[k], c[k], r[k + 1], c[k + 1] = r0 + hr, c0, r0 + hr, c0 + sc
+            k += 2
+        if tests and sr >= 2 and sc >= 2:
+            r[k], c[k] = r0 + hr, c0 + hc
+            k += 1
+    return _unknown(r[:k], c[:k], known)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _miss(v, r, c, a0, a1, pts, i, p):
+    """The interpolation's miss at point (r, c) of ``v`` (the larger of line and element;
+    inf where NaN) against the interpolated ``(a0, a1)``; ``pts[i, p]`` set to the exact
+    value."""
+    e0, e1 = v[r, c, 0], v[r, c, 1]
+    pts[i, p, 0], pts[i, p, 1] = e0, e1
+    d0, d1 = abs(e0 - a0), abs(e1 - a1)
+    if math.isnan(d0) or math.isnan(d1):
+        return math.inf
+    return max(d0, d1)
+
+
+@njit(cache=True, nogil=True)
+def _cell_tests(cells, v):
+    """Test the cells ``(n, 4)`` (r, c, sr, sc) at their edge midpoints and centre (all
+    known in ``v``): the error of interpolation across columns (top and bottom
+    midpoints), across rows (left and right midpoints) and both (centre), NaN as inf, 0
+    where a size is 1; the points' values ``(n, 9, 2)``: the corners (r, c), (r, c + sc),
+    (r + sr, c), (r + sr, c + sc), then the test points (NaN where a test does not
+    exist)."""
+    n = cells.shape[0]
+    err_c, err_r, err_m = np.zeros(n), np.zeros(n), np.zeros(n)
+    pts = np.full((n, 9, 2), np.nan)
+    for i in range(n):
+        r, c, sr, sc = cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3]
+        hr, hc = sr // 2, sc // 2
+        for q in range(2):
+            pts[i, 0, q], pts[i, 1, q] = v[r, c, q], v[r, c + sc, q]
+            pts[i, 2, q], pts[i, 3, q] = v[r + sr, c, q], v[r + sr, c + sc, q]
+        q00, q01, q10, q11 = pts[i, 0], pts[i, 1], pts[i, 2], pts[i, 3]
+        if sc >= 2:
+            e1 = _miss(v, r, c + hc, (q00[0] + q01[0]) / 2, (q00[1] + q01[1]) / 2,
+                       pts, i, 4)
+            e2 = _miss(v, r + sr, c + hc, (q10[0] + q11[0]) / 2, (q10[1] + q11[1]) / 2,
+                       pts, i, 5)
+            err_c[i] = max(e1, e2)
+        if sr >= 2:
+            e1 = _miss(v, r + hr, c, (q00[0] + q10[0]) / 2, (q00[1] + q10[1]) / 2,
+                       pts, i, 6)
+            e2 = _miss(v, r + hr, c + sc, (q01[0] + q11[0]) / 2, (q01[1] + q11[1]) / 2,
+                       pts, i, 7)
+            err_r[i] = max(e1, e2)
+        if sr >= 2 and sc >= 2:
+            err_m[i] = _miss(v, r + hr, c + hc, (q00[0] + q01[0] + q10[0] + q11[0]) / 4,
+                             (q00[1] + q01[1] + q10[1] + q11[1]) / 4, pts, i, 8)
+    return err_c, err_r, err_m, pts
+
+
+@njit(cache=True, nogil=True)
+def _off_image(points, err, nl, ne):
+    """Cells whose test points and corners ``points`` ``(k, 9, 2)`` all lie beyond one
+    edge of the raw image (``nl`` lines x ``ne`` elements) by more than ``OFF_MARGIN_PX``
+    plus twice the cell's interpolation error there: every pixel of such a cell is off
+    the image (NaN), however its coordinates are interpolated. A NaN point (or a test
+    that does not exist) never qualifies on its coordinate."""
+    k = points.shape[0]
+    out = np.zeros(k, np.bool_)
+    for i in range(k):
+        m = OFF_MARGIN_PX + 2 * err[i] if math.isfinite(err[i]) else math.inf
+        off = False
+        for q in range(2):
+            lo, hi = math.inf, -math.inf
+            nan = False
+            for p in range(points.shape[1]):
+                x = points[i, p, q]
+                if math.isnan(x):
+                    nan = True
+                    break
+                lo, hi = min(lo, x), max(hi, x)
+            edge = (nl if q == 0 else ne) - 0.5
+            if not nan and (lo > edge + m or hi < -0.5 - m):
+                off = True
+        out[i] = off
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _children(cells, split_r, split_c):
+    """The halves (or quarters) of cells split across rows and / or columns (the
+    cells with neither flag are kept whole): first every cell's top-left part, then the
+    lower, right and lower-right parts, each in the cells' order."""
+    n = cells.shape[0]
+    m = n
+    for i in range(n):
+        m += int(split_r[i]) + int(split_c[i]) + int(split_r[i] and split_c[i])
+    out = np.empty((m, 4), np.int64)
+    k = 0
+    for part in range(4):
+        for i in range(n):
+            if part == 1 and not split_r[i] or part == 2 and not split_c[i] or (
+                    part == 3 and not (split_r[i] and split_c[i])):
+                continue
+            nsr = cells[i, 2] // 2 if split_r[i] else cells[i, 2]
+            nsc = cells[i, 3] // 2 if split_c[i] else cells[i, 3]
+            out[k, 0] = cells[i, 0] + (nsr if part == 1 or part == 3 else 0)
+            out[k, 1] = cells[i, 1] + (nsc if part >= 2 else 0)
+            out[k, 2], out[k, 3] = nsr, nsc
+            k += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _level(cells, v, half, tol, nl, ne, smooth, H, W):
+    """One level of the refinement (every test point of ``cells`` known in ``v``):
+    ``(leaves, corners, kids, sure)``: the unit cells, then the cells that pass (or lie
+    clearly off the raw image, with ``nl`` > 0), as leaves with their corners; the
+    children of the cells to refine; with ``smooth`` the children taken as leaves without
+    tests (:func:`leaves`; their corners for the caller to look up)."""
+    n = cells.shape[0]
+    unit = (cells[:, 2] == 1) & (cells[:, 3] == 1)
+    rest = cells[~unit]
+    err_c, err_r, err_m, pts = _cell_tests(rest, v)
+    err = np.maximum(np.maximum(err_c, err_r), err_m)
+    good = err < half
+    if nl > 0:
+        good |= _off_image(pts, err, nl, ne)
+    k = rest.shape[0]
+    all_nan = np.ones(k, np.bool_)
+    for i in range(k):
+        for p in range(9):
+            if not (math.isnan(pts[i, p, 0]) and math.isnan(pts[i, p, 1])):
+                all_nan[i] = False
+                break
+    n_unit = n - k
+    n_leaf = n_unit + good.sum()
+    leaf = np.empty((n_leaf, 4), np.int64)
+    corners = np.empty((n_leaf, 4, 2))
+    j = 0
+    for i in range(n):
+        if unit[i]:
+            r, c = cells[i, 0], cells[i, 1]
+            leaf[j] = cells[i]
+            corners[j, 0], corners[j, 1] = v[r, c], v[r, c + 1]
+            corners[j, 2], corners[j, 3] = v[r + 1, c], v[r + 1, c + 1]
+            j += 1
+    for i in range(k):
+        if good[i]:
+            leaf[j] = rest[i]
+            corners[j] = pts[i, :4]
+            j += 1
+    bad = ~good & ~all_nan
+    near = np.zeros(k, np.bool_)
+    if bad.any():           # all-NaN cells touching a refined one: the footprint's edge
+        near = all_nan & touching(rest, rest[bad], H, W)
+    split = bad | near
+    can_r, can_c = rest[:, 2] >= 2, rest[:, 3] >= 2
+    pick_r = (err_r >= half) & (err_c < half / 2)
+    pick_c = (err_c >= half) & (err_r < half / 2)
     both = near | ~(pick_r | pick_c)
     split_r = split & can_r & (pick_r | both | ~can_c)
     split_c = split & can_c & (pick_c | both | ~can_r)
-    return split_r, split_c
-
-
-def _children(cells, split_r, split_c):
-    """The halves (or quarters) of cells split across rows and / or columns."""
-    r, c, sr, sc = cells.T
-    nsr = np.where(split_r, sr // 2, sr)
-    nsc = np.where(split_c, sc // 2, sc)
-    kids = [np.column_stack([r, c, nsr, nsc])]
-    kids.append(np.column_stack([r + nsr, c, nsr, nsc])[split_r])
-    kids.append(np.column_stack([r, c + nsc, nsr, nsc])[split_c])
-    kids.append(np.column_stack([r + nsr, c + nsc, nsr, nsc])[split_r & split_c])
-    return np.concatenate(kids)
-
-
-def _corners(exact, cells):
-    r, c, sr, sc = cells.T
-    n = len(cells)
-    v = exact(np.concatenate([r, r, r + sr, r + sr]),            # one model call
-              np.concatenate([c, c + sc, c, c + sc]))
-    return np.stack([v[:n], v[n:2 * n], v[2 * n:3 * n], v[3 * n:]], axis=1)
+    sure = np.zeros(split.shape[0], np.bool_)
+    if smooth:
+        # on a smooth mapping the interpolation error falls with the square of the cell
+        # size: children of a cell that missed by less than ``tol`` miss by about a
+        # quarter of it, half the acceptance threshold. They are leaves without tests
+        # (their corners are the parent's tested points).
+        sure = split & (err < tol)
+    go = split & ~sure
+    kids = _children(rest[go], split_r[go], split_c[go])
+    sure_kids = _children(rest[sure], split_r[sure], split_c[sure])
+    return leaf, corners, kids, sure_kids
 
 
 def _dense_cheaper(exact, h: int, w: int, half: float) -> bool:
@@ -221,8 +373,8 @@ def _dense_cheaper(exact, h: int, w: int, half: float) -> bool:
     rr, cc = np.meshgrid(r, c, indexing="ij")
     n = rr.size
     cells = np.stack([rr.ravel(), cc.ravel(), np.full(n, 2), np.full(n, 2)], axis=-1)
-    _corners(exact, cells)
-    err_c, err_r, err_m, _, _ = _tests(exact, cells)
+    exact.cells(cells)
+    err_c, err_r, err_m, _ = _cell_tests(cells, exact.values)
     err = np.maximum(np.maximum(err_c, err_r), err_m)
     seen = np.isfinite(err)
     return bool(seen.any() and (err[seen] >= half).mean() >= DENSE_SHARE)
@@ -242,9 +394,9 @@ def _every_pixel(exact, h: int, w: int, step: int, raw_shape) -> np.ndarray:
         ci, cj = np.meshgrid(np.arange(nr) * s, np.arange(nc) * s, indexing="ij")
         k = ci.size
         cells = np.stack([ci.ravel(), cj.ravel(), np.full(k, s), np.full(k, s)], axis=-1)
-        _corners(exact, cells)
-        err_c, err_r, err_m, _, pts = _tests(exact, cells)
-        off = _off_image(pts, np.maximum(np.maximum(err_c, err_r), err_m), raw_shape)
+        exact.cells(cells)
+        err_c, err_r, err_m, pts = _cell_tests(cells, exact.values)
+        off = _off_image(pts, np.maximum(np.maximum(err_c, err_r), err_m), *raw_shape)
         blank = np.isnan(pts).all(axis=(1, 2)).reshape(nr, nc)
         kept = ~off.reshape(nr, nc) & ~blank
         # all-NaN cells next to a kept one are kept: the footprint's edge runs through them
@@ -286,7 +438,6 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     ``dense`` True evaluates the exact model at every pixel of the tile instead
     (:attr:`Leaves.pixels`), False always refines, None (default) chooses per tile by
     :func:`_dense_cheaper`."""
-    from swathflow.rectification.paint import touching
     h, w = grid.shape
     step = 1 << max(int(math.log2(max(step, 1))), 0)
     nr = max(math.ceil((h - 1) / step), 1)       # cells along rows
@@ -298,7 +449,8 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     half = tol * TEST_SHARE                      # a share of the bound at the test points
     if dense is None:
         dense = _dense_cheaper(exact, h, w, half)
-    if dense:
+    if dense:           # the exact model itself at every pixel: ground points by pyproj
+        exact.drop_frame()
         px = _every_pixel(exact, h, w, step, raw_shape)
         return Leaves(np.zeros((0, 4), np.int64), np.zeros((0, 4, 2)), (h, w), exact.count,
                       px)
@@ -307,43 +459,17 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     cells = np.stack([ci.ravel() * step, cj.ravel() * step, np.full(n, step),
                       np.full(n, step)], axis=-1).astype(np.int64)
     out_cells, out_corners = [], []
-    while cells.size:
-        unit = (cells[:, 2] == 1) & (cells[:, 3] == 1)
-        if unit.any():                           # every corner a pixel: exact
-            out_cells.append(cells[unit])
-            out_corners.append(_corners(exact, cells[unit]))
-            cells = cells[~unit]
-            if not cells.size:
-                break
-        err_c, err_r, err_m, q, pts = _tests(exact, cells)
-        err = np.maximum(np.maximum(err_c, err_r), err_m)
-        all_nan = np.isnan(pts).all(axis=(1, 2))
-        good = err < half
-        if raw_shape is not None:
-            good |= _off_image(pts, err, raw_shape)
-        if good.any():
-            out_cells.append(cells[good])
-            out_corners.append(q[good])
-        bad = ~good & ~all_nan
-        # all-NaN cells touching a refined one are refined too: the footprint's edge
-        near = all_nan & touching(cells, cells[bad], H, W) if bad.any() else all_nan & False
-        split = bad | near
-        split_r, split_c = _directions(cells, split, near, err_r, err_c, half)
-        kids = _children(cells[split], split_r[split], split_c[split])
-        if smooth:
-            # on a smooth mapping the interpolation error falls with the square of the
-            # cell size: children of a cell that missed by less than ``tol`` miss by
-            # about a quarter of it, half the acceptance threshold. They are leaves
-            # without tests (their corners are the parent's tested points).
-            sure_p = (err[split] < tol)
-            sure = _children(cells[split][sure_p], split_r[split][sure_p],
-                             split_c[split][sure_p])
-            if len(sure):
-                out_cells.append(sure)
-                out_corners.append(_corners(exact, sure))
-            kids = _children(cells[split][~sure_p], split_r[split][~sure_p],
-                             split_c[split][~sure_p])
-        cells = kids
+    nl, ne = raw_shape if raw_shape is not None else (0, 0)
+    while cells.size:                  # one model call and one compiled pass a level
+        exact.cells(cells)
+        leaf, corners, cells, sure = _level(cells, exact.values, half, tol, nl, ne, smooth,
+                                            H, W)
+        out_cells.append(leaf)
+        out_corners.append(corners)
+        if len(sure):
+            exact.cells(sure, tests=False)
+            out_cells.append(sure)
+            out_corners.append(_cell_tests(sure, exact.values)[3][:, :4])
     if out_cells:
         cells_a = np.ascontiguousarray(np.concatenate(out_cells).astype(np.int64))
         corners_a = np.ascontiguousarray(np.concatenate(out_corners).astype(np.float64))

@@ -11,55 +11,105 @@ import numpy as np
 from numba import njit
 
 from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
+from swathflow.geometry.planesolve import bracket_one
 
 DEG = math.pi / 180.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _pos_at(time, table, max_gap, t, out):
-    """Linear POS interpolation at time ``t`` into ``out`` (8 columns); False where
-    ``t`` is outside the trajectory or inside a gap (the numpy path then raises)."""
-    if not (t >= time[0] and t <= time[time.shape[0] - 1]):
-        return False
-    return pos_from(time, table, max_gap, t, np.searchsorted(time, t, side="right") - 1, out)
+def trig_tables(geo) -> tuple:
+    """The sines and cosines the kernels' :func:`_camera_of` starts from: of the POS
+    table's latitude, longitude, roll, pitch and heading at the epochs ``k0 ..`` the
+    image's lines span ``(n, 10)``, of the swing and pitch compensation at every line
+    ``(lines, 4)``; every line's POS epoch (the search's start); and ``k0``."""
+    cols, time, table = geo[0], geo[1], geo[2]
+    epoch = np.searchsorted(time, cols[:, 0], side="right") - 1
+    k0 = max(int(epoch.min()), 0)
+    a = np.radians(table[k0:max(int(epoch.max()), k0) + 2, 3:8])
+    pos_trig = np.ascontiguousarray(np.stack([np.sin(a), np.cos(a)], axis=-1).reshape(-1, 10))
+    line_trig = np.ascontiguousarray(np.stack([np.sin(cols[:, 1:3]), np.cos(cols[:, 1:3])],
+                                              axis=-1).reshape(-1, 4))
+    return pos_trig, line_trig, epoch, k0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _camera_of(line, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen, cam, pos):
-    """The camera-frame vector of ground point ``g`` seen from fractional ``line``."""
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sin_cos(a, d, sa, ca):
+    """sin and cos of ``a + d`` (radians) from ``sin a``, ``cos a``: the angle sum with
+    the Taylor series of a small ``d`` (|d| < 0.02: the terms left out are below 1e-25),
+    else ``math.sin``, ``math.cos``."""
+    if abs(d) < 0.02:
+        d2 = d * d
+        sd = d * (1 - d2 / 6 * (1 - d2 / 20 * (1 - d2 / 42 * (1 - d2 / 72))))
+        cd = 1 - d2 / 2 * (1 - d2 / 12 * (1 - d2 / 30 * (1 - d2 / 56 * (1 - d2 / 90))))
+        return sa * cd + ca * sd, ca * cd - sa * sd
+    return math.sin(a + d), math.cos(a + d)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _epoch_sin_cos(table, pos, pos_trig, k, kt, c):
+    """sin and cos of the interpolated POS angle ``pos[c]`` (degrees; columns 3-7 of the
+    table) from those at epoch ``k`` (row ``kt`` of ``pos_trig``, -1: not there)."""
+    a = table[k, c] * DEG
+    if kt < 0:
+        return math.sin(pos[c] * DEG), math.cos(pos[c] * DEG)
+    return _sin_cos(a, pos[c] * DEG - a, pos_trig[kt, 2 * (c - 3)],
+                    pos_trig[kt, 2 * (c - 3) + 1])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _camera_of(line, g, geo, trig, cam, pos):
+    """The camera-frame vector of ground point ``g`` seen from fractional ``line`` (the
+    POS interpolated linearly, its angles' sines from the epochs' by :func:`_sin_cos`).
+    False where the POS cannot be interpolated (outside the trajectory, in a gap)."""
+    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
+    pos_trig, line_trig, line_epoch, k0 = trig
     n = cols.shape[0]
     line = min(max(line, 0.0), n - 1.0)
     i = min(int(line), n - 2)
     w = line - i
     t = cols[i, 0] * (1 - w) + cols[i + 1, 0] * w
-    s = cols[i, 1] * (1 - w) + cols[i + 1, 1] * w
-    q = cols[i, 2] * (1 - w) + cols[i + 1, 2] * w
-    if not _pos_at(time, table, max_gap, t, pos):
+    m = time.shape[0]
+    if not (t >= time[0] and t <= time[m - 1]):
         return False
+    k = min(max(line_epoch[i], 0), m - 2)
+    while k > 0 and time[k] > t:
+        k -= 1
+    while k < m - 2 and time[k + 1] <= t:
+        k += 1
+    gap = time[k + 1] - time[k]
+    if gap > max_gap:
+        return False
+    wk = (t - time[k]) / gap
+    for c in range(8):
+        pos[c] = table[k, c] + (table[k + 1, c] - table[k, c]) * wk
     x, y, z = g[0] - pos[0], g[1] - pos[1], g[2] - pos[2]
-    lat, lon = pos[3] * DEG, pos[4] * DEG
-    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+    kt = k - k0                    # in the table (the epochs the lines span), or -1
+    if kt >= pos_trig.shape[0]:
+        kt = -1
+    sl, cl = _epoch_sin_cos(table, pos, pos_trig, k, kt, 3)
+    so, co = _epoch_sin_cos(table, pos, pos_trig, k, kt, 4)
     e_ = -so * x + co * y
     n_ = -sl * co * x - sl * so * y + cl * z
     d_ = -cl * co * x - cl * so * y - sl * z
     x, y, z = n_, e_, d_
-    sh, ch = math.sin(pos[7] * DEG), math.cos(pos[7] * DEG)
+    sh, ch = _epoch_sin_cos(table, pos, pos_trig, k, kt, 7)
     x, y = ch * x + sh * y, -sh * x + ch * y
-    sp, cp = math.sin(pos[6] * DEG), math.cos(pos[6] * DEG)
+    sp, cp = _epoch_sin_cos(table, pos, pos_trig, k, kt, 6)
     x, z = cp * x - sp * z, sp * x + cp * z
-    sr, cr = math.sin(pos[5] * DEG), math.cos(pos[5] * DEG)
+    sr, cr = _epoch_sin_cos(table, pos, pos_trig, k, kt, 5)
     y, z = cr * y + sr * z, -sr * y + cr * z
     x, y, z = x - u_gps[0], y - u_gps[1], z - u_gps[2]
     x, y, z = (x * r_bp_t[0, 0] + y * r_bp_t[1, 0] + z * r_bp_t[2, 0],
                x * r_bp_t[0, 1] + y * r_bp_t[1, 1] + z * r_bp_t[2, 1],
                x * r_bp_t[0, 2] + y * r_bp_t[1, 2] + z * r_bp_t[2, 2])
-    ss, cs = math.sin(s), math.cos(s)
+    s = cols[i, 1] * (1 - w) + cols[i + 1, 1] * w
+    q = cols[i, 2] * (1 - w) + cols[i + 1, 2] * w
+    ss, cs = _sin_cos(cols[i, 1], s - cols[i, 1], line_trig[i, 0], line_trig[i, 1])
     y, z = cs * y + ss * z, -ss * y + cs * z
-    sq, cq = math.sin(q), math.cos(q)
+    sq, cq = _sin_cos(cols[i, 2], q - cols[i, 2], line_trig[i, 2], line_trig[i, 3])
     x, z = cq * x - sq * z, sq * x + cq * z
     x, y, z = x - u_sen[0], y - u_sen[1], z - u_sen[2]
-    for k in range(3):
-        cam[k] = x * r_hs[0, k] + y * r_hs[1, k] + z * r_hs[2, k]
+    for a in range(3):
+        cam[a] = x * r_hs[0, a] + y * r_hs[1, a] + z * r_hs[2, a]
     return True
 
 
@@ -76,16 +126,16 @@ def _sgn(v):
     return (v > 0.0) - (v < 0.0)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _quadratic_root(j, fj, fj1, l1, f1, rough_line):
-    """Inverse quadratic root through (j, l1, j+1), the secant against the far bracket end
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _quadratic_root(x0, x2, fj, fj1, l1, f1, rough_line):
+    """Inverse quadratic root through (x0, l1, x2), the secant against the far bracket end
     where it leaves the bracket; and whether the two disagree (solve exactly)."""
     same = _sgn(f1) == _sgn(fj)
-    ja = j + 1.0 if same else float(j)
+    ja = x2 if same else x0
     fa = fj1 if same else fj
     w = f1 / (f1 - fa) if f1 - fa != 0.0 else math.nan
     line = l1 + (w if math.isfinite(w) else 0.0) * (ja - l1)
-    x0, x1, x2 = float(j), l1, j + 1.0
+    x1 = l1
     q = (x0 * f1 * fj1 / ((fj - f1) * (fj - fj1)) + x1 * fj * fj1 / ((f1 - fj) * (f1 - fj1))
          + x2 * fj * f1 / ((fj1 - fj) * (fj1 - f1)))
     use = math.isfinite(q) and q >= x0 and q <= x2
@@ -93,11 +143,11 @@ def _quadratic_root(j, fj, fj1, l1, f1, rough_line):
     return (q if use else line), rough
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _lagrange(line, j, l1, cam0, cam1, cam2, out):
-    """The camera vector at ``line``: quadratic through the lines j, l1, j + 1 (linear
-    where the chord point sits on an integer line)."""
-    x0, x1, x2 = float(j), l1, j + 1.0
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _lagrange(line, x0, l1, x2, cam0, cam1, cam2, out):
+    """The camera vector at ``line``: quadratic through the lines x0, l1, x2 (linear
+    where the chord point sits on an end)."""
+    x1 = l1
     d01, d02, d12 = (x0 - x1) * (x0 - x2), (x1 - x0) * (x1 - x2), (x2 - x0) * (x2 - x1)
     if d01 != 0.0 and d02 != 0.0 and d12 != 0.0:
         a0 = (line - x1) * (line - x2) / d01
@@ -107,24 +157,43 @@ def _lagrange(line, j, l1, cam0, cam1, cam2, out):
             for k in range(3):
                 out[k] = a0 * cam0[k] + a1 * cam1[k] + a2 * cam2[k]
             return
-    t = line - x0
+    t = (line - x0) / (x2 - x0)
     for k in range(3):
         out[k] = cam0[k] + t * (cam2[k] - cam0[k])
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _chord_solve(g, x0, f0, cam0, x2, f2, cam2, nvec, geo, trig, rough_line, cam1, pos,
+                 out):
+    """The root inside ``[x0, x2]``, where the condition is smooth, from one exact
+    evaluation at the chord point (the inverse quadratic, the camera vector by Lagrange
+    through x0, the chord point, x2) into ``out``; NaN where that is rough or the POS
+    cannot be interpolated (the caller solves exactly)."""
+    d = f0 - f2
+    l1 = x0 + f0 / d * (x2 - x0) if d != 0.0 else math.nan
+    if not math.isfinite(l1):
+        l1 = (x0 + x2) / 2
+    if not _camera_of(l1, g, geo, trig, cam1, pos):
+        return math.nan
+    f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
+    line, rough = _quadratic_root(x0, x2, f0, f2, l1, f1, rough_line)
+    if rough:
+        return math.nan
+    _lagrange(line, x0, l1, x2, cam0, cam1, cam2, out)
+    return line
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def _secant(g, j, fj, fj1, nvec, geo, tol, max_iter, cam, pos):
+def _secant(g, j, fj, fj1, nvec, geo, trig, tol, max_iter, cam, pos):
     """Secant iterations on the exact condition inside ``[j, j+1]`` (as
     ``linesolve.secant_lines``); the line, with the exact camera vector left in ``cam``."""
-    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
     l0, f0 = float(j), fj
     d = fj - fj1
     l1 = j + fj / d if d != 0.0 else math.nan
     if not math.isfinite(l1):
         l1 = j + 0.5
     for _ in range(max_iter):
-        if not _camera_of(l1, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen,
-                          cam, pos):
+        if not _camera_of(l1, g, geo, trig, cam, pos):
             return math.nan
         f1 = cam[0] * nvec[0] + cam[1] * nvec[1] + cam[2] * nvec[2]
         step = f1 * (l1 - l0) / (f1 - f0)
@@ -133,41 +202,105 @@ def _secant(g, j, fj, fj1, nvec, geo, tol, max_iter, cam, pos):
         l0, f0, l1 = l1, f1, l1 - step
         if not abs(step) > tol:
             break
-    if not _camera_of(l1, g, cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen, cam,
-                      pos):
+    if not _camera_of(l1, g, geo, trig, cam, pos):
         return math.nan
     return l1
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def refine(g, j, fj, fj1, nvec, geo, r_es, c, rough_line, line_out, cam_out):
-    """Fractional line and camera vector of points ``g`` crossing between ``j, j+1``
-    (``geo``: line columns, POS times and table, max gap, R_BP^T, R_HS, u_gps, u_sen).
-    Returns False where the POS could not be interpolated (the caller then takes the numpy
-    path, which reports it)."""
-    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
-    cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
-    pos = np.empty(8)
-    for i in range(g.shape[0]):
-        a, fa, fb = j[i], fj[i], fj1[i]
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2,
+                    pos, out):
+    """The root inside line ``[a, a+1]`` whose times hold one POS epoch ``k`` (a kink of
+    the condition): one exact evaluation at the epoch's fractional line picks the smooth
+    side with the sign change, :func:`_chord_solve` solves there. NaN where the line
+    holds no single epoch, or that solve is rough (the caller solves exactly)."""
+    cols, time = geo[0], geo[1]
+    k = trig[2][a] + 1
+    t0, t1 = cols[a, 0], cols[a + 1, 0]
+    if not (k + 1 < time.shape[0] and time[k] > t0 and time[k] < t1) or (
+            k + 2 < time.shape[0] and time[k + 1] < t1):
+        return math.nan
+    le = a + (time[k] - t0) / (t1 - t0)
+    if not (le > a and le < a + 1):
+        return math.nan
+    if not _camera_of(le, g, geo, trig, cam2, pos):
+        return math.nan
+    fe = cam2[0] * nvec[0] + cam2[1] * nvec[1] + cam2[2] * nvec[2]
+    if fe == 0.0:
+        for q in range(3):
+            out[q] = cam2[q]
+        return le
+    if _sgn(fe) == _sgn(fa):            # the root is after the epoch
+        _frame_vector(r_es, c, a + 1, g, cam0)
+        return _chord_solve(g, le, fe, cam2, a + 1.0, fb, cam0, nvec, geo, trig, rough_line,
+                            cam1, pos, out)
+    _frame_vector(r_es, c, a, g, cam0)
+    return _chord_solve(g, float(a), fa, cam0, le, fe, cam2, nvec, geo, trig, rough_line,
+                        cam1, pos, out)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2, pos,
+                out):
+    """Fractional line of point ``g`` crossing between lines ``a, a+1`` (condition ``fa``,
+    ``fb`` there), its camera vector into ``out``; NaN where the POS could not be
+    interpolated (the caller then takes the numpy path, which reports it)."""
+    cols, time, line_epoch = geo[0], geo[1], trig[2]
+    # a POS epoch inside the line puts a kink in the condition: solve each side
+    k = line_epoch[a] + 1
+    line = math.nan
+    if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
+        line = _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0,
+                               cam1, cam2, pos, out)
+    if math.isnan(line):
         d = fa - fb
         l1 = a + fa / d if d != 0.0 else math.nan
         if not math.isfinite(l1):
             l1 = a + 0.5
-        if not _camera_of(l1, g[i], cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen,
-                          cam1, pos):
-            return False
+        if not _camera_of(l1, g, geo, trig, cam1, pos):
+            return math.nan
         f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
-        line, rough = _quadratic_root(a, fa, fb, l1, f1, rough_line)
-        if rough:       # not smooth inside the line (a POS sample in it): solve exactly
-            line = _secant(g[i], a, fa, fb, nvec, geo, 1e-9, 30, cam_out[i], pos)
-            if math.isnan(line):
-                return False
+        line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
+        if rough:
+            line = math.nan
         else:
-            _frame_vector(r_es, c, a, g[i], cam0)
-            _frame_vector(r_es, c, a + 1, g[i], cam2)
-            _lagrange(line, a, l1, cam0, cam1, cam2, cam_out[i])
-        line_out[i] = line
+            _frame_vector(r_es, c, a, g, cam0)
+            _frame_vector(r_es, c, a + 1, g, cam2)
+            _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, out)
+    if math.isnan(line):     # rough (or the split's solve was): solve exactly
+        line = _secant(g, a, fa, fb, nvec, geo, trig, 1e-9, 30, out, pos)
+    return line
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, pixel,
+                    clip, out):
+    """``PendulumModel.ground_to_image`` of points ``(n, 3)`` into ``out`` ``(n, 2)``:
+    the brackets between the lines' viewing planes (``planesolve.bracket_one`` over the
+    coarse ``grid``), :func:`_refine_one` (``geo``: line columns, POS times and table,
+    max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`), then the element
+    (``pixel``: k0, focal length, pixel pitch, elements); NaN behind the camera, where no
+    line sees the point and, with ``clip``, off the detector. False where the POS could
+    not be interpolated (the caller then takes the numpy path, which reports it)."""
+    cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
+    pos, gi, cam = np.empty(8), np.empty(3), np.empty(3)
+    k0, focal, pitch, n_elements = pixel
+    for i in range(points.shape[0]):
+        gi[0], gi[1], gi[2] = points[i, 0], points[i, 1], points[i, 2]
+        out[i, 0] = out[i, 1] = math.nan
+        a, fa, fb, found = bracket_one(planes, grid, gi[0], gi[1], gi[2])
+        if not found:
+            continue
+        line = _refine_one(gi, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1,
+                           cam2, pos, cam)
+        if math.isnan(line):
+            return False
+        if not cam[2] < 0:                       # behind the camera
+            continue
+        elem = k0 + focal * cam[0] / (-cam[2]) / pitch
+        if clip and not (elem >= -0.5 and elem <= n_elements - 0.5):
+            continue
+        out[i, 0], out[i, 1] = line, elem
     return True
 
 

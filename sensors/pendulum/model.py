@@ -12,7 +12,7 @@ import numpy as np
 
 from swathflow.errors import FormatError
 from swathflow.geometry.linesolve import bracket_lines, plane_brackets, secant_lines
-from swathflow.geometry.planesolve import bracket_planes, coarse_grid
+from swathflow.geometry.planesolve import coarse_grid
 from swathflow.geometry.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
 
 from swathflow.sensors.base import CHUNK, Parameter, ParameterSet, SensorModel
@@ -21,6 +21,41 @@ from swathflow.sensors.pendulum import kernel
 #: root estimates (secant, inverse quadratic) further apart than this (lines) mark a
 #: condition that is not smooth inside the line: those points are solved exactly
 ROUGH_LINE = 1e-6
+
+
+def _quadratic_root(x0, x2, f0, f2, l1, f1):
+    """The root inside brackets ``[x0, x2]`` (condition ``f0``, ``f2`` at the ends, ``f1``
+    at the chord point ``l1``): the inverse quadratic through the three, the secant
+    against the bracket end on the other side of the chord point where the quadratic
+    leaves the bracket; and where the two differ by more than ``ROUGH_LINE`` (rough:
+    solve exactly)."""
+    same = np.sign(f1) == np.sign(f0)
+    ja = np.where(same, x2, x0)
+    fa = np.where(same, f2, f0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = f1 / (f1 - fa)
+    line = l1 + np.where(np.isfinite(w), w, 0.0) * (ja - l1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = (x0 * f1 * f2 / ((f0 - f1) * (f0 - f2))
+             + l1 * f0 * f2 / ((f1 - f0) * (f1 - f2))
+             + x2 * f0 * f1 / ((f2 - f0) * (f2 - f1)))
+    use = np.isfinite(q) & (q >= x0) & (q <= x2)
+    return np.where(use, q, line), ~use | (np.abs(q - line) > ROUGH_LINE)
+
+
+def _lagrange(line, x0, x1, x2, cam0, cam1, cam2):
+    """Camera vectors at ``line``: the quadratic through those at x0, x1, x2 (linear
+    between the ends where the chord point sits on one)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        L0 = (line - x1) * (line - x2) / ((x0 - x1) * (x0 - x2))
+        L1 = (line - x0) * (line - x2) / ((x1 - x0) * (x1 - x2))
+        L2 = (line - x0) * (line - x1) / ((x2 - x0) * (x2 - x1))
+    ok = np.isfinite(L0) & np.isfinite(L1) & np.isfinite(L2)
+    t = (line - x0) / (x2 - x0)
+    lin = cam0 + t[:, None] * (cam2 - cam0)
+    with np.errstate(invalid="ignore"):       # the non-finite weights are not selected
+        return np.where(ok[:, None], L0[:, None] * cam0 + L1[:, None] * cam1
+                        + L2[:, None] * cam2, lin)
 
 
 class PendulumModel(SensorModel):
@@ -250,52 +285,80 @@ class PendulumModel(SensorModel):
         ``j + 1``, and the camera vector there is the quadratic through the camera vectors
         at the same three lines (exact at the integer lines from their frames). Where that
         root leaves the bracket or differs from the secant step against the far bracket end
-        by more than ``ROUGH_LINE``, the point is solved exactly (secant iterations). This
-        agrees with a fully converged solve to far below 0.001 px (checked in the tests; a
-        linear interpolation alone left 1.2e-3 px on a wobbling swing).
+        by more than ``ROUGH_LINE``, the point is solved exactly (secant iterations). A line
+        whose times hold one POS epoch (a kink in the condition: 30 % of the lattice's
+        points on the demo mission) is split at the epoch first, and the same solve made on
+        the side with the sign change (:meth:`_split_at_epoch`; where that is rough, as
+        above). This agrees with a fully
+        converged solve to far below 0.001 px (checked in the tests; a linear
+        interpolation alone left 1.2e-3 px on a wobbling swing).
         """
         nvec = np.array([0.0, self._f, self._y0])
         with np.errstate(invalid="ignore", divide="ignore"):
             l1 = j + fj / (fj - fj1)
         l1 = np.where(np.isfinite(l1), l1, j + 0.5)
         cam1 = self._camera_of(l1, g)
-        f1 = cam1 @ nvec
-        # secant against the bracket end on the other side of the chord point
-        same = np.sign(f1) == np.sign(fj)
-        ja = np.where(same, j + 1, j)
-        fa = np.where(same, fj1, fj)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = f1 / (f1 - fa)
-        line = l1 + np.where(np.isfinite(w), w, 0.0) * (ja - l1)
-        # inverse quadratic through (fj, j), (f1, l1), (fj1, j + 1)
-        x0, x1, x2 = j.astype(float), l1, j + 1.0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            q = (x0 * f1 * fj1 / ((fj - f1) * (fj - fj1))
-                 + x1 * fj * fj1 / ((f1 - fj) * (f1 - fj1))
-                 + x2 * fj * f1 / ((fj1 - fj) * (fj1 - f1)))
-        use = np.isfinite(q) & (q >= x0) & (q <= x2)
+        x0, x2 = j.astype(float), j + 1.0
+        line, rough = _quadratic_root(x0, x2, fj, fj1, l1, cam1 @ nvec)
         # where the secant and the quadratic disagree the condition is not smooth inside the
-        # line (a POS sample between the two line times puts a kink in it): solve exactly
-        rough = np.flatnonzero(~use | (np.abs(q - line) > ROUGH_LINE))
-        line = np.where(use, q, line)
+        # line (a POS sample between the two line times puts a kink in it): solve each side
+        rough = np.flatnonzero(rough)
         # the camera vector at ``line``: Lagrange quadratic through the three lines
         r_es, c = self._line_frames()
         cam0 = np.einsum("nji,nj->ni", r_es[j], g - c[j])
         cam2 = np.einsum("nji,nj->ni", r_es[j + 1], g - c[j + 1])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            L0 = (line - x1) * (line - x2) / ((x0 - x1) * (x0 - x2))
-            L1 = (line - x0) * (line - x2) / ((x1 - x0) * (x1 - x2))
-            L2 = (line - x0) * (line - x1) / ((x2 - x0) * (x2 - x1))
-        ok = np.isfinite(L0) & np.isfinite(L1) & np.isfinite(L2)
-        # a chord point on an integer line: the linear interpolation between the ends
-        t = line - x0
-        lin = cam0 + t[:, None] * (cam2 - cam0)
-        with np.errstate(invalid="ignore"):       # the non-finite weights are not selected
-            cam = np.where(ok[:, None], L0[:, None] * cam0 + L1[:, None] * cam1
-                           + L2[:, None] * cam2, lin)
-        if rough.size:
+        cam = _lagrange(line, x0, l1, x2, cam0, cam1, cam2)
+        # a POS epoch inside the line puts a kink in the condition: solve each side
+        lr, cr = self._split_at_epoch(g, j, fj, fj1)
+        split = np.isfinite(lr)
+        line, cam = np.where(split, lr, line), np.where(split[:, None], cr, cam)
+        rough = rough[~split[rough]] if rough.size else rough
+        if rough.size:      # rough and no single epoch (or the split's solve was rough)
             line[rough], cam[rough] = self._solve_exact(g[rough], j[rough], fj[rough],
                                                         fj1[rough], tol=1e-9)
+        return line, cam
+
+    def _split_at_epoch(self, g, j, fj, fj1):
+        """The root inside lines ``[j, j+1]`` whose times hold one POS epoch (a kink of
+        the condition): one exact evaluation at the epoch's fractional line picks the
+        smooth side with the sign change, where the root is the inverse quadratic through
+        its ends and one exact evaluation at its chord point (as in :meth:`_refine`). NaN
+        lines where a line holds no single epoch or that solve is rough (the caller solves
+        exactly)."""
+        nvec = np.array([0.0, self._f, self._y0])
+        time = np.asarray(self._trajectory.time, float)
+        n = time.size
+        t0, t1 = self._line_cols[j, 0], self._line_cols[j + 1, 0]
+        k = np.searchsorted(time, t0, side="right")
+        te, tn = time[np.minimum(k, n - 1)], time[np.minimum(k + 1, n - 1)]
+        le = j + (te - t0) / (t1 - t0)
+        one = ((k + 1 < n) & (te > t0) & (te < t1) & ~((k + 2 < n) & (tn < t1))
+               & (le > j) & (le < j + 1))
+        line, cam = np.full(j.shape, np.nan), np.full(g.shape, np.nan)
+        i = np.flatnonzero(one)
+        if not i.size:
+            return line, cam
+        g, j, fj, fj1, le = g[i], j[i], fj[i], fj1[i], le[i]
+        r_es, c = self._line_frames()
+        cam_e = self._camera_of(le, g)
+        fe = cam_e @ nvec
+        after = np.sign(fe) == np.sign(fj)          # the root is after the epoch
+        jj = np.where(after, j + 1, j)
+        cam_j = np.einsum("nji,nj->ni", r_es[jj], g - c[jj])
+        x0, f0 = np.where(after, le, j), np.where(after, fe, fj)
+        x2, f2 = np.where(after, j + 1.0, le), np.where(after, fj1, fe)
+        c0 = np.where(after[:, None], cam_e, cam_j)
+        c2 = np.where(after[:, None], cam_j, cam_e)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            l1 = x0 + f0 / (f0 - f2) * (x2 - x0)
+        l1 = np.where(np.isfinite(l1), l1, (x0 + x2) / 2)
+        cam1 = self._camera_of(l1, g)
+        ln, rough = _quadratic_root(x0, x2, f0, f2, l1, cam1 @ nvec)
+        cm = _lagrange(ln, x0, l1, x2, c0, cam1, c2)
+        zero = fe == 0
+        ln, cm = np.where(zero, le, ln), np.where(zero[:, None], cam_e, cm)
+        ln[rough & ~zero] = np.nan
+        line[i], cam[i] = ln, cm
         return line, cam
 
     def _solve_exact(self, g, j, fj, fj1, tol: float):
@@ -343,33 +406,23 @@ class PendulumModel(SensorModel):
         return out.reshape(shape + (2,))
 
     def _ground_to_image(self, g, clip: bool) -> np.ndarray:
-        """Compiled path (numba): the same brackets and refinement as the numpy path."""
-        n = g.shape[0]
-        out = np.full((n, 2), np.nan)
+        """Compiled path (numba, ``kernel.ground_to_image``): the same brackets and
+        refinement as the numpy path, one point at a time."""
+        out = np.empty((g.shape[0], 2))
         g = np.ascontiguousarray(g, dtype=float)
-        j, fj, fj1 = np.empty(n, np.intp), np.empty(n), np.empty(n)
-        found = np.empty(n, np.bool_)
-        if "coarse_grid" not in self._shared:
-            self._shared["coarse_grid"] = coarse_grid(self.n_lines)
-        bracket_planes(g, self._planes, self._shared["coarse_grid"], j, fj, fj1, found)
-        k = np.flatnonzero(found)
-        if k.size:
-            refined = self._refine_compiled(g[k], j[k], fj[k], fj1[k])
-            if refined is None:       # the POS could not be interpolated: numpy reports it
-                return self._ground_to_image_numpy(g, clip)
-            out[k] = self._pixels(*refined, clip)
-        return out
-
-    def _refine_compiled(self, g, j, fj, fj1):
-        """``_refine`` through the numba kernel; None where the POS has a gap there."""
+        sh = self._shared
+        if "coarse_grid" not in sh:
+            sh["coarse_grid"] = coarse_grid(self.n_lines)
+        geo = self._geo()
+        if "trig" not in sh:
+            sh["trig"] = kernel.trig_tables(geo)
         r_es, c = self._line_frames()
-        m = g.shape[0]
-        line, cam = np.empty(m), np.empty((m, 3))
-        ok = kernel.refine(g, j, fj, fj1, np.array([0.0, self._f, self._y0]), self._geo(),
-                           r_es, c, ROUGH_LINE, line, cam)
-        if not ok:
-            return None
-        return line, cam
+        pixel = (self._k0, self._f, self._pp, float(self.n_elements))
+        if self.n_lines >= 2 and kernel.ground_to_image(
+                g, self._planes, sh["coarse_grid"], np.array([0.0, self._f, self._y0]), geo,
+                sh["trig"], r_es, c, ROUGH_LINE, pixel, bool(clip), out):
+            return out
+        return self._ground_to_image_numpy(g, clip)   # the POS has a gap there: it reports
 
     def _geo(self) -> tuple:
         """The kernels' view of the geometry: line columns, POS times and table (ECEF,
