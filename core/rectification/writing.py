@@ -42,13 +42,16 @@ class _WindowWriter:
     """A ``__setitem__`` target for ``dask.array.store`` writing windows of a rasterio
     dataset (2-D: band 1; 3-D: bands)."""
 
-    def __init__(self, dst, bands: int | None = None, mask: bool = False):
+    def __init__(self, dst, bands: int | None = None, mask: bool = False, level1=None):
         self.dst = dst
         self.bands = bands
         self.mask = mask
+        self.level1 = level1        # the first overview level, reduced tile by tile
 
     def __setitem__(self, key, value):
         from rasterio.windows import Window
+        if self.level1 is not None:
+            self.level1.add(key[-2:], np.asarray(value))
         if self.mask:                       # last plane: the mask band (0 / 255)
             _, rs, cs = key
             win = Window(cs.start, rs.start, cs.stop - cs.start, rs.stop - rs.start)
@@ -153,6 +156,64 @@ def _part_profile(o, shape, bands, dtype, blocksize, compress) -> dict:
     return profile
 
 
+#: the first overview level is reduced in memory, tile by tile as the tiles arrive, when
+#: it holds at most this many bytes (a quarter of the output); larger outputs build their
+#: overviews from the streamed ``.part`` (:func:`build_overviews`)
+LEVEL1_RAM_BYTES = 256 << 20
+
+
+class _Level1:
+    """The first overview level of an output (``(bands, ceil(rows / 2), ceil(cols / 2))``),
+    filled by :func:`_halve` from each full-resolution tile as it is written (tiles start
+    on even rows and columns)."""
+
+    def __init__(self, bands, rows, cols, dtype, nodata, resampling):
+        self.array = np.empty((bands, -(-rows // 2), -(-cols // 2)), dtype)
+        self.fill, self.use_nd = _fill(dtype, nodata)
+        self.average = resampling.lower() == "average"
+        self.is_int = dtype.kind in "ui"
+
+    def add(self, key, value):
+        rs, cs = key
+        v = value if value.ndim == 3 else value[None]
+        r, c = rs.start // 2, cs.start // 2
+        _halve(v, self.fill, self.use_nd, self.average, self.is_int,
+               self.array[:, r:r + -(-v.shape[1] // 2), c:c + -(-v.shape[2] // 2)])
+
+
+def _fill(dtype, nodata):
+    """(value of an overview pixel without valid data, whether ``nodata`` is a number)."""
+    use_nd = nodata is not None and not math.isnan(nodata)
+    fill = nodata if nodata is not None else (np.nan if dtype.kind == "f" else 0)
+    return float(fill), use_nd
+
+
+def _level1_here(o, arr, blocksize, overview_resampling) -> bool:
+    """Whether an output's first overview level is reduced in memory as its tiles arrive
+    (:class:`_Level1`): no mask band, every tile starting on an even row and column, and
+    the level within :data:`LEVEL1_RAM_BYTES`."""
+    if o.get("mask") or overview_resampling.lower() not in ("average", "nearest"):
+        return False
+    rows, cols = arr.shape[-2:]
+    if not overview_factors(rows, cols, blocksize):
+        return False
+    for chunks in arr.chunks[-2:]:
+        if any(c % 2 for c in chunks[:-1]):
+            return False
+    nb = arr.shape[0] if arr.ndim == 3 else 1
+    return nb * -(-rows // 2) * -(-cols // 2) * arr.dtype.itemsize <= LEVEL1_RAM_BYTES
+
+
+def _compression(compress: str, dtype) -> dict:
+    """GTiff creation options of the COG's tiles: DEFLATE at :data:`DEFLATE_LEVEL` with
+    the predictor (horizontal differencing for integers, the floating-point one for
+    floats, as the COG driver's ``PREDICTOR=YES``); other codecs at their defaults."""
+    if compress.lower() != "deflate":
+        return {"compress": compress}
+    return {"compress": "deflate", "zlevel": DEFLATE_LEVEL,
+            "predictor": 3 if np.dtype(dtype).kind == "f" else 2}
+
+
 def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                overview_resampling: str = "average", scheduler=None) -> None:
     """Write several rasters computed in ONE dask graph (shared tiles computed once).
@@ -160,7 +221,14 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     Each output is a dict: ``path``, ``array`` (dask or numpy, 2-D or bands x rows x cols),
     ``grid`` (None: ungeoreferenced, raw geometry), ``nodata``, ``tags``, ``dtype``. Each
     is streamed into a tiled GeoTIFF beside its target (memory bounded by the tiles in
-    flight), then laid out by GDAL's COG driver with internal overviews, atomically."""
+    flight), then laid out as a COG with internal overviews, atomically.
+
+    Usually GDAL compresses each tile once, as it is streamed (the ``.part`` holds the
+    COG's compressed tiles), the first overview level is reduced in memory as the tiles
+    arrive and the next levels from it, and :mod:`.tifflayout` copies the compressed
+    tiles into the COG layout (:func:`_layout_cog`). Outputs with a mask band, or whose
+    first overview level would not fit in :data:`LEVEL1_RAM_BYTES`, go through GDAL's
+    COG driver (:func:`_to_cog`)."""
     import dask.array as da
     import rasterio
     with contextlib.ExitStack() as stack:
@@ -175,7 +243,13 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             bands = arr.shape[0] if arr.ndim == 3 else None
             if bands == 1 and not o.get("mask"):
                 arr, bands = arr[0], None
+            level1 = None
             profile = _part_profile(o, arr.shape, bands, dtype, blocksize, compress)
+            if _level1_here(o, arr, blocksize, overview_resampling):
+                level1 = _Level1(bands or 1, *arr.shape[-2:], dtype, o.get("nodata"),
+                                 overview_resampling)
+                profile.pop("zlevel", None)
+                profile.update(_compression(compress, dtype))
             final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
             part = stack.enter_context(atomic_path(os.fspath(o["path"]) + ".part",
                                                    suffix=".tif"))
@@ -186,15 +260,18 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                 dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
             _band_metadata(dst, o.get("bands") or ())
             sources.append(arr)
-            targets.append(_WindowWriter(dst, bands, bool(o.get("mask"))))
-            parts.append((dst, part, final, o["path"]))
+            targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1))
+            parts.append((dst, part, final, o["path"], level1, profile))
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
             _store_here(sources, targets, scheduler)
-        for (dst, part, final, path), o in zip(parts, outputs):
+        for (dst, part, final, path, level1, profile), o in zip(parts, outputs):
             dst.close()
-            _to_cog(part, final, os.fspath(path), o.get("grid") is not None,
-                    bool(o.get("mask")), blocksize, compress, overview_resampling)
-    for _, _, _, path in parts:                      # the .part files are renamed, not kept
+            if level1 is not None:
+                _layout_cog(part, final, level1, profile, blocksize)
+            else:
+                _to_cog(part, final, os.fspath(path), o.get("grid") is not None,
+                        bool(o.get("mask")), blocksize, compress, overview_resampling)
+    for _, _, _, path, _, _ in parts:                # the .part files are renamed, not kept
         with contextlib.suppress(FileNotFoundError):
             os.remove(os.fspath(path) + ".part")
 
@@ -264,9 +341,7 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
             profile["transform"] = src.transform @ src.transform.scale(src.width / w,
                                                                      src.height / h)
             dt = np.dtype(src.dtypes[0])
-            nd = src.nodata
-            use_nd = nd is not None and not math.isnan(nd)
-            fill = nd if nd is not None else (np.nan if dt.kind == "f" else 0)
+            fill, use_nd = _fill(dt, src.nodata)
             with warnings.catch_warnings(), rasterio.open(path, "w", **profile) as dst:
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 for r0 in range(0, h, blocksize):
@@ -279,11 +354,43 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
                                     sc, sr, min(blocksize, src.width - sc),
                                     min(blocksize, src.height - sr)))
                                 i, j = (sr - 2 * r0) // 2, (sc - 2 * c0) // 2
-                                _halve(block, float(fill), use_nd, average, dt.kind in "ui",
+                                _halve(block, fill, use_nd, average, dt.kind in "ui",
                                        out[:, i:i + -(-block.shape[1] // 2),
                                            j:j + -(-block.shape[2] // 2)])
                         dst.write(out, window=Window(c0, r0, nc, nr))
         src_path = path
+
+
+def _layout_cog(part: str, final: str, level1: _Level1, profile: dict,
+                blocksize: int) -> None:
+    """Write the COG ``final`` from the compressed ``.part`` and the first overview level
+    in memory: the next levels are reduced from it, each level is compressed by GDAL into
+    a tiled GeoTIFF in memory, and :func:`.tifflayout.write_cog_layout` copies every
+    level's compressed tiles into the COG layout."""
+    import io
+
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.io import MemoryFile
+    from swathflow.rectification.tifflayout import read_first_ifd, write_cog_layout
+    rows, cols = profile["height"], profile["width"]
+    keep = ("count", "dtype", "nodata", "compress", "zlevel", "predictor", "interleave")
+    ov_profile = {k: profile[k] for k in keep if k in profile}
+    ov_profile.update(driver="GTiff", tiled=True, blockxsize=blocksize, blockysize=blocksize)
+    lv = level1.array
+    files = []
+    for k in range(len(overview_factors(rows, cols, blocksize))):
+        if k:
+            nxt = np.empty((lv.shape[0], -(-lv.shape[1] // 2), -(-lv.shape[2] // 2)), lv.dtype)
+            _halve(lv, level1.fill, level1.use_nd, level1.average, level1.is_int, nxt)
+            lv = nxt
+        with MemoryFile() as mem, warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with mem.open(width=lv.shape[2], height=lv.shape[1], **ov_profile) as dst:
+                dst.write(lv)
+            files.append(io.BytesIO(mem.read()))
+    with open(part, "rb") as src, open(final, "wb") as out:
+        levels = [(read_first_ifd(src), src)] + [(read_first_ifd(f), f) for f in files]
+        write_cog_layout(out, levels)
 
 
 def _vrt_with_overviews(part: str, levels: list[str], georeferenced: bool) -> str:
