@@ -135,18 +135,23 @@ def _cog_layout_problems(path) -> list[str]:
     return problems
 
 
-@pytest.mark.parametrize("nb,dtype,nodata,big", [(1, np.uint16, 0, False),
-                                                 (3, np.float32, float("nan"), False),
-                                                 (2, np.int16, -32768, True)])
+@pytest.mark.parametrize("nb,dtype,nodata,big,ram", [(1, np.uint16, 0, False, True),
+                                                     (3, np.float32, float("nan"), False, True),
+                                                     (1, np.uint16, 0, False, False),
+                                                     (2, np.int16, -32768, True, False)])
 def test_cog_layout_tiles_compressed_once_and_copied(tmp_path, monkeypatch, nb, dtype,
-                                                     nodata, big):
+                                                     nodata, big, ram):
     """The COG laid out from GDAL's compressed tiles (tifflayout): the validators'
     layout checks, LAYOUT=COG, full-resolution pixels, overviews, nodata, tags and band
-    descriptions as written; BigTIFF when the file could pass 4 GB (forced here)."""
-    from swathflow.rectification import tifflayout
+    descriptions as written; BigTIFF when the file could pass 4 GB (forced here); the
+    overviews reduced in memory as the tiles arrive, or (``ram`` False: as for outputs
+    too large for that) from the streamed file."""
+    from swathflow.rectification import tifflayout, writing
     from swathflow.rectification.rawimage import BandInfo
     if big:
         monkeypatch.setattr(tifflayout, "BIGTIFF_BYTES", 0)
+    if not ram:
+        monkeypatch.setattr(writing, "LEVEL1_RAM_BYTES", 0)
     data = _cube(nb, dtype)
     data[:, :100, :300] = nodata
     grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
