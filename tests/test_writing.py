@@ -181,3 +181,19 @@ def test_cog_layout_tiles_compressed_once_and_copied(tmp_path, monkeypatch, nb, 
     assert np.array_equal(np.isnan(got), np.isnan(mean))
     tol = 1.5 + 1e-9 if np.dtype(dtype).kind in "ui" else 1e-3
     assert np.abs(got - mean)[whole].max() <= tol
+
+
+@pytest.mark.parametrize("compress", ["zstd", "deflate"])
+def test_cog_codecs(tmp_path, compress):
+    """``compress`` (``--compress``): DEFLATE (the default) or ZSTD, each with the
+    predictor, in the same COG layout, pixels unchanged."""
+    data = _cube(1, np.uint16)[0]
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+    path = tmp_path / "z.tif"
+    write_cogs([{"path": path, "array": data, "grid": grid, "nodata": 0}], blocksize=256,
+               compress=compress)
+    assert _cog_layout_problems(path) == []
+    with rasterio.open(path) as src:
+        assert src.compression.name.lower() == compress
+        assert src.tags(ns="IMAGE_STRUCTURE")["PREDICTOR"] == "2"
+        assert np.array_equal(src.read(1), data)
