@@ -258,6 +258,8 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             dtype = np.dtype(o.get("dtype") or arr.dtype)
             if dtype != arr.dtype:
                 arr = arr.astype(dtype)
+            if arr.ndim == 3 and len(arr.chunks[0]) > 1:
+                arr = arr.rechunk({0: -1})         # a window is written with all its bands
             bands = arr.shape[0] if arr.ndim == 3 else None
             if bands == 1 and not o.get("mask"):
                 arr, bands = arr[0], None
