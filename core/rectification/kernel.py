@@ -158,9 +158,16 @@ def resample_bands(raw, coords, kernel, has_nodata, nodata, out, out_nodata, lo,
     return out
 
 
-def _rules(raw, nodata, out_dtype, out_nodata):
-    """(lo, hi, is_int, has_nodata, nodata, out_nodata, avoid) of the kernels for a raw
-    window and an output type (see :func:`resample_bands`)."""
+def resample_window(raw, coords, kernel: str, nodata, out_dtype, out_nodata):
+    """Python front of :func:`resample_bands`: ``raw`` ``(bands, lines, elements)`` or 2-D,
+    returns ``(values (bands, h, w) out_dtype, valid (h, w) bool)``."""
+    raw = np.asarray(raw)
+    if raw.ndim == 2:
+        raw = raw[None]
+    out_dtype = np.dtype(out_dtype)
+    h, w = coords.shape[1:]
+    out = np.empty((raw.shape[0], h, w), out_dtype)
+    valid = np.empty((h, w), np.uint8)
     is_int = out_dtype.kind in "ui"
     if is_int:
         info = np.iinfo(out_dtype)
@@ -178,58 +185,6 @@ def _rules(raw, nodata, out_dtype, out_nodata):
     else:
         ond = float(out_nodata)
         avoid = is_int
-    return lo, hi, is_int, has_nodata, nd, ond, avoid
-
-
-#: at most this many bands go through the fused painter-resampler (:func:`resample_leaves`);
-#: cubes take the coordinates once per tile and the multi-band gathers of :mod:`.gather`
-FUSED_BANDS = 3
-
-
-def resample_leaves(raw, lv, l0: int, e0: int, nl: int, ne: int, kernel: str, nodata,
-                    out_dtype, out_nodata):
-    """Resample a raw window (``raw`` ``(bands, lines, elements)`` from ``(l0, e0)`` of
-    an ``nl`` x ``ne`` image) directly at a tile's lattice leaves ``lv`` in one compiled
-    pass (:func:`.paint.paint_gather`): nearest or bilinear, at most
-    :data:`FUSED_BANDS` bands, a window in memory (not a large memory-mapped one).
-    Returns ``(values, valid)`` as :func:`resample_window`, or None where the case is
-    not one of those (the caller paints the coordinates and resamples them)."""
-    from swathflow.rectification.gather import MAPPED_WINDOW_BYTES, _memmap_of, storage_view
-    from swathflow.rectification.paint import paint_gather
-    raw = np.asarray(raw)
-    if raw.ndim == 2:
-        raw = raw[None]
-    if (kernel not in ("nearest", "bilinear") or lv.pixels is not None
-            or raw.shape[0] > FUSED_BANDS
-            or (raw.nbytes > MAPPED_WINDOW_BYTES and _memmap_of(raw) is not None)):
-        return None
-    out_dtype = np.dtype(out_dtype)
-    h, w = lv.shape
-    out = np.empty((raw.shape[0], h, w), out_dtype)
-    valid = np.empty((h, w), np.uint8)
-    lo, hi, is_int, has_nodata, nd, ond, avoid = _rules(raw, nodata, out_dtype, out_nodata)
-    flat, (sb, sl, se) = storage_view(raw)
-    raw_int = raw.dtype.kind in "ui"
-    clamp = is_int and not (raw_int and lo <= np.iinfo(raw.dtype).min
-                            and hi >= np.iinfo(raw.dtype).max)
-    check = has_nodata or raw.dtype.kind == "f"
-    paint_gather(lv.cells, lv.corners, float(l0), float(e0), nl, ne, flat, sb, sl, se,
-                 raw.shape[0], raw.shape[1], raw.shape[2], kernel == "nearest", check,
-                 has_nodata, nd, out, ond, lo, hi, is_int, clamp, avoid, valid)
-    return out, valid.view(bool)
-
-
-def resample_window(raw, coords, kernel: str, nodata, out_dtype, out_nodata):
-    """Python front of :func:`resample_bands`: ``raw`` ``(bands, lines, elements)`` or 2-D,
-    returns ``(values (bands, h, w) out_dtype, valid (h, w) bool)``."""
-    raw = np.asarray(raw)
-    if raw.ndim == 2:
-        raw = raw[None]
-    out_dtype = np.dtype(out_dtype)
-    h, w = coords.shape[1:]
-    out = np.empty((raw.shape[0], h, w), out_dtype)
-    valid = np.empty((h, w), np.uint8)
-    lo, hi, is_int, has_nodata, nd, ond, avoid = _rules(raw, nodata, out_dtype, out_nodata)
     if kernel in ("nearest", "bilinear"):
         # taps and weights once per output row, applied to every band, reading the window
         # in its file's interleave (no transposing copy): see :mod:`.gather`

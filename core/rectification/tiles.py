@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 from swathflow.errors import FormatError
 from swathflow.geometry.terrain import open_terrain
-from swathflow.rectification.kernel import resample_leaves, resample_window
+from swathflow.rectification.kernel import resample_window
 from swathflow.rectification.lattice import TOLERANCE_PX, leaves
 from swathflow.rectification.paint import paint_leaves
 from swathflow.rectification.rawimage import RawImage, open_raw_image
@@ -72,27 +72,20 @@ def _window(lv, kernel, nl, ne):
     return (l0, l1, e0, e1) if l1 > l0 and e1 > e0 else None
 
 
-def tile_leaves(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_PX, step=32,
+def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_PX, step=32,
                 stats=None):
-    """(the lattice's :class:`~.lattice.Leaves`, raw window ``(l0, l1, e0, e1)`` or None)
-    of one output tile."""
+    """(window-relative coordinates ``(2, h, w)`` float32, window ``(l0, l1, e0, e1)`` or
+    None) of one output tile."""
     nl, ne = source.shape
     lv = leaves(model, grid, terrain, tol, step, raw_shape=(nl, ne))
     if stats is not None:
         stats["exact_evaluations"] = stats.get("exact_evaluations", 0) + lv.exact_evaluations
         stats["pixels"] = stats.get("pixels", 0) + grid.shape[0] * grid.shape[1]
-    return lv, _window(lv, kernel, nl, ne)
-
-
-def tile_coords(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_PX, step=32,
-                stats=None):
-    """(window-relative coordinates ``(2, h, w)`` float32, window ``(l0, l1, e0, e1)`` or
-    None) of one output tile."""
-    lv, win = tile_leaves(model, source, grid, terrain, kernel, tol, step, stats)
+    win = _window(lv, kernel, nl, ne)
     h, w = grid.shape
     if win is None:
         return np.full((2, h, w), np.nan, np.float32), None
-    return paint_leaves(lv, win[0], win[2], *source.shape), win
+    return paint_leaves(lv, win[0], win[2], nl, ne), win
 
 
 def rectify_tile(model, source, grid, terrain, kernel: str = "bilinear",
@@ -124,17 +117,12 @@ def tile_values(model, source, grid, terrain, kernel: str = "bilinear",
     :func:`output_plan` (nodata pixels hold the output nodata, or 0 with a mask)."""
     source = open_raw_image(source)
     dt, ond, _ = output_plan(source, dtype, mask_band)
-    lv, win = tile_leaves(model, source, grid, terrain, kernel, tol, step, stats)
+    co, win = tile_coords(model, source, grid, terrain, kernel, tol, step, stats)
     if win is None:
         h, w = grid.shape
         fill = ond if ond is not None else 0
         return np.full((source.count, h, w), fill, dt), np.zeros((h, w), bool)
     raw = source.read(*win)
-    fused = resample_leaves(raw, lv, win[0], win[2], *source.shape, kernel, source.nodata,
-                            dt, ond)
-    if fused is not None:
-        return fused
-    co = paint_leaves(lv, win[0], win[2], *source.shape)
     return resample_window(raw, co, kernel, source.nodata, dt, ond)
 
 
