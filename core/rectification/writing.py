@@ -218,6 +218,10 @@ def _level1_here(o, arr, blocksize, overview_resampling) -> bool:
     return nb * -(-rows // 2) * -(-cols // 2) * arr.dtype.itemsize <= LEVEL1_RAM_BYTES
 
 
+#: the GTiff creation options :func:`_compression` sets
+_CODEC_OPTIONS = ("compress", "zlevel", "zstd_level", "predictor")
+
+
 def _compression(compress: str, dtype) -> dict:
     """GTiff creation options of the COG's tiles: DEFLATE at :data:`DEFLATE_LEVEL` or
     ZSTD at :data:`ZSTD_LEVEL`, with the predictor (horizontal differencing for integers,
@@ -355,7 +359,7 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
         with rasterio.open(src_path) as src:
             profile = src.profile
             h, w = -(-src.height // 2), -(-src.width // 2)
-            for k in ("compress", "zlevel", "predictor"):
+            for k in _CODEC_OPTIONS:
                 profile.pop(k, None)
             profile.update(height=h, width=w, tiled=True, blockxsize=blocksize,
                            blockysize=blocksize, BIGTIFF="IF_SAFER",
@@ -393,15 +397,14 @@ def _layout_cog(part: str, final: str, target: str, level1: _Level1 | None, prof
     from swathflow.rectification.tifflayout import read_first_ifd, write_cog_layout
     rows, cols = profile["height"], profile["width"]
     n_levels = len(overview_factors(rows, cols, blocksize))
-    keep = ("compress", "zlevel", "predictor")
-    compression = {k: profile[k] for k in keep if k in profile}
+    compression = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
     with contextlib.ExitStack() as stack:
         if level1 is not None:
             files = _levels_in_memory(level1, n_levels, profile, compression, blocksize)
         else:
             paths = [stack.enter_context(_scratch(target, f"ovr{k}.tif"))
                      for k in range(n_levels)]
-            with rasterio_env():
+            with _cache_env():
                 build_overviews(part, paths, blocksize, resampling, compression)
             files = [stack.enter_context(open(p, "rb")) for p in paths]
         with open(part, "rb") as src, open(final, "wb") as out:
@@ -409,7 +412,7 @@ def _layout_cog(part: str, final: str, target: str, level1: _Level1 | None, prof
             write_cog_layout(out, levels)
 
 
-def rasterio_env():
+def _cache_env():
     """GDAL's block cache while writing: :data:`GDAL_CACHE_MB`, not 5 % of the machine."""
     import rasterio
     return rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
@@ -453,7 +456,7 @@ def _to_cog(part: str, final: str, blocksize: int, compress: str,
             if compress.lower() in levels else {})
     opts = dict(driver="COG", COMPRESS=compress.upper(), BLOCKSIZE=blocksize,
                 OVERVIEW_RESAMPLING=overview_resampling.upper(), BIGTIFF="IF_SAFER", **pred)
-    with warnings.catch_warnings(), rasterio_env():
+    with warnings.catch_warnings(), _cache_env():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         rio_copy(part, final, **opts)
 
