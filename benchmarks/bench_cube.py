@@ -66,8 +66,9 @@ def ours(model, path, grid, terrain, repeat, keep=8):
 
 
 def ours_cog(model, path, grid, terrain, out):
-    """The whole engine and the COG writer (streamed .part, our overviews, GDAL's COG
-    layout with deflate), one thread: (wall s, CPU s)."""
+    """The whole engine and the COG writer (tiles compressed once by GDAL as they stream,
+    our overviews, the COG layout copied by tifflayout; deflate), one thread: (wall s,
+    CPU s)."""
     import dask
     from swathflow.rectification import rectify as R
     from swathflow.rectification.rawimage import open_raw_image

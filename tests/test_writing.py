@@ -84,3 +84,132 @@ def test_cog_with_our_overviews_matches_block_means(tmp_path, dtype, nodata):
         # (integer output: rounded half up once per level)
         tol = 0.5 * (lv + 1) + 1e-9 if is_int else 1e-3
         assert np.abs(got - mean)[whole].max() <= tol, (f, np.abs(got - mean)[whole].max())
+
+
+def _cog_layout_problems(path) -> list[str]:
+    """The layout checks of the COG validators (GDAL's validate_cloud_optimized_geotiff,
+    rio-cogeo), on the offsets GDAL itself reports, plus every tile's leader (its byte
+    count) and trailer (its last four bytes) that the ghost area announces."""
+    problems = []
+    with rasterio.open(path) as src:
+        tiff = lambda key, ds=src: ds.get_tag_item(key, "TIFF", bidx=1)  # noqa: E731
+        ifd0 = int(tiff("IFD_OFFSET"))
+        if ifd0 > 300:
+            problems.append(f"main IFD at {ifd0}")
+        if src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") != "COG":
+            problems.append("GDAL does not see LAYOUT=COG")
+        levels = [src]
+        for k in range(len(src.overviews(1))):
+            levels.append(rasterio.open(path, overview_level=k))
+        ifds = [int(tiff("IFD_OFFSET", ds)) for ds in levels]
+        if ifds != sorted(ifds):
+            problems.append(f"IFDs not in order {ifds}")
+        blocks = []
+        for ds in levels:
+            bw, bh = ds.block_shapes[0][1], ds.block_shapes[0][0]
+            offs = []
+            planes = ds.count if ds.interleaving.name == "BAND" else 1
+            for b in range(1, planes + 1):
+                for y in range(-(-ds.height // bh)):
+                    for x in range(-(-ds.width // bw)):
+                        off = int(ds.get_tag_item(f"BLOCK_OFFSET_{x}_{y}", "TIFF", bidx=b))
+                        size = int(ds.get_tag_item(f"BLOCK_SIZE_{x}_{y}", "TIFF", bidx=b))
+                        offs.append((off, size))
+            blocks.append(offs)
+        for ds in levels[1:]:
+            ds.close()
+    if max(ifds) >= min(o for offs in blocks for o, _ in offs):
+        problems.append("an IFD after image data")
+    firsts = [offs[0][0] for offs in blocks]
+    if firsts != sorted(firsts, reverse=True):
+        problems.append(f"data not from the smallest overview to the full resolution {firsts}")
+    raw = open(path, "rb").read()
+    for offs in blocks:
+        if [o for o, _ in offs] != sorted(o for o, _ in offs):
+            problems.append("tiles of a level out of order")
+        for off, size in offs:
+            lead = int.from_bytes(raw[off - 4:off], "little")
+            if lead != size or raw[off + size:off + size + 4] != raw[off + size - 4:off + size]:
+                problems.append(f"bad leader/trailer at {off}")
+                break
+    return problems
+
+
+@pytest.mark.parametrize("nb,dtype,nodata,big,ram", [(1, np.uint16, 0, False, True),
+                                                     (3, np.float32, float("nan"), False, True),
+                                                     (1, np.uint16, 0, False, False),
+                                                     (2, np.int16, -32768, True, False)])
+def test_cog_layout_tiles_compressed_once_and_copied(tmp_path, monkeypatch, nb, dtype,
+                                                     nodata, big, ram):
+    """The COG laid out from GDAL's compressed tiles (tifflayout): the validators'
+    layout checks, LAYOUT=COG, full-resolution pixels, overviews, nodata, tags and band
+    descriptions as written; BigTIFF when the file could pass 4 GB (forced here); the
+    overviews reduced in memory as the tiles arrive, or (``ram`` False: as for outputs
+    too large for that) from the streamed file."""
+    from swathflow.rectification import tifflayout, writing
+    from swathflow.rectification.rawimage import BandInfo
+    if big:
+        monkeypatch.setattr(tifflayout, "BIGTIFF_BYTES", 0)
+    if not ram:
+        monkeypatch.setattr(writing, "LEVEL1_RAM_BYTES", 0)
+    data = _cube(nb, dtype)
+    data[:, :100, :300] = nodata
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+    path = tmp_path / "out.tif"
+    arr = data[0] if nb == 1 else data
+    infos = [BandInfo(i + 1, f"band {i}", 500.0 + i, 10.0, "nm") for i in range(nb)]
+    write_cogs([{"path": path, "array": arr, "grid": grid, "nodata": nodata,
+                 "tags": {"product": "layout"}, "bands": infos}], blocksize=256)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.tif"]
+    assert _cog_layout_problems(path) == []
+    assert open(path, "rb").read(4) == (b"II+\0" if big else b"II*\0")
+    with rasterio.open(path) as src:
+        assert src.count == nb and src.dtypes[0] == np.dtype(dtype).name
+        assert src.crs.to_epsg() == 32633 and src.transform == grid.transform
+        assert src.tags()["product"] == "layout" and src.overviews(1) == [2, 4, 8]
+        assert src.descriptions == tuple(f"band {i}" for i in range(nb))
+        assert src.tags(nb)["wavelength"] == repr(500.0 + nb - 1)
+        assert src.tags(1, ns="IMAGERY")["CENTRAL_WAVELENGTH_UM"] == repr(0.5)
+        assert (math.isnan(src.nodata) if math.isnan(nodata) else src.nodata == nodata)
+        assert src.compression.name.lower() == "deflate"
+        assert np.array_equal(src.read(), data, equal_nan=True)
+        ov = src.read(out_shape=(nb, -(-H // 8), -(-W // 8)))
+    mean, _, _, whole = _blocks(data, 8, nodata)
+    got = ov.astype(float)
+    if not math.isnan(nodata):
+        got[ov == nodata] = np.nan
+    assert np.array_equal(np.isnan(got), np.isnan(mean))
+    tol = 1.5 + 1e-9 if np.dtype(dtype).kind in "ui" else 1e-3
+    assert np.abs(got - mean)[whole].max() <= tol
+
+
+@pytest.mark.parametrize("compress", ["zstd", "deflate"])
+def test_cog_codecs(tmp_path, compress):
+    """``compress`` (``--compress``): DEFLATE (the default) or ZSTD, each with the
+    predictor, in the same COG layout, pixels unchanged."""
+    data = _cube(1, np.uint16)[0]
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+    path = tmp_path / "z.tif"
+    write_cogs([{"path": path, "array": data, "grid": grid, "nodata": 0}], blocksize=256,
+               compress=compress)
+    assert _cog_layout_problems(path) == []
+    with rasterio.open(path) as src:
+        assert src.compression.name.lower() == compress
+        assert src.tags(ns="IMAGE_STRUCTURE")["PREDICTOR"] == "2"
+        assert np.array_equal(src.read(1), data)
+
+
+def test_any_chunking_of_a_dask_array(tmp_path):
+    """Blocks split across bands, or of odd sizes (the first overview level then comes
+    from the streamed file), a raster smaller than one tile: same pixels, valid COGs."""
+    import dask.array as da
+    for shape, chunks in [((3, 600, 600), (1, 300, 300)), ((513, 1100), 255),
+                          ((100, 90), 512)]:
+        data = (np.arange(np.prod(shape)) % 1000).reshape(shape).astype(np.uint16)
+        grid = Grid("EPSG:32633", from_origin(500000, 6000000, 1, 1), shape[-2:])
+        path = tmp_path / f"c{len(shape)}_{shape[-1]}.tif"
+        write_cogs([{"path": path, "array": da.from_array(data, chunks=chunks), "grid": grid,
+                     "nodata": 0}], blocksize=256)
+        assert _cog_layout_problems(path) == []
+        with rasterio.open(path) as src:
+            assert np.array_equal(src.read() if len(shape) == 3 else src.read(1), data)

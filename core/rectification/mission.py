@@ -19,6 +19,7 @@ from swathflow.io import write_text
 from swathflow.rectification.api import geolocation, rectify, to_cog
 from swathflow.rectification.lattice import TOLERANCE_PX
 from swathflow.rectification.rawimage import open_raw_image
+from swathflow.rectification.writing import CODECS
 
 
 def mission_bands(mission, image_id: str | None = None):
@@ -51,14 +52,16 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                     products: Sequence[str] = (),
                     progress: Callable[[str], None] | None = None, bands=None,
                     dtype: str | None = None, mask_band: bool = False,
-                    workers: int | None = None) -> list[dict]:
+                    workers: int | None = None, compress: str = "deflate") -> list[dict]:
     """Rectify the mission's images into ``out_dir/<id>.tif`` with ``calibration`` (a
     calibration.json; default: the mission's priors). Every band of each raw image is
     rectified (``bands``: a subset by 1-based index or wavelength, see
     :func:`~swathflow.rectification.rawimage.parse_bands`; default: ``[rectify] bands``
     of mission.toml, see :func:`mission_bands`), in the raw dtype unless
     ``dtype`` says otherwise (integer nodata, or a mask band with ``mask_band``);
-    ``products`` adds ``<id>.glt.tif`` / ``<id>.igm.tif``. Returns one summary per image.
+    ``products`` adds ``<id>.glt.tif`` / ``<id>.igm.tif``; ``compress`` is the COGs' codec
+    (``deflate``, or ``zstd``: see :data:`~.writing.CODECS`). Returns one summary per
+    image.
 
     ``workers`` processes rectify the images side by side (default: one per CPU, at most
     one per image; forked, so nothing is imported or pickled again), each with one
@@ -68,6 +71,9 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     unknown = set(products) - {"glt", "igm"}
     if unknown:
         raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
+    if compress not in CODECS:
+        raise FormatError(f"unknown COG compression {compress!r}; use one of "
+                          f"{', '.join(CODECS)}")
     with _start_up():
         mission = load_mission(mission_path)
         ids = mission.image_ids
@@ -79,7 +85,7 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
             ids = list(images)
         os.makedirs(out_dir, exist_ok=True)
         options = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=bands,
-                       dtype=dtype, mask_band=mask_band)
+                       dtype=dtype, mask_band=mask_band, compress=compress)
         jobs = [(mission, iid, calibration, out_dir, tuple(products),
                  dict(options, bands=bands if bands not in (None, "") else
                       mission_bands(mission, iid)))
@@ -122,14 +128,16 @@ _JOBS: list = []
 def _one(k: int):
     """Rectify job ``k`` of :data:`_JOBS`: (summary, calibration tag, (rows, cols))."""
     mission, iid, calibration, out_dir, products, o = _JOBS[k]
+    o = dict(o)
+    compress = o.pop("compress")
     out = os.path.join(out_dir, f"{iid}.tif")
     t0 = time.perf_counter()
     arr = rectify(mission, iid, calibration, **o)
-    s = to_cog(arr, out, blocksize=o["tile"])
+    s = to_cog(arr, out, blocksize=o["tile"], compress=compress)
     for p in products:
         to_cog(geolocation(mission, iid, calibration, p, kernel=o["kernel"], tile=o["tile"],
                            tol=o["tol"]),
-               os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=o["tile"])
+               os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=o["tile"], compress=compress)
     s.update(image_id=iid, method=o["method"], kernel=o["kernel"],
              seconds=round(time.perf_counter() - t0, 3))
     return s, arr.attrs["calibration"], (arr.rio.height, arr.rio.width)

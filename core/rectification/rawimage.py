@@ -16,10 +16,16 @@ from __future__ import annotations
 import math
 import os
 import re
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 from swathflow.errors import FormatError
+
+#: a raster file (read through rasterio) of at most this many bytes in its selected bands
+#: is read whole, once, and its tiles' windows are views of it (:meth:`RawImage._whole`)
+WHOLE_READ_BYTES = 256 << 20
+_WHOLE_LOCK = threading.Lock()
 
 ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8",
                15: "u8"}
@@ -225,6 +231,9 @@ class RawImage:
         (memory-mapped) source is copied in its own interleave: the result's memory is
         BIL / BIP ordered for a BIL / BIP file (see :func:`_native_window`)."""
         if self.data is None:
+            whole = self._whole()
+            if whole is not None:
+                return whole[:, l0:l1, e0:e1]
             from rasterio.windows import Window
             with _open_raw(self.path) as src:
                 a = src.read([i + 1 for i in self.selected],
@@ -246,6 +255,27 @@ class RawImage:
         if not a.dtype.isnative:
             a = a.astype(a.dtype.newbyteorder("="))
         return np.ascontiguousarray(a)
+
+    def _whole(self) -> np.ndarray | None:
+        """The selected bands of a file read through rasterio, read once and kept (a swing
+        of at most :data:`WHOLE_READ_BYTES`): every tile's window is then a view of it,
+        instead of one file open and windowed read per tile. None for larger images."""
+        n = self.count * self.shape3[1] * self.shape3[2] * self.dtype.itemsize
+        if n > WHOLE_READ_BYTES:
+            return None
+        with _WHOLE_LOCK:
+            whole = self.__dict__.get("_whole_cache")
+            if whole is None:
+                with _open_raw(self.path) as src:
+                    whole = src.read([i + 1 for i in self.selected])
+                whole.setflags(write=False)
+                self.__dict__["_whole_cache"] = whole
+        return whole
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state.pop("_whole_cache", None)          # read again where it is used, not sent
+        return state
 
     def token(self):
         return (self.path or id(self.data), self.selected, str(self.dtype), self.nodata)
@@ -270,7 +300,7 @@ def _native_window(data: np.ndarray, sel: list, l0, l1, e0, e1) -> np.ndarray:
 
 def _with_rasterio(img: RawImage, sel) -> RawImage:
     out = RawImage.__new__(RawImage)
-    out.__dict__.update(img.__dict__)
+    out.__dict__.update(img.__getstate__())
     out.selected = sel
     out.two_d = False
     return out

@@ -1,17 +1,20 @@
 """Streaming Cloud-Optimized GeoTIFF writing: memory bounded by the tiles in flight.
 
 Each output is streamed window by window into a tiled GeoTIFF beside its target (the
-``.part``). Its overviews are then computed here, level by level, each from the one above
-it, block by block and band by band (:func:`build_overviews`: a compiled 2 x 2 reduction,
-nodata-aware), into tiled GeoTIFFs of their own; a small VRT lists them as the overviews
-of the ``.part`` and GDAL's COG driver lays the whole out as a COG, atomically, copying
-the overviews instead of computing them (``OVERVIEWS=FORCE_USE_EXISTING``). GDAL's own
-overview step re-reads a pixel-interleaved source once per band through its block cache:
-135 CPU-s for a 1400 x 1354 x 100-band uint16 output, against about 11 s (mostly the
-deflate compression) this way. Multi-band outputs carry their band descriptions and
-wavelengths; integer outputs without a nodata value carry an internal mask band (the last
-plane of the array, 0 / 255; those still go through GDAL's overview step, which VRT
-overviews cannot describe for a mask).
+``.part``), which GDAL compresses tile by tile as it arrives, with the COG's own codec and
+predictor: each tile is compressed once. The overviews are computed here, each level from
+the one above it (:func:`_halve`: a compiled 2 x 2 reduction, nodata-aware): the first
+level in memory as the tiles arrive (:class:`_Level1`), or, for outputs whose first level
+would not fit in :data:`LEVEL1_RAM_BYTES`, block by block from the ``.part``
+(:func:`build_overviews`); GDAL compresses them into tiled GeoTIFFs too. Then
+:mod:`.tifflayout` copies every compressed tile, unchanged, into the layout of GDAL's COG
+driver, atomically. (Copying through the COG driver decompressed and compressed every
+tile again: 0.5-0.7 CPU-s per 21 Mpx; and GDAL's own overview step re-reads a
+pixel-interleaved source once per band: 135 CPU-s for a 1400 x 1354 x 100-band output.)
+Multi-band outputs are band-interleaved (``PLANARCONFIG=SEPARATE``: a band's tile is
+contiguous) and carry their band descriptions and wavelengths. Integer outputs without a
+nodata value carry an internal mask band (the last plane of the array, 0 / 255): those
+go through GDAL's COG driver, which builds the mask's overviews too.
 """
 from __future__ import annotations
 
@@ -36,19 +39,29 @@ PART_RAW_BYTES = 2 ** 30
 #: deflate level of the COG: with the predictor, level 1 measured 20 % faster than 6 and
 #: no larger (2.61 vs 2.65 MB on a 2.5 Mpx uint16 swing)
 DEFLATE_LEVEL = 1
+#: ZSTD level of the COG (``--compress zstd``): with the predictor, level 1 compressed the
+#: demo's uint16 swings 1.6x faster than DEFLATE level 1, 4 % larger
+ZSTD_LEVEL = 1
+#: the codecs a COG may be written with (``--compress``): DEFLATE opens in every GDAL
+#: and every TIFF reader; ZSTD needs GDAL 2.3 or later built with libzstd (rasterio's and
+#: GDAL's usual builds are)
+CODECS = ("deflate", "zstd")
 
 
 class _WindowWriter:
     """A ``__setitem__`` target for ``dask.array.store`` writing windows of a rasterio
     dataset (2-D: band 1; 3-D: bands)."""
 
-    def __init__(self, dst, bands: int | None = None, mask: bool = False):
+    def __init__(self, dst, bands: int | None = None, mask: bool = False, level1=None):
         self.dst = dst
         self.bands = bands
         self.mask = mask
+        self.level1 = level1        # the first overview level, reduced tile by tile
 
     def __setitem__(self, key, value):
         from rasterio.windows import Window
+        if self.level1 is not None:
+            self.level1.add(key[-2:], np.asarray(value))
         if self.mask:                       # last plane: the mask band (0 / 255)
             _, rs, cs = key
             win = Window(cs.start, rs.start, cs.stop - cs.start, rs.stop - rs.start)
@@ -132,25 +145,94 @@ def write_cog(path, arrays, grid: Grid | None, nodata=None, tags: Mapping | None
 
 
 def _part_profile(o, shape, bands, dtype, blocksize, compress) -> dict:
-    """The rasterio profile of an output's streamed .part GeoTIFF (read once by the COG
-    copy: uncompressed unless large)."""
+    """The rasterio profile of an output's streamed .part GeoTIFF: compressed as the COG
+    (:func:`_compression`); with a mask band (read once by GDAL's COG driver)
+    uncompressed unless large."""
     from swathflow.formats.raster import _crs
     rows, cols = shape[-2:]
     count = (bands or 1) - (1 if o.get("mask") else 0)
     small = rows * cols * (bands or 1) * dtype.itemsize < PART_RAW_BYTES
-    # band-interleaved: a band's block is one contiguous read for the overviews and the
-    # COG copy (a pixel-interleaved .part measured twice the COG copy's CPU at 100 bands)
+    # band-interleaved: a band's block is one contiguous read for the overviews, and its
+    # compressed tiles are the COG's (a pixel-interleaved .part measured twice the COG
+    # driver's copy CPU at 100 bands)
     profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
                "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
                "blockysize": blocksize, "compress": "none" if small else compress,
                "BIGTIFF": "IF_SAFER", "interleave": "band"}
-    if not small and compress == "deflate":
+    if not o.get("mask"):
+        profile.update(_compression(compress, dtype))
+    elif not small and compress == "deflate":
         profile["zlevel"] = 1
     if o.get("grid") is not None:
         profile.update(crs=_crs(o["grid"].crs), transform=o["grid"].transform)
     if o.get("nodata") is not None:
         profile["nodata"] = o["nodata"]
     return profile
+
+
+#: the first overview level is reduced in memory, tile by tile as the tiles arrive, when
+#: it holds at most this many bytes (a quarter of the output); larger outputs build their
+#: overviews from the streamed ``.part`` (:func:`build_overviews`)
+LEVEL1_RAM_BYTES = 256 << 20
+
+
+class _Level1:
+    """The first overview level of an output (``(bands, ceil(rows / 2), ceil(cols / 2))``),
+    filled by :func:`_halve` from each full-resolution tile as it is written (tiles start
+    on even rows and columns)."""
+
+    def __init__(self, bands, rows, cols, dtype, nodata, resampling):
+        self.array = np.empty((bands, -(-rows // 2), -(-cols // 2)), dtype)
+        self.fill, self.use_nd = _fill(dtype, nodata)
+        self.average = resampling.lower() == "average"
+        self.is_int = dtype.kind in "ui"
+
+    def add(self, key, value):
+        rs, cs = key
+        v = value if value.ndim == 3 else value[None]
+        r, c = rs.start // 2, cs.start // 2
+        _halve(v, self.fill, self.use_nd, self.average, self.is_int,
+               self.array[:, r:r + -(-v.shape[1] // 2), c:c + -(-v.shape[2] // 2)])
+
+
+def _fill(dtype, nodata):
+    """(value of an overview pixel without valid data, whether ``nodata`` is a number)."""
+    use_nd = nodata is not None and not math.isnan(nodata)
+    fill = nodata if nodata is not None else (np.nan if dtype.kind == "f" else 0)
+    return float(fill), use_nd
+
+
+def _level1_here(o, arr, blocksize, overview_resampling) -> bool:
+    """Whether an output's first overview level is reduced in memory as its tiles arrive
+    (:class:`_Level1`): no mask band, every tile starting on an even row and column, and
+    the level within :data:`LEVEL1_RAM_BYTES`."""
+    if o.get("mask") or overview_resampling.lower() not in ("average", "nearest"):
+        return False
+    rows, cols = arr.shape[-2:]
+    if not overview_factors(rows, cols, blocksize):
+        return False
+    for chunks in arr.chunks[-2:]:
+        if any(c % 2 for c in chunks[:-1]):
+            return False
+    nb = arr.shape[0] if arr.ndim == 3 else 1
+    return nb * -(-rows // 2) * -(-cols // 2) * arr.dtype.itemsize <= LEVEL1_RAM_BYTES
+
+
+#: the GTiff creation options :func:`_compression` sets
+_CODEC_OPTIONS = ("compress", "zlevel", "zstd_level", "predictor")
+
+
+def _compression(compress: str, dtype) -> dict:
+    """GTiff creation options of the COG's tiles: DEFLATE at :data:`DEFLATE_LEVEL` or
+    ZSTD at :data:`ZSTD_LEVEL`, with the predictor (horizontal differencing for integers,
+    the floating-point one for floats, as the COG driver's ``PREDICTOR=YES``); other
+    codecs at their defaults."""
+    pred = 3 if np.dtype(dtype).kind == "f" else 2
+    if compress.lower() == "deflate":
+        return {"compress": "deflate", "zlevel": DEFLATE_LEVEL, "predictor": pred}
+    if compress.lower() == "zstd":
+        return {"compress": "zstd", "zstd_level": ZSTD_LEVEL, "predictor": pred}
+    return {"compress": compress}
 
 
 def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
@@ -160,7 +242,15 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     Each output is a dict: ``path``, ``array`` (dask or numpy, 2-D or bands x rows x cols),
     ``grid`` (None: ungeoreferenced, raw geometry), ``nodata``, ``tags``, ``dtype``. Each
     is streamed into a tiled GeoTIFF beside its target (memory bounded by the tiles in
-    flight), then laid out by GDAL's COG driver with internal overviews, atomically."""
+    flight), then laid out as a COG with internal overviews, atomically.
+
+    GDAL compresses each tile once, as it is streamed (the ``.part`` holds the COG's
+    compressed tiles); the overviews are reduced here (:class:`_Level1` in memory as the
+    tiles arrive, or :func:`build_overviews` from the ``.part`` for outputs whose first
+    level would not fit in :data:`LEVEL1_RAM_BYTES`) and compressed by GDAL too; then
+    :mod:`.tifflayout` copies every compressed tile into the COG layout
+    (:func:`_layout_cog`). Outputs with a mask band go through GDAL's COG driver
+    (:func:`_to_cog`), which writes the mask's overviews as well."""
     import dask.array as da
     import rasterio
     with contextlib.ExitStack() as stack:
@@ -172,10 +262,16 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             dtype = np.dtype(o.get("dtype") or arr.dtype)
             if dtype != arr.dtype:
                 arr = arr.astype(dtype)
+            if arr.ndim == 3 and len(arr.chunks[0]) > 1:
+                arr = arr.rechunk({0: -1})         # a window is written with all its bands
             bands = arr.shape[0] if arr.ndim == 3 else None
             if bands == 1 and not o.get("mask"):
                 arr, bands = arr[0], None
+            level1 = None
             profile = _part_profile(o, arr.shape, bands, dtype, blocksize, compress)
+            if _level1_here(o, arr, blocksize, overview_resampling):
+                level1 = _Level1(bands or 1, *arr.shape[-2:], dtype, o.get("nodata"),
+                                 overview_resampling)
             final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
             part = stack.enter_context(atomic_path(os.fspath(o["path"]) + ".part",
                                                    suffix=".tif"))
@@ -186,15 +282,18 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                 dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
             _band_metadata(dst, o.get("bands") or ())
             sources.append(arr)
-            targets.append(_WindowWriter(dst, bands, bool(o.get("mask"))))
-            parts.append((dst, part, final, o["path"]))
+            targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1))
+            parts.append((dst, part, final, o["path"], level1, profile))
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
             _store_here(sources, targets, scheduler)
-        for (dst, part, final, path), o in zip(parts, outputs):
+        for (dst, part, final, path, level1, profile), o in zip(parts, outputs):
             dst.close()
-            _to_cog(part, final, os.fspath(path), o.get("grid") is not None,
-                    bool(o.get("mask")), blocksize, compress, overview_resampling)
-    for _, _, _, path in parts:                      # the .part files are renamed, not kept
+            if o.get("mask"):
+                _to_cog(part, final, blocksize, compress, overview_resampling)
+            else:
+                _layout_cog(part, final, os.fspath(path), level1, profile, blocksize,
+                            overview_resampling)
+    for _, _, _, path, _, _ in parts:                # the .part files are renamed, not kept
         with contextlib.suppress(FileNotFoundError):
             os.remove(os.fspath(path) + ".part")
 
@@ -245,7 +344,8 @@ def _halve(src, nodata, use_nodata, average, is_int, out):
                     out[b, i, j] = s / n
 
 
-def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str) -> None:
+def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str,
+                    compression: Mapping | None = None) -> None:
     """Write the overview levels of the tiled GeoTIFF ``part`` into ``paths`` (factor 2,
     4, ...: each level from the one above it), block by block: every output block of
     ``blocksize`` pixels is reduced from the four blocks above it (``blocksize`` even),
@@ -259,14 +359,15 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
         with rasterio.open(src_path) as src:
             profile = src.profile
             h, w = -(-src.height // 2), -(-src.width // 2)
-            profile.update(height=h, width=w, compress="none", tiled=True,
-                           blockxsize=blocksize, blockysize=blocksize, BIGTIFF="IF_SAFER")
+            for k in _CODEC_OPTIONS:
+                profile.pop(k, None)
+            profile.update(height=h, width=w, tiled=True, blockxsize=blocksize,
+                           blockysize=blocksize, BIGTIFF="IF_SAFER",
+                           **(compression or {"compress": "none"}))
             profile["transform"] = src.transform @ src.transform.scale(src.width / w,
                                                                      src.height / h)
             dt = np.dtype(src.dtypes[0])
-            nd = src.nodata
-            use_nd = nd is not None and not math.isnan(nd)
-            fill = nd if nd is not None else (np.nan if dt.kind == "f" else 0)
+            fill, use_nd = _fill(dt, src.nodata)
             with warnings.catch_warnings(), rasterio.open(path, "w", **profile) as dst:
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 for r0 in range(0, h, blocksize):
@@ -279,87 +380,85 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
                                     sc, sr, min(blocksize, src.width - sc),
                                     min(blocksize, src.height - sr)))
                                 i, j = (sr - 2 * r0) // 2, (sc - 2 * c0) // 2
-                                _halve(block, float(fill), use_nd, average, dt.kind in "ui",
+                                _halve(block, fill, use_nd, average, dt.kind in "ui",
                                        out[:, i:i + -(-block.shape[1] // 2),
                                            j:j + -(-block.shape[2] // 2)])
                         dst.write(out, window=Window(c0, r0, nc, nr))
         src_path = path
 
 
-def _vrt_with_overviews(part: str, levels: list[str], georeferenced: bool) -> str:
-    """A VRT of ``part`` (its georeferencing, nodata, band descriptions and metadata,
-    default and IMAGERY domains) whose bands list ``levels`` as their overviews."""
-    import xml.etree.ElementTree as ET
+def _layout_cog(part: str, final: str, target: str, level1: _Level1 | None, profile: dict,
+                blocksize: int, resampling: str) -> None:
+    """Write the COG ``final`` from the compressed ``.part`` and its overviews, each level
+    compressed by GDAL into a tiled GeoTIFF: from the first level in memory (``level1``:
+    the next levels reduced from it, each in a GeoTIFF in memory), or else built from the
+    ``.part`` by :func:`build_overviews` into scratch files beside ``target``. Then
+    :func:`.tifflayout.write_cog_layout` copies every level's compressed tiles."""
+    from swathflow.rectification.tifflayout import read_first_ifd, write_cog_layout
+    rows, cols = profile["height"], profile["width"]
+    n_levels = len(overview_factors(rows, cols, blocksize))
+    compression = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
+    with contextlib.ExitStack() as stack:
+        if level1 is not None:
+            files = _levels_in_memory(level1, n_levels, profile, compression, blocksize)
+        else:
+            paths = [stack.enter_context(_scratch(target, f"ovr{k}.tif"))
+                     for k in range(n_levels)]
+            with _cache_env():
+                build_overviews(part, paths, blocksize, resampling, compression)
+            files = [stack.enter_context(open(p, "rb")) for p in paths]
+        with open(part, "rb") as src, open(final, "wb") as out:
+            levels = [(read_first_ifd(src), src)] + [(read_first_ifd(f), f) for f in files]
+            write_cog_layout(out, levels)
 
+
+def _cache_env():
+    """GDAL's block cache while writing: :data:`GDAL_CACHE_MB`, not 5 % of the machine."""
     import rasterio
-    with rasterio.open(part) as src:
-        root = ET.Element("VRTDataset", rasterXSize=str(src.width), rasterYSize=str(src.height))
-        if georeferenced and src.crs is not None:
-            ET.SubElement(root, "SRS").text = src.crs.to_wkt()
-            ET.SubElement(root, "GeoTransform").text = ", ".join(
-                repr(float(v)) for v in src.transform.to_gdal())
-        _metadata(root, src.tags(), None)
-        for i in range(1, src.count + 1):
-            band = ET.SubElement(root, "VRTRasterBand", band=str(i),
-                                 dataType=_GDAL_TYPES[src.dtypes[i - 1]])
-            _metadata(band, src.tags(i), None)
-            _metadata(band, src.tags(i, ns="IMAGERY"), "IMAGERY")
-            if src.descriptions[i - 1]:
-                ET.SubElement(band, "Description").text = src.descriptions[i - 1]
-            if src.nodata is not None:
-                ET.SubElement(band, "NoDataValue").text = repr(float(src.nodata))
-            ET.SubElement(band, "ColorInterp").text = src.colorinterp[i - 1].name
-            simple = ET.SubElement(band, "SimpleSource")
-            ET.SubElement(simple, "SourceFilename", relativeToVRT="0").text = \
-                os.path.abspath(part)
-            ET.SubElement(simple, "SourceBand").text = str(i)
-            for lv in levels:
-                ov = ET.SubElement(band, "Overview")
-                ET.SubElement(ov, "SourceFilename", relativeToVRT="0").text = \
-                    os.path.abspath(lv)
-                ET.SubElement(ov, "SourceBand").text = str(i)
-    return ET.tostring(root, encoding="unicode")
+    return rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
 
 
-#: GDAL's names of the numpy types an output may have
-_GDAL_TYPES = {"uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16",
-               "uint32": "UInt32", "int32": "Int32", "float32": "Float32",
-               "float64": "Float64", "uint64": "UInt64", "int64": "Int64"}
+def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression: dict,
+                      blocksize: int) -> list:
+    """The overview levels from the first one in memory, each reduced from the one above
+    and compressed by GDAL into a tiled GeoTIFF in memory (binary file objects)."""
+    import io
+
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.io import MemoryFile
+    ov_profile = {k: profile[k] for k in ("count", "dtype", "nodata", "interleave")
+                  if k in profile}
+    ov_profile.update(driver="GTiff", tiled=True, blockxsize=blocksize, blockysize=blocksize,
+                      **compression)
+    lv = level1.array
+    files = []
+    for k in range(n_levels):
+        if k:
+            nxt = np.empty((lv.shape[0], -(-lv.shape[1] // 2), -(-lv.shape[2] // 2)), lv.dtype)
+            _halve(lv, level1.fill, level1.use_nd, level1.average, level1.is_int, nxt)
+            lv = nxt
+        with MemoryFile() as mem, warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with mem.open(width=lv.shape[2], height=lv.shape[1], **ov_profile) as dst:
+                dst.write(lv)
+            files.append(io.BytesIO(mem.read()))
+    return files
 
 
-def _metadata(node, items: Mapping, domain: str | None) -> None:
-    import xml.etree.ElementTree as ET
-    if not items:
-        return
-    md = ET.SubElement(node, "Metadata", **({"domain": domain} if domain else {}))
-    for k, v in items.items():
-        ET.SubElement(md, "MDI", key=k).text = str(v)
-
-
-def _to_cog(part: str, final: str, target, georeferenced: bool, mask: bool, blocksize: int,
-            compress: str, overview_resampling: str) -> None:
-    """Lay ``part`` out as a COG at ``final``: overviews built here (:func:`build_overviews`)
-    and copied by GDAL's COG driver through a VRT; with a mask band, GDAL builds them."""
+def _to_cog(part: str, final: str, blocksize: int, compress: str,
+            overview_resampling: str) -> None:
+    """Lay ``part`` (an output with a mask band) out as a COG at ``final`` with GDAL's COG
+    driver, which builds the overviews of the bands and of the mask."""
     import rasterio
     from rasterio.shutil import copy as rio_copy
-    pred = {"PREDICTOR": "YES", "LEVEL": DEFLATE_LEVEL} if compress == "deflate" else {}
+    levels = {"deflate": DEFLATE_LEVEL, "zstd": ZSTD_LEVEL}
+    pred = ({"PREDICTOR": "YES", "LEVEL": levels[compress.lower()]}
+            if compress.lower() in levels else {})
     opts = dict(driver="COG", COMPRESS=compress.upper(), BLOCKSIZE=blocksize,
                 OVERVIEW_RESAMPLING=overview_resampling.upper(), BIGTIFF="IF_SAFER", **pred)
-    with contextlib.ExitStack() as stack:
-        source = part
-        if not mask:
-            with rasterio.open(part) as src:
-                factors = overview_factors(src.height, src.width, blocksize)
-            levels = [stack.enter_context(_scratch(target, f"ovr{f}.tif")) for f in factors]
-            with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):     # not 5 % of the machine
-                build_overviews(part, levels, blocksize, overview_resampling)
-            source = stack.enter_context(_scratch(target, "vrt"))
-            with open(source, "w") as f:
-                f.write(_vrt_with_overviews(part, levels, georeferenced))
-            opts["OVERVIEWS"] = "FORCE_USE_EXISTING"
-        with warnings.catch_warnings(), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            rio_copy(source, final, **opts)
+    with warnings.catch_warnings(), _cache_env():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        rio_copy(part, final, **opts)
 
 
 @contextlib.contextmanager

@@ -129,7 +129,8 @@ def rectify(args) -> int:
                     images=_ids(args.images), method=args.method, kernel=args.kernel,
                     tol=args.tolerance, tile=args.tile, products=products,
                     progress=_say(args),
-                    bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band)
+                    bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band,
+                    compress=args.compress)
     return 0
 
 

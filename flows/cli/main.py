@@ -218,6 +218,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--mask-band", action="store_true",
                    help="integer output: no nodata value, an internal mask band instead "
                         "(every value of the type stays data)")
+    s.add_argument("--compress", choices=("deflate", "zstd"), default="deflate",
+                   help="COG compression (default deflate, which every GDAL and TIFF reader "
+                        "opens); zstd compresses about 1.6x faster, but needs GDAL 2.3 or "
+                        "later built with ZSTD (rasterio's wheels and the usual GDAL builds)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:rectify"))
 
     s = sub.add_parser("mosaic", parents=common,
