@@ -147,3 +147,51 @@ def test_valid_rectangle_is_all_valid_and_greedy():
     assert m[rs, cs].all()
     assert (rs.start, cs.stop) == (5, 27)        # the invalid border rows/columns dropped
     assert valid_rectangle(np.zeros((5, 5), bool)) is None
+
+
+@pytest.mark.parametrize("shape", [(36, 128), (128, 128), (5, 40), (1, 9), (20, 3)])
+@pytest.mark.parametrize("sigma", [1.0, 3.0])
+def test_gaussian_is_scipys_gaussian_filter(shape, sigma):
+    from swathflow.mosaicking.match_kernels import gaussian
+    a = np.random.default_rng(5).normal(size=shape) * 40 + 300
+    want = ndimage.gaussian_filter(a, sigma)
+    assert np.abs(gaussian(a, sigma) - want).max() < 1e-12 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+def test_erode_is_scipys_binary_erosion(iterations):
+    from swathflow.mosaicking.match_kernels import erode
+    rng = np.random.default_rng(6)
+    m = ndimage.gaussian_filter(rng.normal(size=(60, 45)), 3) > -0.1
+    m[:, :2] = True
+    want = ndimage.binary_erosion(m, iterations=iterations, border_value=0)
+    np.testing.assert_array_equal(erode(m, iterations), want)
+
+
+def test_noise_texture_is_the_scipy_recipe():
+    """The compiled noise and texture figures of a block equal the numpy/scipy recipe they
+    replace (match_block's high-passed difference MAD; texture_measure's structure tensor)."""
+    from swathflow.mosaicking.match_kernels import noise_texture
+    rng = np.random.default_rng(7)
+    ref = ndimage.gaussian_filter(rng.normal(size=(36, 128)), 1.5) * 50 + 200
+    mov = 1.1 * ref + rng.normal(size=ref.shape) + 5
+    joint = np.ones(ref.shape, bool)
+    joint[:, :7] = False
+    inner = ndimage.binary_erosion(joint, iterations=3, border_value=0)
+    g = 1.1
+    diff = mov - g * ref
+    diff = diff - ndimage.gaussian_filter(np.where(inner, diff, np.median(diff[inner])), 3.0)
+    v = diff[inner]
+    want_noise = 1.4826 * np.median(np.abs(v - np.median(v))) / np.sqrt(2.0)
+    sm = ndimage.gaussian_filter(ref, 1.0)
+    gr, gc = np.gradient(sm)
+    m = ndimage.binary_erosion(joint, iterations=2)
+    j = np.array([[np.mean(gr[m] ** 2), np.mean(gr[m] * gc[m])],
+                  [np.mean(gr[m] * gc[m]), np.mean(gc[m] ** 2)]])
+    want_lam = np.linalg.eigvalsh(j)[0]
+    noise, lam = noise_texture(ref, mov, ref, g, inner, joint)
+    assert abs(noise - want_noise) < 1e-12 * want_noise
+    assert abs(lam - want_lam) < 1e-9 * abs(want_lam)
+    few = np.zeros(ref.shape, bool)
+    few[:3, :4] = True
+    assert np.isnan(noise_texture(ref, mov, ref, g, inner, few)[1])
