@@ -16,6 +16,7 @@ displaced by ``t_k``, the offset measured between ``i`` (ref) and ``j`` (mov) is
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,7 +114,22 @@ def _upsampled_dft(data, size, factor, offsets):
 
 
 def _taper(mask, edge: float = 6.0):
-    """Apodisation: the mask softened at its borders times a Tukey-like rectangle edge."""
+    """Apodisation: the mask softened at its borders times a Tukey-like rectangle edge
+    (for a mask valid everywhere, which phase_correlation mostly sees, it depends on the
+    shape alone: made once per shape)."""
+    if mask.all():
+        return _full_taper(mask.shape, float(edge))
+    return _make_taper(mask, edge)
+
+
+@functools.lru_cache(maxsize=64)
+def _full_taper(shape, edge: float):
+    t = _make_taper(np.ones(shape, bool), edge)
+    t.flags.writeable = False
+    return t
+
+
+def _make_taper(mask, edge: float):
     from swathflow.mosaicking.match_kernels import gaussian
     t = gaussian(mask.astype(float), edge / 2.0) * mask
     h, w = mask.shape
@@ -294,7 +310,8 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     if s is None:
         return BlockMatch(False, "too_small")
     finite = cost[np.isfinite(cost)]
-    contrast = (np.median(finite) - finite.min()) / max(np.median(finite), 1e-12)
+    med = np.median(finite)
+    contrast = (med - finite.min()) / max(med, 1e-12)
     if contrast < min_contrast:
         # a flat cost surface: nothing in the overlap pins the shift down
         return BlockMatch(False, "low_texture", integer=s)
