@@ -103,6 +103,8 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     layout = scan_inputs(paths, strips)
     if handles is not None:
         handles.keep_if_fits(layout.swings)
+        if match:
+            handles.prefetch(layout.swings, workers)
     n_sw = len(layout.swings)
     rep = _header(layout, per_image, mode, feather)
     off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
