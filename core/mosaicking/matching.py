@@ -108,9 +108,19 @@ def _upsampled_dft(data, size, factor, offsets):
     """Matrix-multiply DFT of ``data`` upsampled by ``factor`` on a ``size`` region
     starting at ``offsets`` (Guizar-Sicairos et al. 2008)."""
     for n_items, ups, off in list(zip(data.shape, size, offsets))[::-1]:
-        kernel = (np.arange(ups) - off)[:, None] * np.fft.fftfreq(n_items, factor)
-        data = np.tensordot(np.exp(-2j * np.pi * kernel), data, axes=(1, -1))
+        # exp(-2 pi i (k - off) f) = exp(-2 pi i k f) exp(2 pi i off f): the first factor
+        # depends on the sizes alone (made once), the second is one row of phases
+        f = np.fft.fftfreq(n_items, factor)
+        kernel = _dft_rows(ups, n_items, factor) * np.exp(2j * np.pi * off * f)
+        data = np.tensordot(kernel, data, axes=(1, -1))
     return data
+
+
+@functools.lru_cache(maxsize=64)
+def _dft_rows(ups: int, n_items: int, factor: int):
+    k = np.exp(-2j * np.pi * np.arange(ups)[:, None] * np.fft.fftfreq(n_items, factor))
+    k.flags.writeable = False
+    return k
 
 
 def _taper(mask, edge: float = 6.0):
