@@ -211,3 +211,23 @@ def test_upsampled_dft_is_the_matrix_dft(shape):
         want = np.tensordot(np.exp(-2j * np.pi * kern), want, axes=(1, -1))
     got = _upsampled_dft(data, (30, 30), 20, off)
     assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("min_valid", [1.0, 0.5])
+def test_decimate_is_the_valid_block_mean(min_valid):
+    """The overview's cells: the mean of their valid pixels where enough are valid (the
+    numpy recipe written out), the trailing partial cells dropped."""
+    from swathflow.mosaicking.coarse import decimate
+    rng = np.random.default_rng(8)
+    val = rng.normal(size=(40, 29)) * 30 + 100
+    ok = rng.random((40, 29)) > 0.2
+    f = 3
+    h, w = 39, 27
+    v = np.where(ok, val, 0.0)[:h, :w].reshape(13, f, 9, f)
+    n = ok[:h, :w].reshape(13, f, 9, f).sum(axis=(1, 3))
+    good = n >= min_valid * f * f
+    want = np.where(good, v.sum(axis=(1, 3)) / np.maximum(n, 1), 0.0)
+    got, got_good = decimate(val, ok, f, min_valid)
+    np.testing.assert_array_equal(got_good, good)
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+    assert decimate(val[:2], ok[:2], 3)[0].shape == (0, 0)

@@ -22,16 +22,13 @@ __all__ = ["decimate", "coarse_shift", "block_texture", "pick_blocks", "match_ov
 def decimate(val, ok, factor: int, min_valid: float = 1.0):
     """Block mean of ``val`` over ``factor x factor`` cells (valid pixels only) and the
     cells' validity (at least ``min_valid`` of their pixels valid). The trailing partial
-    row/column of cells is dropped."""
+    row/column of cells is dropped. Compiled (match_kernels.block_mean)."""
+    from swathflow.mosaicking.match_kernels import block_mean
     f = int(factor)
-    h, w = (val.shape[0] // f) * f, (val.shape[1] // f) * f
-    if h == 0 or w == 0:
+    if val.shape[0] < f or val.shape[1] < f:
         return np.zeros((0, 0)), np.zeros((0, 0), bool)
-    v = np.where(ok, val, 0.0)[:h, :w].reshape(h // f, f, w // f, f)
-    n = ok[:h, :w].reshape(h // f, f, w // f, f).sum(axis=(1, 3))
-    s = v.sum(axis=(1, 3))
-    good = n >= min_valid * f * f
-    return np.where(good, s / np.maximum(n, 1), 0.0), good
+    return block_mean(np.ascontiguousarray(val, float), np.ascontiguousarray(ok, bool), f,
+                      float(min_valid * f * f))
 
 
 def coarse_shift(ref, ref_ok, mov, mov_ok, max_shift: int, factor: int = 3,

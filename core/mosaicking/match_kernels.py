@@ -11,7 +11,7 @@ from numba import njit
 from swathflow.mosaicking.kernels import _b3  # the cubic B-spline, written once
 
 __all__ = ["mmgd_costs", "shift_block", "gauss_newton", "gaussian", "erode",
-           "noise_texture"]
+           "noise_texture", "block_mean"]
 
 
 @njit(cache=True, nogil=True)
@@ -475,3 +475,26 @@ def noise_texture(fill_r, fill_m, aligned, g, inner, joint):
             buf[k] = abs(buf[k] - m1)
         noise = 1.4826 * _median(buf, n) / np.sqrt(2.0)
     return noise, weakest_gradient(fill_r, joint)
+
+
+@njit(cache=True, nogil=True)
+def block_mean(val, ok, f, need):
+    """Mean of the valid pixels of ``val`` over each ``f x f`` cell (the trailing partial
+    row and column of cells dropped) and the cells with at least ``need`` valid pixels
+    (0 elsewhere): swathflow.mosaicking.coarse.decimate in one pass."""
+    h, w = val.shape[0] // f, val.shape[1] // f
+    out = np.zeros((h, w))
+    good = np.zeros((h, w), np.bool_)
+    for i in range(h):
+        for j in range(w):
+            s = 0.0
+            n = 0
+            for a in range(i * f, i * f + f):
+                for b in range(j * f, j * f + f):
+                    if ok[a, b]:
+                        s += val[a, b]
+                        n += 1
+            if n >= need:
+                good[i, j] = True
+                out[i, j] = s / max(n, 1)
+    return out, good
