@@ -231,3 +231,16 @@ def test_decimate_is_the_valid_block_mean(min_valid):
     np.testing.assert_array_equal(got_good, good)
     assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
     assert decimate(val[:2], ok[:2], 3)[0].shape == (0, 0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 300, 1151, 1152])
+def test_median_is_numpys_with_ties_and_equal_values(n):
+    """The in-place quickselect median equals np.median, with heavy ties, all values equal
+    and sorted input (where a Lomuto partition would otherwise degrade)."""
+    from swathflow.mosaicking.match_kernels import _median
+    rng = np.random.default_rng(n)
+    for x in (rng.normal(size=n) * 30, np.round(rng.normal(size=n) * 1.5), np.full(n, 3.0),
+              np.sort(np.round(rng.normal(size=n) * 10))):
+        a = x.copy()
+        assert _median(a, n) == np.median(x)
+        assert np.array_equal(np.sort(a), np.sort(x))

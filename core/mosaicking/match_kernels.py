@@ -17,32 +17,48 @@ __all__ = ["mmgd_costs", "shift_block", "gauss_newton", "gaussian", "erode",
 @njit(cache=True, nogil=True)
 def _select(a, lo, hi, k):
     """Move the ``k``-th smallest of ``a[lo:hi + 1]`` to ``a[k]``, smaller ones before it
-    and larger ones after (Hoare's quickselect, median-of-three pivot; in place)."""
+    and larger ones after (quickselect in place: median-of-three pivot, a branch-free
+    Lomuto partition: 6 against 15 us for 1152 random values with Hoare's, whose
+    comparisons the processor mispredicts half the time)."""
     while hi > lo:
         mid = (lo + hi) // 2
         if a[mid] < a[lo]:
             a[mid], a[lo] = a[lo], a[mid]
         if a[hi] < a[lo]:
             a[hi], a[lo] = a[lo], a[hi]
-        if a[hi] < a[mid]:
+        if a[mid] < a[hi]:
             a[hi], a[mid] = a[mid], a[hi]
-        pivot = a[mid]
-        i, j = lo, hi
-        while i <= j:
-            while a[i] < pivot:
-                i += 1
-            while a[j] > pivot:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
+        pivot = a[hi]                     # the median of the three
+        store = lo
+        for i in range(lo, hi):
+            v = a[i]
+            w = a[store]
+            c = v < pivot
+            a[i] = w if c else v
+            a[store] = v if c else w
+            store += 1 if c else 0
+        a[store], a[hi] = a[hi], a[store]
+        if k == store:
             return
+        if k < store:
+            hi = store - 1
+        elif store > lo:
+            lo = store + 1
+        else:
+            # the pivot is the smallest value left: its copies to the front in one more
+            # pass (many equal values, e.g. a flat area of integer data, would otherwise
+            # shrink the range by one a pass)
+            e = lo + 1
+            for i in range(lo + 1, hi + 1):
+                v = a[i]
+                w = a[e]
+                c = v <= pivot
+                a[i] = w if c else v
+                a[e] = v if c else w
+                e += 1 if c else 0
+            if k < e:
+                return
+            lo = e
 
 
 @njit(cache=True, nogil=True)
