@@ -152,7 +152,7 @@ def test_valid_rectangle_is_all_valid_and_greedy():
 @pytest.mark.parametrize("shape", [(36, 128), (128, 128), (5, 40), (1, 9), (20, 3)])
 @pytest.mark.parametrize("sigma", [1.0, 3.0])
 def test_gaussian_is_scipys_gaussian_filter(shape, sigma):
-    from swathflow.mosaicking.match_kernels import gaussian
+    from swathflow.mosaicking.block_kernels import gaussian
     a = np.random.default_rng(5).normal(size=shape) * 40 + 300
     want = ndimage.gaussian_filter(a, sigma)
     assert np.abs(gaussian(a, sigma) - want).max() < 1e-12 * np.abs(want).max()
@@ -160,7 +160,7 @@ def test_gaussian_is_scipys_gaussian_filter(shape, sigma):
 
 @pytest.mark.parametrize("iterations", [1, 2, 3])
 def test_erode_is_scipys_binary_erosion(iterations):
-    from swathflow.mosaicking.match_kernels import erode
+    from swathflow.mosaicking.block_kernels import erode
     rng = np.random.default_rng(6)
     m = ndimage.gaussian_filter(rng.normal(size=(60, 45)), 3) > -0.1
     m[:, :2] = True
@@ -171,7 +171,7 @@ def test_erode_is_scipys_binary_erosion(iterations):
 def test_noise_texture_is_the_scipy_recipe():
     """The compiled noise and texture figures of a block equal the numpy/scipy recipe they
     replace (match_block's high-passed difference MAD; texture_measure's structure tensor)."""
-    from swathflow.mosaicking.match_kernels import noise_texture
+    from swathflow.mosaicking.block_kernels import noise_texture
     rng = np.random.default_rng(7)
     ref = ndimage.gaussian_filter(rng.normal(size=(36, 128)), 1.5) * 50 + 200
     mov = 1.1 * ref + rng.normal(size=ref.shape) + 5

@@ -22,8 +22,8 @@ __all__ = ["decimate", "coarse_shift", "block_texture", "pick_blocks", "match_ov
 def decimate(val, ok, factor: int, min_valid: float = 1.0):
     """Block mean of ``val`` over ``factor x factor`` cells (valid pixels only) and the
     cells' validity (at least ``min_valid`` of their pixels valid). The trailing partial
-    row/column of cells is dropped. Compiled (match_kernels.block_mean)."""
-    from swathflow.mosaicking.match_kernels import block_mean
+    row/column of cells is dropped. Compiled (block_kernels.block_mean)."""
+    from swathflow.mosaicking.block_kernels import block_mean
     f = int(factor)
     if val.shape[0] < f or val.shape[1] < f:
         return np.zeros((0, 0)), np.zeros((0, 0), bool)

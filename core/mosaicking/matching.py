@@ -140,7 +140,7 @@ def _full_taper(shape, edge: float):
 
 
 def _make_taper(mask, edge: float):
-    from swathflow.mosaicking.match_kernels import gaussian
+    from swathflow.mosaicking.block_kernels import gaussian
     t = gaussian(mask.astype(float), edge / 2.0) * mask
     h, w = mask.shape
     for axis, n in ((0, h), (1, w)):
@@ -290,9 +290,9 @@ def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-
 def texture_measure(img, mask, noise: float) -> float:
     """Gradient in the weakest direction (structure tensor of the sigma=1 smoothed image)
     over ``noise``: small for flat areas and for one-directional texture (aperture problem).
-    Compiled (swathflow.mosaicking.match_kernels.weakest_gradient).
+    Compiled (swathflow.mosaicking.block_kernels.weakest_gradient).
     """
-    from swathflow.mosaicking.match_kernels import weakest_gradient
+    from swathflow.mosaicking.block_kernels import weakest_gradient
     lam = weakest_gradient(np.ascontiguousarray(img, float), np.ascontiguousarray(mask, bool))
     return _texture(lam, noise)
 
@@ -312,7 +312,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``).
     ``stride``: the integer search over every ``stride``-th row and column only (the
     sub-pixel steps use every pixel): for a small search around a known answer."""
-    from swathflow.mosaicking.match_kernels import erode, noise_texture
+    from swathflow.mosaicking.block_kernels import erode, noise_texture
     S = int(max_shift)
     h, w = ref.shape
     s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S,
