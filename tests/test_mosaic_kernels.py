@@ -147,3 +147,100 @@ def test_valid_rectangle_is_all_valid_and_greedy():
     assert m[rs, cs].all()
     assert (rs.start, cs.stop) == (5, 27)        # the invalid border rows/columns dropped
     assert valid_rectangle(np.zeros((5, 5), bool)) is None
+
+
+@pytest.mark.parametrize("shape", [(36, 128), (128, 128), (5, 40), (1, 9), (20, 3)])
+@pytest.mark.parametrize("sigma", [1.0, 3.0])
+def test_gaussian_is_scipys_gaussian_filter(shape, sigma):
+    from swathflow.mosaicking.block_kernels import gaussian
+    a = np.random.default_rng(5).normal(size=shape) * 40 + 300
+    want = ndimage.gaussian_filter(a, sigma)
+    assert np.abs(gaussian(a, sigma) - want).max() < 1e-12 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+def test_erode_is_scipys_binary_erosion(iterations):
+    from swathflow.mosaicking.block_kernels import erode
+    rng = np.random.default_rng(6)
+    m = ndimage.gaussian_filter(rng.normal(size=(60, 45)), 3) > -0.1
+    m[:, :2] = True
+    want = ndimage.binary_erosion(m, iterations=iterations, border_value=0)
+    np.testing.assert_array_equal(erode(m, iterations), want)
+
+
+def test_noise_texture_is_the_scipy_recipe():
+    """The compiled noise and texture figures of a block equal the numpy/scipy recipe they
+    replace (match_block's high-passed difference MAD; texture_measure's structure tensor)."""
+    from swathflow.mosaicking.block_kernels import noise_texture
+    rng = np.random.default_rng(7)
+    ref = ndimage.gaussian_filter(rng.normal(size=(36, 128)), 1.5) * 50 + 200
+    mov = 1.1 * ref + rng.normal(size=ref.shape) + 5
+    joint = np.ones(ref.shape, bool)
+    joint[:, :7] = False
+    inner = ndimage.binary_erosion(joint, iterations=3, border_value=0)
+    g = 1.1
+    diff = mov - g * ref
+    diff = diff - ndimage.gaussian_filter(np.where(inner, diff, np.median(diff[inner])), 3.0)
+    v = diff[inner]
+    want_noise = 1.4826 * np.median(np.abs(v - np.median(v))) / np.sqrt(2.0)
+    sm = ndimage.gaussian_filter(ref, 1.0)
+    gr, gc = np.gradient(sm)
+    m = ndimage.binary_erosion(joint, iterations=2)
+    j = np.array([[np.mean(gr[m] ** 2), np.mean(gr[m] * gc[m])],
+                  [np.mean(gr[m] * gc[m]), np.mean(gc[m] ** 2)]])
+    want_lam = np.linalg.eigvalsh(j)[0]
+    noise, lam = noise_texture(ref, mov, ref, g, inner, joint)
+    assert abs(noise - want_noise) < 1e-12 * want_noise
+    assert abs(lam - want_lam) < 1e-9 * abs(want_lam)
+    few = np.zeros(ref.shape, bool)
+    few[:3, :4] = True
+    assert np.isnan(noise_texture(ref, mov, ref, g, inner, few)[1])
+
+
+@pytest.mark.parametrize("shape", [(36, 128), (24, 44)])
+def test_upsampled_dft_is_the_matrix_dft(shape):
+    """The upsampled DFT (its size-only factor made once) equals the direct matrix DFT of
+    Guizar-Sicairos et al. at the requested offsets."""
+    from swathflow.mosaicking.matching import _upsampled_dft
+    rng = np.random.default_rng(2)
+    data = rng.normal(size=shape) + 1j * rng.normal(size=shape)
+    off = np.array([15.0, 15.0]) - np.array([0.35, -0.2]) * 20
+    want = data
+    for n, o in list(zip(data.shape, off))[::-1]:
+        kern = (np.arange(30) - o)[:, None] * np.fft.fftfreq(n, 20)
+        want = np.tensordot(np.exp(-2j * np.pi * kern), want, axes=(1, -1))
+    got = _upsampled_dft(data, (30, 30), 20, off)
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("min_valid", [1.0, 0.5])
+def test_decimate_is_the_valid_block_mean(min_valid):
+    """The overview's cells: the mean of their valid pixels where enough are valid (the
+    numpy recipe written out), the trailing partial cells dropped."""
+    from swathflow.mosaicking.coarse import decimate
+    rng = np.random.default_rng(8)
+    val = rng.normal(size=(40, 29)) * 30 + 100
+    ok = rng.random((40, 29)) > 0.2
+    f = 3
+    h, w = 39, 27
+    v = np.where(ok, val, 0.0)[:h, :w].reshape(13, f, 9, f)
+    n = ok[:h, :w].reshape(13, f, 9, f).sum(axis=(1, 3))
+    good = n >= min_valid * f * f
+    want = np.where(good, v.sum(axis=(1, 3)) / np.maximum(n, 1), 0.0)
+    got, got_good = decimate(val, ok, f, min_valid)
+    np.testing.assert_array_equal(got_good, good)
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+    assert decimate(val[:2], ok[:2], 3)[0].shape == (0, 0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 300, 1151, 1152])
+def test_median_is_numpys_with_ties_and_equal_values(n):
+    """The in-place quickselect median equals np.median, with heavy ties, all values equal
+    and sorted input (where a Lomuto partition would otherwise degrade)."""
+    from swathflow.mosaicking.match_kernels import _median
+    rng = np.random.default_rng(n)
+    for x in (rng.normal(size=n) * 30, np.round(rng.normal(size=n) * 1.5), np.full(n, 3.0),
+              np.sort(np.round(rng.normal(size=n) * 10))):
+        a = x.copy()
+        assert _median(a, n) == np.median(x)
+        assert np.array_equal(np.sort(a), np.sort(x))

@@ -213,8 +213,8 @@ def test_cli_anchor_gcp_needs_the_mission_and_calibration(shifted_scene, tmp_pat
 
 def test_decoded_swings_give_the_windows_gdal_reads(shifted_scene):
     """Windows sliced from the kept decoded swings (inside, across and outside a swing's
-    edges) are the values and validity of windowed reads; a store too small for the run
-    keeps nothing."""
+    edges) are the values and validity of windowed reads (decimated ones: every third pixel
+    of the window); a store too small for the run keeps nothing."""
     from swathflow.mosaicking.inputs import _Handles, read_window
     lay = M.scan_inputs(shifted_scene["paths"])
     kept, plain = M.swing_store(), _Handles()
@@ -228,6 +228,10 @@ def test_decoded_swings_give_the_windows_gdal_reads(shifted_scene):
                          sw.col + 3)):
                 a, b = read_window(kept, sw, *win), read_window(plain, sw, *win)
                 assert np.array_equal(a[1], b[1]) and np.array_equal(a[0], b[0])
+                # decimated: the pixels on the grid lattice of the window
+                d = read_window(kept, sw, *win, step=3)
+                assert np.array_equal(d[1], b[1][::3, ::3])
+                assert np.array_equal(d[0], b[0][::3, ::3])
         assert len(kept._whole) == 4
     finally:
         kept.close()

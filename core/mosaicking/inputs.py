@@ -215,6 +215,16 @@ class _Handles:
         if need > self.keep_bytes:
             self.keep_bytes = 0
 
+    def prefetch(self, swings, workers: int | None = None) -> None:
+        """Decode all of ``swings`` into the store now, on ``workers`` threads (GDAL
+        releases the GIL while it decodes), when they are kept (:meth:`keep_if_fits`)."""
+        if self.keep_bytes <= 0 or not swings:
+            return
+        from concurrent.futures import ThreadPoolExecutor
+        n = max(1, int(workers or os.cpu_count() or 1))
+        with ThreadPoolExecutor(n) as ex:
+            list(ex.map(self.whole, swings))
+
     def close(self):
         with self._lock:
             for ds in self._all:
@@ -248,12 +258,17 @@ def read_window(handles: _Handles, sw: Swing, r0: int, c0: int, r1: int, c1: int
         return val, ok
     from rasterio.windows import Window
     i0, j0 = (a0 - r0) // step, (b0 - c0) // step
-    whole = handles.whole(sw) if step == 1 else None
+    whole = handles.whole(sw)
     if whole is not None:
+        # a decimated window takes the pixels on the lattice (GDAL's decimated read picks
+        # the pixel nearest each output cell's centre instead)
         data, good = whole
-        rows, cols = slice(a0 - sw.row, a1 - sw.row), slice(b0 - sw.col, b1 - sw.col)
-        val[i0:i0 + a1 - a0, j0:j0 + b1 - b0] = np.where(good[rows, cols], data[rows, cols], 0)
-        ok[i0:i0 + a1 - a0, j0:j0 + b1 - b0] = good[rows, cols]
+        rows = slice(a0 - sw.row, a1 - sw.row, step)
+        cols = slice(b0 - sw.col, b1 - sw.col, step)
+        g = good[rows, cols]
+        hh, ww = g.shape
+        val[i0:i0 + hh, j0:j0 + ww] = np.where(g, data[rows, cols], 0)
+        ok[i0:i0 + hh, j0:j0 + ww] = g
         return val, ok
     ds = handles.get(sw.path)
     win = Window(b0 - sw.col, a0 - sw.row, b1 - b0, a1 - a0)

@@ -16,6 +16,7 @@ displaced by ``t_k``, the offset measured between ``i`` (ref) and ``j`` (mov) is
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,15 +108,40 @@ def _upsampled_dft(data, size, factor, offsets):
     """Matrix-multiply DFT of ``data`` upsampled by ``factor`` on a ``size`` region
     starting at ``offsets`` (Guizar-Sicairos et al. 2008)."""
     for n_items, ups, off in list(zip(data.shape, size, offsets))[::-1]:
-        kernel = (np.arange(ups) - off)[:, None] * np.fft.fftfreq(n_items, factor)
-        data = np.tensordot(np.exp(-2j * np.pi * kernel), data, axes=(1, -1))
+        # exp(-2 pi i (k - off) f) = exp(-2 pi i k f) exp(2 pi i off f): the first factor
+        # depends on the sizes alone (made once), the second is one row of phases
+        f = np.fft.fftfreq(n_items, factor)
+        kernel = _dft_rows(ups, n_items, factor) * np.exp(2j * np.pi * off * f)
+        data = np.tensordot(kernel, data, axes=(1, -1))
     return data
 
 
+@functools.lru_cache(maxsize=64)
+def _dft_rows(ups: int, n_items: int, factor: int):
+    k = np.exp(-2j * np.pi * np.arange(ups)[:, None] * np.fft.fftfreq(n_items, factor))
+    k.flags.writeable = False
+    return k
+
+
 def _taper(mask, edge: float = 6.0):
-    """Apodisation: the mask softened at its borders times a Tukey-like rectangle edge."""
-    from scipy import ndimage
-    t = ndimage.gaussian_filter(mask.astype(float), edge / 2.0) * mask
+    """Apodisation: the mask softened at its borders times a Tukey-like rectangle edge
+    (for a mask valid everywhere, which phase_correlation mostly sees, it depends on the
+    shape alone: made once per shape)."""
+    if mask.all():
+        return _full_taper(mask.shape, float(edge))
+    return _make_taper(mask, edge)
+
+
+@functools.lru_cache(maxsize=64)
+def _full_taper(shape, edge: float):
+    t = _make_taper(np.ones(shape, bool), edge)
+    t.flags.writeable = False
+    return t
+
+
+def _make_taper(mask, edge: float):
+    from swathflow.mosaicking.block_kernels import gaussian
+    t = gaussian(mask.astype(float), edge / 2.0) * mask
     h, w = mask.shape
     for axis, n in ((0, h), (1, w)):
         k = max(1, min(int(edge * 2), n // 4))
@@ -264,25 +290,19 @@ def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-
 def texture_measure(img, mask, noise: float) -> float:
     """Gradient in the weakest direction (structure tensor of the sigma=1 smoothed image)
     over ``noise``: small for flat areas and for one-directional texture (aperture problem).
+    Compiled (swathflow.mosaicking.block_kernels.weakest_gradient).
     """
-    from scipy import ndimage
-    sm = ndimage.gaussian_filter(np.asarray(img, float), 1.0)
-    gr, gc = np.gradient(sm)
-    m = ndimage.binary_erosion(mask, iterations=2) if mask.sum() > 100 else mask
-    if m.sum() < 16:
+    from swathflow.mosaicking.block_kernels import weakest_gradient
+    lam = weakest_gradient(np.ascontiguousarray(img, float), np.ascontiguousarray(mask, bool))
+    return _texture(lam, noise)
+
+
+def _texture(lam, noise) -> float:
+    """The texture figure from the structure tensor's smallest eigenvalue ``lam`` (NaN: too
+    few pixels) and the noise."""
+    if np.isnan(lam):
         return 0.0
-    j = np.array([[np.mean(gr[m] ** 2), np.mean(gr[m] * gc[m])],
-                  [np.mean(gr[m] * gc[m]), np.mean(gc[m] ** 2)]])
-    lam = float(np.linalg.eigvalsh(j)[0])
     return float(np.sqrt(max(lam, 0.0)) / max(noise, 1e-12))
-
-
-def _noise(diff_values) -> float:
-    """Robust per-image noise from the difference of two aligned images."""
-    v = np.asarray(diff_values, float)
-    if v.size == 0:
-        return np.inf
-    return float(1.4826 * np.median(np.abs(v - np.median(v))) / np.sqrt(2.0))
 
 
 def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1.0,
@@ -292,7 +312,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``).
     ``stride``: the integer search over every ``stride``-th row and column only (the
     sub-pixel steps use every pixel): for a small search around a known answer."""
-    from scipy import ndimage
+    from swathflow.mosaicking.block_kernels import erode, noise_texture
     S = int(max_shift)
     h, w = ref.shape
     s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S,
@@ -300,7 +320,8 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     if s is None:
         return BlockMatch(False, "too_small")
     finite = cost[np.isfinite(cost)]
-    contrast = (np.median(finite) - finite.min()) / max(np.median(finite), 1e-12)
+    med = np.median(finite)
+    contrast = (med - finite.min()) / max(med, 1e-12)
     if contrast < min_contrast:
         # a flat cost surface: nothing in the overlap pins the shift down
         return BlockMatch(False, "low_texture", integer=s)
@@ -309,7 +330,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     m = mov[S + s[0]:S + s[0] + h, S + s[1]:S + s[1] + w]
     m_ok = mov_ok[S + s[0]:S + s[0] + h, S + s[1]:S + s[1] + w]
     joint = ref_ok & m_ok
-    inner = ndimage.binary_erosion(joint, iterations=3, border_value=0)
+    inner = erode(joint, 3)
     if inner.sum() < min_pixels:
         return BlockMatch(False, "too_small", integer=s, n=int(inner.sum()))
     fill_r = np.where(ref_ok, ref, ref[ref_ok].mean())
@@ -321,11 +342,12 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     dres, sig, g, o, rms, aligned = _polish(fill_r, fill_m, inner, (pr, pc))
     if aligned is None:
         aligned = _shift(fill_r, dres)
-    # noise: the high-passed difference of the aligned images (slow radiometric trends out)
-    diff = fill_m - g * aligned
-    diff = diff - ndimage.gaussian_filter(np.where(inner, diff, np.median(diff[inner])), 3.0)
-    noise = max(_noise(diff[inner]), abs_floor * (np.ptp(ref[ref_ok]) + 1.0))
-    tex = texture_measure(fill_r, joint, noise)
+    # noise: the high-passed difference of the aligned images (slow radiometric trends
+    # out); texture: the structure tensor's weakest direction (compiled, one call)
+    noise, lam = noise_texture(fill_r, fill_m, np.ascontiguousarray(aligned), float(g), inner,
+                               joint)
+    noise = max(noise, abs_floor * (np.ptp(ref[ref_ok]) + 1.0))
+    tex = _texture(lam, noise)
     centre = (h / 2.0, w / 2.0)
     common = dict(integer=s, phase=(s[0] + pr, s[1] + pc), peak=peak, texture=tex,
                   n=int(inner.sum()), centre=centre)
