@@ -104,3 +104,10 @@ def warm() -> None:
     from swathflow.rectification.paint import paint_pixels, paint_window
     paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
     paint_pixels(np.zeros((2, 2, 2)), 0, 0, 4, 4)
+
+
+def dask_setup(worker=None) -> None:
+    """Dask's worker preload hook (``local_cluster(preload=("swathflow.tasks.swings",))``):
+    :func:`warm` while the worker starts, so a local cluster's workers are ready to
+    rectify when the flow begins (the flow waits for Prefect's server meanwhile)."""
+    warm()
