@@ -59,12 +59,14 @@ def dask_client(address: str | None = None, n_workers: int | None = None,
 
 
 @contextlib.contextmanager
-def local_cluster(n_workers: int | None = None):
+def local_cluster(n_workers: int | None = None, preload: tuple[str, ...] = ()):
     """A local Dask cluster sized to the machine (``n_workers`` single-threaded worker
-    processes; default one per core, at most 4), closed on exit."""
+    processes; default one per core, at most 4), closed on exit. ``preload``: modules
+    whose ``dask_setup(worker)`` each worker runs as it starts (Dask's worker preload)."""
     from distributed import LocalCluster
     n = n_workers or max(1, min(os.cpu_count() or 1, 4))
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+    extra = {"preload": list(preload)} if preload else {}
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, **extra,
                       # CRITICAL: a worker that outlives the scheduler by a heartbeat at
                       # shutdown logs a CommClosedError traceback after a successful run
                       # (task failures still reach the client as exceptions)

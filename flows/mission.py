@@ -55,16 +55,17 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         info = stages.ingest(mission)
         prog.finish("ingest")
         ids = info["images"]
-        prog.start("interpolate-pos")
-        eo = stages.interpolate_pos(mission, out)
-        prog.finish("interpolate-pos")
         prog.start("calibrate")
         cal = stages.calibrate(mission, out, calibration)
         prog.finish("calibrate")
+        # the workers rectify while this process writes the POS products (no swing needs
+        # them; the mission check already found the POS covering every line)
         prog.start("rectify", len(ids))
-        rectified = rectify_swings(client, mission, ids, cal, out,
-                                   lambda done: prog.update("rectify", done, len(ids)),
-                                   loaded=stages._load(mission))
+        futures = submit_swings(client, mission, ids, cal, out, loaded=stages._load(mission))
+        prog.start("interpolate-pos")
+        eo = stages.interpolate_pos(mission, out)
+        prog.finish("interpolate-pos")
+        rectified = gather_swings(futures, lambda done: prog.update("rectify", done, len(ids)))
         prog.finish("rectify", len(ids))
         del warm
         prog.start("mosaic")
@@ -79,24 +80,29 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
 
 
-def rectify_swings(client, mission: str, ids: list, calibration: str, out: str,
-                   progress=None, loaded=None) -> list[str]:
-    """Every swing rectified by the Dask workers, several per Dask task
+def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
+                  loaded=None) -> list:
+    """Every swing handed to the Dask workers, several per Dask task
     (:func:`swathflow.tasks.swings.rectify_batch`: at most :data:`BATCH` swings, at least
     four tasks per worker so the workers finish together; a lost worker's task is run
     again by Dask on another, a failed one retried once, its finished swings kept).
     ``loaded``: the client's loaded Mission, handed once to every worker's memo (no task
     depends on it: a worker started later loads and validates the mission itself). The
-    paths in ``ids`` order."""
-    from distributed import as_completed
+    futures, in ``ids`` order (:func:`gather_swings` waits for them)."""
     ids = list(ids)
     n_workers = max(len(client.scheduler_info()["workers"]), 1)
     size = max(1, min(BATCH, math.ceil(len(ids) / (4 * n_workers))))
     batches = [ids[k:k + size] for k in range(0, len(ids), size)]
     if loaded is not None:
         client.run(swings.remember, mission, loaded, on_error="ignore")  # a lost worker loads it
-    futures = client.map(swings.rectify_batch, batches, mission_path=mission,
-                         calibration=calibration, out_dir=out, pure=False, retries=1)
+    return client.map(swings.rectify_batch, batches, mission_path=mission,
+                      calibration=calibration, out_dir=out, pure=False, retries=1)
+
+
+def gather_swings(futures, progress=None) -> list[str]:
+    """The rectified swings' paths of :func:`submit_swings`'s futures, in order;
+    ``progress(done)`` is told the number of swings finished as batches finish."""
+    from distributed import as_completed
     done = 0
     for f in as_completed(futures):
         done += len(f.result())
@@ -115,14 +121,15 @@ def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs
     if hit is not None:
         return hit
     fresh.forget(out)
-    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
-    try:
-        ctx = temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None})
-    except Exception:  # older settings objects reject None: keep the default
-        ctx = contextlib.nullcontext()
-    with ctx, _started(mission, dask_address, cluster, workers) as address:
-        result = mission_flow(str(mission), str(out), calibration, address,
-                              "local" if address else cluster, jobs, workers)
+    from prefect.settings import (PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY,
+                                  temporary_settings)
+    with _started(mission, dask_address, cluster, workers) as (address, api_url):
+        settings = {PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}
+        if api_url:
+            settings[PREFECT_API_URL] = api_url
+        with temporary_settings(settings):
+            result = mission_flow(str(mission), str(out), calibration, address,
+                                  "local" if address else cluster, jobs, workers)
     fresh.record(mission, out, calibration, result)
     return result
 
@@ -134,27 +141,120 @@ def _quietly(fn, *args) -> None:
         pass
 
 
+#: this process's temporary Prefect server: {"process": Popen, "url": API url}
+_SERVER: dict = {}
+
+
+def _server_command(port: int) -> list[str]:
+    """The command line Prefect's own ``SubprocessASGIServer`` runs its temporary server
+    with (prefect 3.8), for ``port``."""
+    import sys
+
+    import prefect
+    return [sys.executable, "-m", "uvicorn", "--app-dir", str(prefect.__module_path__.parent),
+            "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1",
+            "--port", str(port), "--log-level", "error", "--lifespan", "on"]
+
+
+def _free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _launch_server() -> None:
+    """Start Prefect's temporary server as Prefect's ``SubprocessASGIServer`` does (same
+    command, same environment), without importing the server's code in this process
+    (about 3 CPU-s that the flow never uses); stopped when this process exits, like
+    Prefect's. Returns at once; :func:`_server_ready` waits for it."""
+    import atexit
+    import subprocess
+
+    from prefect.settings import get_current_settings
+    proc = _SERVER.get("process")
+    if proc is not None and proc.poll() is None:
+        return
+    port = _free_port()
+    env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
+           "PREFECT__SERVER_FINAL": "1",
+           **get_current_settings().to_environment_variables(exclude_unset=True)}
+    _SERVER.update(process=subprocess.Popen(_server_command(port), env=env),
+                   url=f"http://127.0.0.1:{port}/api", env=env, ready=False)
+    if not _SERVER.get("atexit"):
+        atexit.register(_stop_server)
+        _SERVER["atexit"] = True
+
+
+def _server_ready() -> str:
+    """Wait until the temporary server answers its health check (a port taken meanwhile:
+    started again on another, as Prefect does); its API url."""
+    import subprocess
+    import time
+    import urllib.error
+    import urllib.request
+
+    from prefect.settings import PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS
+    limit = time.monotonic() + float(PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS.value())
+    while not _SERVER.get("ready"):
+        proc = _SERVER["process"]
+        if proc.poll() == 3:                        # uvicorn: the port is taken
+            port = _free_port()
+            _SERVER.update(process=subprocess.Popen(_server_command(port), env=_SERVER["env"]),
+                           url=f"http://127.0.0.1:{port}/api")
+            continue
+        if proc.poll() is not None:
+            raise RuntimeError(f"Prefect's temporary server exited with code "
+                               f"{proc.returncode} before it was ready")
+        if time.monotonic() > limit:
+            raise RuntimeError("timed out while waiting for Prefect's temporary server")
+        try:
+            with urllib.request.urlopen(_SERVER["url"] + "/health", timeout=2) as r:
+                _SERVER["ready"] = r.status == 200
+        except (OSError, urllib.error.URLError):
+            pass
+        if not _SERVER.get("ready"):
+            time.sleep(0.05)
+    return _SERVER["url"]
+
+
+def _stop_server() -> None:
+    import subprocess
+    proc = _SERVER.pop("process", None)
+    _SERVER["ready"] = False
+    if proc is None or proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 @contextlib.contextmanager
 def _started(mission, dask_address, cluster, workers):
-    """Prefect's temporary server (when no server is configured), the local Dask cluster
-    (when no other is asked for) and the mission's loading, started side by side: each
-    mostly waits on its own processes, so together they take about the longest of them
-    rather than their sum. Yields the Dask scheduler's address for the flow (None: the
-    flow connects as asked). Anything failing here is left to the flow to report."""
+    """Prefect's temporary server (when no server is configured: started first, it takes
+    longest), the local Dask cluster (when no other is asked for) and the mission's
+    loading, side by side: each mostly waits on its own processes, so together they take
+    about the longest of them rather than their sum. Yields the Dask scheduler's address
+    for the flow (None: the flow connects as asked) and the temporary server's API url
+    (None: Prefect's configured one). A failure here other than the server's is left to
+    the flow to report."""
     import threading
 
     from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
-    jobs = [(swings.load, str(Path(mission).resolve()))]
-    if not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value():
-        from prefect.server.api.server import SubprocessASGIServer
-        jobs.append((SubprocessASGIServer().start,))
-    threads = [threading.Thread(target=_quietly, args=j, daemon=True) for j in jobs]
-    for t in threads:
-        t.start()
+    own_server = not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value()
+    if own_server:
+        _launch_server()
+    loader = threading.Thread(target=_quietly, args=(swings.load, str(Path(mission).resolve())),
+                              daemon=True)
+    loader.start()
     with contextlib.ExitStack() as stack:
         address = dask_address
         if not dask_address and cluster == "local":
-            address = stack.enter_context(local_cluster(workers)).scheduler_address
-        for t in threads:
-            t.join()
-        yield address
+            address = stack.enter_context(
+                local_cluster(workers, preload=(swings.__name__,))).scheduler_address
+        url = _server_ready() if own_server else None
+        loader.join()
+        yield address, url

@@ -1,0 +1,54 @@
+"""The flow's start-up: ``run()`` starts Prefect's temporary server itself (Prefect's own
+command, without importing the server's code in the calling process), the flow is a real
+Prefect flow run recorded by that server, and the server ends with the process."""
+import json
+import os
+import subprocess
+import sys
+
+_SCRIPT = """
+import asyncio, json, sys
+from swathflow.flows import mission as fm
+result = fm.run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=1)
+server_code = "prefect.server.api.server" in sys.modules
+from prefect.client.orchestration import get_client
+from prefect.settings import PREFECT_API_URL, temporary_settings
+
+async def recorded():
+    async with get_client() as client:
+        flows = await client.read_flow_runs()
+        tasks = await client.read_task_runs()
+        names = {f.id: (await client.read_flow(f.flow_id)).name for f in flows}
+        return ([(names[f.id], f.state.type.value) for f in flows],
+                [(t.name, t.state.type.value) for t in tasks])
+
+with temporary_settings({PREFECT_API_URL: fm._SERVER["url"]}):
+    flows, tasks = asyncio.run(recorded())
+print("RESULT " + json.dumps({"server_code": server_code, "flows": flows, "tasks": tasks,
+                              "pid": fm._SERVER["process"].pid,
+                              "mosaic": result["mosaic"]}))
+"""
+
+
+def test_run_is_a_prefect_flow_run_on_its_own_temporary_server(tiny_mission, tmp_path):
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
+    env.pop("PREFECT_API_URL", None)
+    cal = str(tiny_mission / "truth" / "calibration.json")
+    r = subprocess.run([sys.executable, "-c", _SCRIPT, str(tiny_mission), str(tmp_path / "out"),
+                        cal], capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    doc = json.loads(r.stdout.split("RESULT ", 1)[1])
+    assert not doc["server_code"], "the calling process imported Prefect's server code"
+    assert doc["flows"] == [["swathflow-mission", "COMPLETED"]]
+    stages = {name.rsplit("-", 1)[0] for name, _ in doc["tasks"]}
+    assert {"ingest", "calibrate", "interpolate-pos", "mosaic", "catalog"} <= stages, stages
+    assert {state for _, state in doc["tasks"]} == {"COMPLETED"}
+    assert os.path.exists(doc["mosaic"])
+    # the temporary server ended with the process that started it
+    try:
+        os.kill(doc["pid"], 0)
+    except ProcessLookupError:
+        pass
+    else:
+        with open(f"/proc/{doc['pid']}/stat") as f:       # only a zombie may remain
+            assert f.read().split(") ", 1)[1].startswith("Z"), "the server outlived its run"
