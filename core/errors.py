@@ -1,6 +1,12 @@
 """Exceptions raised for bad input: each names the file or key and the fix."""
 
 
+class SwathflowWarning(UserWarning):
+    """Base class of swathflow's own warnings for a user (mission, plugins, formats): the
+    command line prints them as one plain line each (defined here so that it can tell them
+    apart without importing the modules that raise them)."""
+
+
 class SwathflowError(Exception):
     """Base class for problems a user can fix (never a programming error)."""
 

@@ -11,7 +11,7 @@ from functools import lru_cache
 from importlib.metadata import entry_points
 
 from swathflow.entrypoints import discover
-from swathflow.errors import SwathflowError
+from swathflow.errors import SwathflowError, SwathflowWarning
 
 from swathflow.sensors.base import SensorModel
 
@@ -22,7 +22,7 @@ BUILTINS = {
 }
 
 
-class SensorPluginWarning(UserWarning):
+class SensorPluginWarning(SwathflowWarning):
     """A sensor plugin could not be registered."""
 
 

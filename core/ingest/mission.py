@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from swathflow.errors import SwathflowError
+from swathflow.errors import SwathflowError, SwathflowWarning
 from swathflow.formats.pos import Trajectory
 from swathflow.geometry.terrain import Terrain
 
@@ -223,7 +223,7 @@ class Mission:
 # ------------------------------------------------------------------------------------------
 # public entry points
 
-class MissionWarning(UserWarning):
+class MissionWarning(SwathflowWarning):
     """Something in a mission that loads but deserves a look (a POS gap, an unknown key)."""
 
 

@@ -17,7 +17,7 @@ from functools import lru_cache
 from importlib.metadata import entry_points
 
 from swathflow.entrypoints import discover
-from swathflow.errors import FormatError
+from swathflow.errors import FormatError, SwathflowWarning
 
 GROUP = "swathflow.pos_formats"
 _PKG = __name__.rpartition(".")[0]
@@ -47,7 +47,7 @@ class PosFormat:
     description: str = ""
 
 
-class PosFormatWarning(UserWarning):
+class PosFormatWarning(SwathflowWarning):
     """A navigation-format plugin could not be registered."""
 
 
