@@ -33,9 +33,16 @@ def pos_from(time, table, max_gap, t, k, out):
     nearby one, e.g. the image line's: a random binary search costs more than a whole
     ray). False where ``t`` is outside the trajectory or inside a gap longer than
     ``max_gap`` (the numpy path then reports it)."""
+    return pos_epoch(time, table, max_gap, t, k, out) >= 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def pos_epoch(time, table, max_gap, t, k, out):
+    """:func:`pos_from` that returns the epoch interpolated from (``t`` lies between it
+    and the next one), or -1 where :func:`pos_from` is False."""
     n = time.shape[0]
     if not (t >= time[0] and t <= time[n - 1]):
-        return False
+        return -1
     k = min(max(k, 0), n - 2)
     while k > 0 and time[k] > t:
         k -= 1
@@ -43,12 +50,12 @@ def pos_from(time, table, max_gap, t, k, out):
         k += 1
     gap = time[k + 1] - time[k]
     if gap > max_gap:
-        return False
+        return -1
     w = (t - time[k]) / gap
     for c in range(8):
         a = table[k, c]
         out[c] = a + (table[k + 1, c] - a) * w
-    return True
+    return k
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")

@@ -10,7 +10,8 @@ import math
 import numpy as np
 from numba import njit
 
-from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
+from swathflow.geometry.navkernel import (body_to_ecef, line_at, nav_trig, pos_epoch,
+                                          pos_from)
 from swathflow.geometry.planesolve import bracket_one
 
 DEG = math.pi / 180.0
@@ -67,20 +68,9 @@ def _camera_of(line, g, geo, trig, cam, pos):
     i = min(int(line), n - 2)
     w = line - i
     t = cols[i, 0] * (1 - w) + cols[i + 1, 0] * w
-    m = time.shape[0]
-    if not (t >= time[0] and t <= time[m - 1]):
+    k = pos_epoch(time, table, max_gap, t, line_epoch[i], pos)
+    if k < 0:
         return False
-    k = min(max(line_epoch[i], 0), m - 2)
-    while k > 0 and time[k] > t:
-        k -= 1
-    while k < m - 2 and time[k + 1] <= t:
-        k += 1
-    gap = time[k + 1] - time[k]
-    if gap > max_gap:
-        return False
-    wk = (t - time[k]) / gap
-    for c in range(8):
-        pos[c] = table[k, c] + (table[k + 1, c] - table[k, c]) * wk
     x, y, z = g[0] - pos[0], g[1] - pos[1], g[2] - pos[2]
     kt = k - k0                    # in the table (the epochs the lines span), or -1
     if kt >= pos_trig.shape[0]:
