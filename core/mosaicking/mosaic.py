@@ -100,7 +100,7 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     arguments as :func:`mosaic`; ``handles``: a :func:`swing_store` shared with
     :func:`finish_mosaic`)."""
     t0 = time.perf_counter()
-    load_kernels()
+    load_kernels(matching=match)
     layout = scan_inputs(paths, strips)
     if handles is not None:
         handles.keep_if_fits(layout.swings)
@@ -150,19 +150,21 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
     return rep
 
 
-def load_kernels() -> None:
-    """Load the mosaic's compiled kernels (numba's start and its cache) with the
-    collector off: numba makes some 100 000 objects as it starts, all of which live to
-    the end, and the collector's passes over them while they are made cost 0.15-0.2
-    CPU-s (48-swing benchmark, load 13). The collector's state is restored after."""
+def load_kernels(matching: bool = False) -> None:
+    """Load the mosaic's compiled kernels (numba's start and its cache: the blend's, and
+    with ``matching`` the matching's) with the collector off: numba makes some 100 000
+    objects as it starts, all of which live to the end, and the collector's passes over
+    them while they are made cost 0.15-0.2 CPU-s (48-swing benchmark, load 13). The
+    collector's state is restored after."""
     import gc
     on = gc.isenabled()
     gc.disable()
     try:
-        from swathflow.mosaicking import kernels  # noqa: F401
-        from swathflow.mosaicking import match_kernels  # noqa: F401
-        from swathflow.mosaicking.block_kernels import erode
-        erode(np.ones((2, 2), bool), 1)     # numba's first call: its typing and targets
+        from swathflow.mosaicking import kernels
+        if matching:
+            from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
+        z = np.zeros((1, 1), np.float32)
+        kernels.normalise(z, z)             # numba's first call: its typing and targets
     finally:
         if on:
             gc.enable()
