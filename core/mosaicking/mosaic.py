@@ -46,7 +46,7 @@ __all__ = ["Swing", "Layout", "scan_inputs", "find_overlaps", "match_pair", "sol
            "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP",
            "TAG_DIRECTION", "Network", "read_window", "swing_cache", "plan", "_active_client",
            "network_report", "match_all", "plan_mosaic", "finish_mosaic",
-           "mosaic_array", "swing_store"]
+           "mosaic_array", "swing_store", "load_kernels"]
 
 
 def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
@@ -100,6 +100,7 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     arguments as :func:`mosaic`; ``handles``: a :func:`swing_store` shared with
     :func:`finish_mosaic`)."""
     t0 = time.perf_counter()
+    load_kernels(matching=match)
     layout = scan_inputs(paths, strips)
     if handles is not None:
         handles.keep_if_fits(layout.swings)
@@ -135,6 +136,7 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
     matching, if any."""
     import rasterio
     t0 = time.perf_counter() if t0 is None else t0
+    load_kernels()
     layout, off, rad, rep = planned
     rep = dict(rep)
     with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
@@ -146,6 +148,26 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
     if report:
         write_text(os.path.splitext(os.fspath(out))[0] + ".json", json.dumps(rep, indent=1))
     return rep
+
+
+def load_kernels(matching: bool = False) -> None:
+    """Load the mosaic's compiled kernels (numba's start and its cache: the blend's, and
+    with ``matching`` the matching's) with the collector off: numba makes some 100 000
+    objects as it starts, all of which live to the end, and the collector's passes over
+    them while they are made cost 0.15-0.2 CPU-s (48-swing benchmark, load 13). The
+    collector's state is restored after."""
+    import gc
+    on = gc.isenabled()
+    gc.disable()
+    try:
+        from swathflow.mosaicking import kernels
+        if matching:
+            from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
+        z = np.zeros((1, 1), np.float32)
+        kernels.normalise(z, z)             # numba's first call: its typing and targets
+    finally:
+        if on:
+            gc.enable()
 
 
 def _header(layout: Layout, per_image, mode, feather) -> dict:

@@ -1,8 +1,9 @@
 """Writing the mosaic: tiles blended from the corrected swings on threads (compiled kernels
-that release the GIL), streamed into a tiled GeoTIFF (in memory when small), converted to a
-COG with overviews; the PNG quicklook."""
+that release the GIL), streamed into a tiled GeoTIFF that GDAL compresses tile by tile, laid
+out as a COG with overviews by the rectification's writer; the PNG quicklook."""
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -117,10 +118,12 @@ def _to_dtype(block, dtype, nodata):
     return out
 
 
-def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers):
+def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers,
+                level1=None):
     """Render ``tiles`` (r0, c0, r1, c1) on ``workers`` threads (the kernels release the
-    GIL) and write each into ``ds`` as it is done; at most two tiles per thread are in
-    flight, so memory is bounded by the threads, not by the mosaic."""
+    GIL) and write each into ``ds`` as it is done (and into ``level1``, the first overview
+    level, when given); at most two tiles per thread are in flight, so memory is bounded by
+    the threads, not by the mosaic."""
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
     from rasterio.windows import Window
     lock = threading.Lock()
@@ -129,6 +132,8 @@ def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers)
         r0, c0, r1, c1 = t
         v, _ = render_tile(layout, r0, c0, r1, c1, offsets, cache, mode)
         out = _to_dtype(v, dtype, nodata)
+        if level1 is not None:
+            level1.add((slice(r0, r1), slice(c0, c1)), out)
         with lock:
             ds.write(out, 1, window=Window(c0, r0, c1 - c0, r1 - r0))
 
@@ -158,15 +163,18 @@ def _tile_order(layout: Layout, tile: int):
     return [(r, c, min(H, r + tile), min(W, c + tile)) for r, c in order]
 
 
-def _stage_path(final, nbytes, cog, limit=256 * 2 ** 20):
-    """Where the tiles are written before the COG copy: in memory (GDAL /vsimem) when the
-    mosaic is small, else an uncompressed file beside the output; the output itself
-    without ``cog``."""
-    if not cog:
-        return final
-    if nbytes <= limit:
-        return f"/vsimem/swathflow-mosaic-{os.getpid()}-{threading.get_ident()}.tif"
-    return final + ".stage.tif"
+def _first_level(H, W, tile, blocksize, dtype, nodata):
+    """The first overview level reduced in memory as the tiles arrive
+    (:class:`swathflow.rectification.writing._Level1`), when the COG has overviews, the
+    tiles start on even rows and columns and the level fits in
+    :data:`~swathflow.rectification.writing.LEVEL1_RAM_BYTES`; else None (the overviews
+    are then built from the streamed file)."""
+    from swathflow.rectification import writing
+    if tile % 2 or not writing.overview_factors(H, W, blocksize):
+        return None
+    if -(-H // 2) * -(-W // 2) * dtype.itemsize > writing.LEVEL1_RAM_BYTES:
+        return None
+    return writing._Level1(1, H, W, dtype, nodata, "average")
 
 
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
@@ -176,10 +184,17 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     """Render the mosaic tile by tile on ``workers`` threads into ``out`` (a COG with
     overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles and the
     swing cache. ``handles``: the :class:`_Handles` to read the swings through (its own
-    if None)."""
+    if None).
+
+    The COG is written as the rectification's (:mod:`swathflow.rectification.writing`):
+    GDAL compresses each tile once as it is streamed (DEFLATE level 1 with the
+    predictor), the first overview level is reduced here as the tiles arrive, and
+    :func:`~swathflow.rectification.writing._layout_cog` copies the compressed tiles into
+    the COG layout (no second decompression and compression through GDAL's COG driver).
+    """
     import rasterio
-    from rasterio.shutil import copy as rio_copy
-    from rasterio.shutil import delete as rio_delete
+
+    from swathflow.rectification import writing
     dtypes = {s.dtype for s in layout.swings}
     if dtype is None:
         dtype = "float32" if len(dtypes) != 1 or next(iter(dtypes)).startswith("float") \
@@ -198,32 +213,22 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     tiles = _tile_order(layout, tile)
     profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=dtype.name,
                    crs=layout.crs, transform=layout.transform, nodata=nodata, tiled=True,
-                   blockxsize=blocksize, blockysize=blocksize, BIGTIFF="IF_SAFER")
-    if not cog:
-        profile["compress"] = "deflate"
+                   blockxsize=blocksize, blockysize=blocksize, BIGTIFF="IF_SAFER",
+                   interleave="band", **writing._compression("deflate", dtype))
+    level1 = _first_level(H, W, tile, blocksize, dtype, nodata) if cog else None
     n = max(1, int(workers or os.cpu_count() or 1))
     t0 = time.perf_counter()
     out = os.fspath(out)
     try:
-        with atomic_path(out, suffix=".tif") as final:
-            tmp = _stage_path(final, H * W * dtype.itemsize, cog)
-            try:
-                with rasterio.open(tmp, "w", **profile) as ds:
-                    _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n)
-                    ds.update_tags(product="mosaic", blend=mode, software="swathflow")
-                t_render = time.perf_counter() - t0
-                if cog:
-                    with rasterio.Env(GDAL_NUM_THREADS=str(n)):
-                        # deflate level 1 with the predictor: a third less CPU than
-                        # the default level 6, 1.5 % larger (48-swing benchmark)
-                        rio_copy(tmp, final, driver="COG", COMPRESS="DEFLATE", LEVEL="1",
-                                 BLOCKSIZE=blocksize, OVERVIEW_RESAMPLING="AVERAGE",
-                                 PREDICTOR="YES", BIGTIFF="IF_SAFER", NUM_THREADS=str(n))
-            finally:
-                if cog and tmp.startswith("/vsimem/"):
-                    rio_delete(tmp)
-                elif cog and os.path.exists(tmp):
-                    os.remove(tmp)
+        with atomic_path(out, suffix=".tif") as final, contextlib.ExitStack() as stack:
+            part = stack.enter_context(writing._scratch(out, "part.tif")) if cog else final
+            with rasterio.open(part, "w", **profile) as ds:
+                _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n,
+                            level1)
+                ds.update_tags(product="mosaic", blend=mode, software="swathflow")
+            t_render = time.perf_counter() - t0
+            if cog:
+                writing._layout_cog(part, final, out, level1, profile, blocksize, "average")
     finally:
         if own:
             handles.close()

@@ -2,6 +2,7 @@
 workers when there is one), then the network solution: :func:`plan`."""
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 
@@ -156,15 +157,18 @@ def _active_client():
         return None
 
 
-def _match_batch(layout: Layout, batch, max_shift, block, min_texture, handles=None):
+def _match_batch(layout: Layout, batch, max_shift, block, min_texture, handles=None,
+                 limit: bool = True):
     """Match a list of overlaps ``(i, j, win)`` with one set of open files (``handles``,
-    else its own) and one BLAS thread (BLAS threads on top of the matching's own
-    parallelism cost 5x on 2 cores)."""
+    else its own) and, with ``limit``, one BLAS thread (BLAS threads on top of the
+    matching's own parallelism cost 5x on 2 cores; the local threads of :func:`match_all`
+    are limited once around all of them instead: a limit entered and left per batch on
+    concurrent threads restores the BLAS threads of one batch while another still runs)."""
     from threadpoolctl import threadpool_limits
     own = handles is None
     handles = handles or _Handles()
     try:
-        with threadpool_limits(1):
+        with threadpool_limits(1) if limit else contextlib.nullcontext():
             return [match_pair(layout, i, j, win, handles, max_shift, block, 16, min_texture)
                     for i, j, win in batch]
     finally:
@@ -190,9 +194,10 @@ def match_all(layout: Layout, pairs, max_shift: int = 12, block: int = 128,
                                  pure=False) for b in batches]
         done = client.gather(futures)
     else:
-        with ThreadPoolExecutor(n) as ex:
+        from threadpoolctl import threadpool_limits
+        with threadpool_limits(1), ThreadPoolExecutor(n) as ex:
             done = list(ex.map(lambda b: _match_batch(layout, b, max_shift, block,
-                                                      min_texture, handles), batches))
+                                                      min_texture, handles, False), batches))
     return [m for part in done for m in part]
 
 

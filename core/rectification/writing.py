@@ -24,11 +24,14 @@ import os
 import tempfile
 import warnings
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
-from swathflow.geometry.grid import Grid
 from swathflow.io import atomic_path
+
+if TYPE_CHECKING:   # an annotation only: the mosaic's writer does not import pyproj for it
+    from swathflow.geometry.grid import Grid
 
 #: GDAL block cache while writing (MB): GDAL's default is 5 % of the machine's memory
 GDAL_CACHE_MB = 256
