@@ -48,7 +48,8 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     mission = str(Path(mission).resolve())
     out = str(Path(out).resolve())
     with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs,
-                                            n_workers=workers) as client:
+                                            n_workers=workers) as client, \
+            _task_stream(client, prog):
         warm = [client.submit(swings.warm, workers=[w], pure=False)
                 for w in client.scheduler_info()["workers"]]
         prog.start("ingest")
@@ -78,6 +79,36 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     return {"mission": info["name"], "eo": eo, "calibration": cal,
             "report": report if os.path.exists(report) else None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
+
+
+#: environment variable naming a JSON file for the run's timeline (:func:`_task_stream`)
+TASK_STREAM = "SWATHFLOW_TASK_STREAM"
+
+
+@contextlib.contextmanager
+def _task_stream(client, prog):
+    """With ``SWATHFLOW_TASK_STREAM=path`` set: the run's timeline written to ``path``
+    (JSON): every Dask task's compute span per worker (Dask's task stream) and every
+    stage's span, in wall-clock seconds, to see whether the workers idle
+    (``benchmarks/bench_flow.py --timeline``). Otherwise nothing."""
+    path = os.environ.get(TASK_STREAM)
+    if not path:
+        yield
+        return
+    import json
+    import time
+
+    from distributed import get_task_stream
+
+    from swathflow.io import write_text
+    t0 = time.time()
+    with get_task_stream(client) as ts:
+        yield
+    tasks = [{"worker": t.get("worker"), "key": str(t.get("key")),
+              "start": s["start"], "stop": s["stop"]}
+             for t in ts.data for s in t.get("startstops", ()) if s.get("action") == "compute"]
+    write_text(path, json.dumps({"flow_start": t0, "stages": prog.spans, "tasks": tasks,
+                                 "workers": sorted(client.scheduler_info()["workers"])}))
 
 
 def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
