@@ -114,20 +114,32 @@ def _task_stream(client, prog):
 def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
                   loaded=None) -> list:
     """Every swing handed to the Dask workers, several per Dask task
-    (:func:`swathflow.tasks.swings.rectify_batch`: at most :data:`BATCH` swings, at least
-    four tasks per worker so the workers finish together; a lost worker's task is run
+    (:func:`swathflow.tasks.swings.rectify_batch`, :func:`swing_batches`: at most
+    :data:`BATCH` swings, smaller and smaller towards the end so the workers finish
+    together; a lost worker's task is run
     again by Dask on another, a failed one retried once, its finished swings kept).
     ``loaded``: the client's loaded Mission, handed once to every worker's memo (no task
     depends on it: a worker started later loads and validates the mission itself). The
     futures, in ``ids`` order (:func:`gather_swings` waits for them)."""
-    ids = list(ids)
-    n_workers = max(len(client.scheduler_info()["workers"]), 1)
-    size = max(1, min(BATCH, math.ceil(len(ids) / (4 * n_workers))))
-    batches = [ids[k:k + size] for k in range(0, len(ids), size)]
+    batches = swing_batches(list(ids), max(len(client.scheduler_info()["workers"]), 1))
     if loaded is not None:
         client.run(swings.remember, mission, loaded, on_error="ignore")  # a lost worker loads it
     return client.map(swings.rectify_batch, batches, mission_path=mission,
                       calibration=calibration, out_dir=out, pure=False, retries=1)
+
+
+def swing_batches(ids: list, n_workers: int) -> list[list]:
+    """``ids`` cut into the rectify stage's tasks, in order, each at most :data:`BATCH`
+    swings and about a quarter of the remaining swings per worker (guided scheduling): the
+    first tasks large (little overhead), the last ones single swings, so no worker waits
+    long for the others at the end of the stage (Dask starts tasks in submission order).
+    With equal batches of 16, a worker of the survey idled one batch's time at the end."""
+    batches, k = [], 0
+    while k < len(ids):
+        size = max(1, min(BATCH, math.ceil((len(ids) - k) / (4 * n_workers))))
+        batches.append(ids[k:k + size])
+        k += size
+    return batches
 
 
 def gather_swings(futures, progress=None) -> list[str]:
