@@ -142,8 +142,8 @@ def raster_check(path) -> tuple[int, int, int, str]:
 def _tiff_blocks_end(src) -> int | None:
     """The byte where the last image block of an open GeoTIFF ends (from its block
     offsets and sizes, without decompressing anything), or None when GDAL does not say."""
-    bands = range(1, src.count + 1) if src.count > 1 and src.interleave is not None \
-        and src.interleave.name == "BAND" else (1,)
+    pixel = str(getattr(src.interleaving, "name", "")).upper() == "PIXEL"
+    bands = (1,) if pixel else range(1, src.count + 1)   # pixel-interleaved: shared blocks
     bh, bw = src.block_shapes[0]
     end = 0
     for b in bands:
