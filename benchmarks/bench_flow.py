@@ -5,7 +5,9 @@ optionally, the same stage functions called directly (no Prefect, no Dask).
 
 Reproduce:  python benchmarks/bench_flow.py --preset survey --workers 1,2
             (also --preset demo, area; --direct adds the direct in-process run, --fixed
-            the flow's fixed cost: every stage's output fresh, only the run manifest gone)
+            the flow's fixed cost: every stage's output fresh, only the run manifest gone;
+            --timeline: each run's timeline, stages and Dask tasks per worker, with the
+            workers' idle time)
 The mission is simulated once into --work (default: a temporary folder); the truth
 calibration is passed so every run does the same work (ingest, POS, rectify, mosaic).
 CPU seconds are the run's process and its reaped children (the Dask workers).
@@ -26,11 +28,12 @@ from pathlib import Path
 # as `swathflow run` does it: the inputs checked (the mission loaded once, memoised for
 # the flow), then the flow; with the number of Dask workers the command line leaves to
 # the machine (one per core)
-_RUN = ("import json, sys\nfrom swathflow.flows.guard import check_run_inputs\n"
+_RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
+        "from swathflow.flows.guard import check_run_inputs\n"
         "from swathflow.flows.mission import run\n"
         "check_run_inputs(sys.argv[1], sys.argv[3])\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
-        "print('TIMINGS', json.dumps(r['timings']))\n")
+        "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
 
 
 def _children_cpu() -> float:
@@ -59,6 +62,9 @@ def main(argv=None) -> int:
                     help="also the flow's fixed cost: the run again with every stage's "
                          "output fresh but the run manifest removed (Prefect, Dask, the "
                          "mission, every freshness check)")
+    ap.add_argument("--timeline", action="store_true",
+                    help="also each run's timeline: when each stage ran (from the process's "
+                         "start) and how busy each Dask worker was (the flow's task stream)")
     ap.add_argument("--per-swing", type=int, metavar="N",
                     help="only the rectify stage's CPU per swing in this process (N swings, "
                          "sync scheduler): run it with main's interpreter beside this one "
@@ -80,8 +86,14 @@ def main(argv=None) -> int:
         out = work / f"out-flow-{n}"
         shutil.rmtree(out, ignore_errors=True)
         load0 = os.getloadavg()[0]
+        timeline = work / f"timeline-{n}.json"
+        if args.timeline:
+            os.environ["SWATHFLOW_TASK_STREAM"] = str(timeline)
         wall, cpu, text = _timed([sys.executable, "-c", _RUN, str(mission), str(out), cal,
                                   str(n)])
+        os.environ.pop("SWATHFLOW_TASK_STREAM", None)
+        if args.timeline:
+            _print_timeline(n, timeline, float(text.split("T0", 1)[1].split()[0]), wall)
         stages = json.loads(text.split("TIMINGS", 1)[1])
         r_wall, r_cpu, r_text = _timed([cli, "run", str(mission), "--out", str(out),
                                         "--calibration", cal])
@@ -116,8 +128,34 @@ def main(argv=None) -> int:
         print(f"  direct (stage functions in one process, no Prefect/Dask): {direct:.1f} s")
     print(f"reproduce: python benchmarks/bench_flow.py --preset {args.preset} "
           f"--workers {args.workers}" + (" --direct" if args.direct else "")
-          + (" --fixed" if args.fixed else ""))
+          + (" --fixed" if args.fixed else "") + (" --timeline" if args.timeline else ""))
     return 0
+
+
+def _print_timeline(n: int, path: Path, t0: float, wall: float) -> None:
+    """The run's timeline (``SWATHFLOW_TASK_STREAM``, see flows/mission.py): each stage's
+    span from the process's start, and each worker's busy share of the rectify stage with
+    its idle gaps longer than 0.5 s."""
+    doc = json.loads(path.read_text())
+    print(f"timeline, {n} worker(s) (s from the process's start; run {wall:.1f} s): "
+          f"flow's cluster up at {doc['flow_start'] - t0:.1f}")
+    for name, (a, b) in doc["stages"].items():
+        print(f"  {name:>16} {a - t0:7.1f} -> {b - t0:7.1f}  ({b - a:6.1f} s)")
+    a, b = doc["stages"].get("rectify", (t0, t0 + wall))
+    for w in doc["workers"]:
+        spans = sorted((t["start"], t["stop"]) for t in doc["tasks"] if t["worker"] == w
+                       and a <= t["start"] <= b)
+        busy = sum(s1 - s0 for s0, s1 in spans)
+        gaps, last = [], a
+        for s0, s1 in spans:
+            if s0 - last > 0.5:
+                gaps.append(f"{last - t0:.1f}+{s0 - last:.1f}")
+            last = max(last, s1)
+        if b - last > 0.5:
+            gaps.append(f"{last - t0:.1f}+{b - last:.1f}")
+        print(f"  worker {w}: {len(spans)} tasks, busy {busy:.1f} s of the rectify stage's "
+              f"{b - a:.1f} ({busy / max(b - a, 1e-9):.0%}); idle gaps > 0.5 s (at+for): "
+              + (", ".join(gaps) or "none"))
 
 
 def _per_swing(mission, cal, n: int) -> int:

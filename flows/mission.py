@@ -48,7 +48,8 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     mission = str(Path(mission).resolve())
     out = str(Path(out).resolve())
     with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs,
-                                            n_workers=workers) as client:
+                                            n_workers=workers) as client, \
+            _task_stream(client, prog):
         warm = [client.submit(swings.warm, workers=[w], pure=False)
                 for w in client.scheduler_info()["workers"]]
         prog.start("ingest")
@@ -80,23 +81,65 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
 
 
+#: environment variable naming a JSON file for the run's timeline (:func:`_task_stream`)
+TASK_STREAM = "SWATHFLOW_TASK_STREAM"
+
+
+@contextlib.contextmanager
+def _task_stream(client, prog):
+    """With ``SWATHFLOW_TASK_STREAM=path`` set: the run's timeline written to ``path``
+    (JSON): every Dask task's compute span per worker (Dask's task stream) and every
+    stage's span, in wall-clock seconds, to see whether the workers idle
+    (``benchmarks/bench_flow.py --timeline``). Otherwise nothing."""
+    path = os.environ.get(TASK_STREAM)
+    if not path:
+        yield
+        return
+    import json
+    import time
+
+    from distributed import get_task_stream
+
+    from swathflow.io import write_text
+    t0 = time.time()
+    with get_task_stream(client) as ts:
+        yield
+    tasks = [{"worker": t.get("worker"), "key": str(t.get("key")),
+              "start": s["start"], "stop": s["stop"]}
+             for t in ts.data for s in t.get("startstops", ()) if s.get("action") == "compute"]
+    write_text(path, json.dumps({"flow_start": t0, "stages": prog.spans, "tasks": tasks,
+                                 "workers": sorted(client.scheduler_info()["workers"])}))
+
+
 def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
                   loaded=None) -> list:
     """Every swing handed to the Dask workers, several per Dask task
-    (:func:`swathflow.tasks.swings.rectify_batch`: at most :data:`BATCH` swings, at least
-    four tasks per worker so the workers finish together; a lost worker's task is run
+    (:func:`swathflow.tasks.swings.rectify_batch`, :func:`swing_batches`: at most
+    :data:`BATCH` swings, smaller and smaller towards the end so the workers finish
+    together; a lost worker's task is run
     again by Dask on another, a failed one retried once, its finished swings kept).
     ``loaded``: the client's loaded Mission, handed once to every worker's memo (no task
     depends on it: a worker started later loads and validates the mission itself). The
     futures, in ``ids`` order (:func:`gather_swings` waits for them)."""
-    ids = list(ids)
-    n_workers = max(len(client.scheduler_info()["workers"]), 1)
-    size = max(1, min(BATCH, math.ceil(len(ids) / (4 * n_workers))))
-    batches = [ids[k:k + size] for k in range(0, len(ids), size)]
+    batches = swing_batches(list(ids), max(len(client.scheduler_info()["workers"]), 1))
     if loaded is not None:
         client.run(swings.remember, mission, loaded, on_error="ignore")  # a lost worker loads it
     return client.map(swings.rectify_batch, batches, mission_path=mission,
                       calibration=calibration, out_dir=out, pure=False, retries=1)
+
+
+def swing_batches(ids: list, n_workers: int) -> list[list]:
+    """``ids`` cut into the rectify stage's tasks, in order, each at most :data:`BATCH`
+    swings and about a quarter of the remaining swings per worker (guided scheduling): the
+    first tasks large (little overhead), the last ones single swings, so no worker waits
+    long for the others at the end of the stage (Dask starts tasks in submission order).
+    With equal batches of 16, a worker of the survey idled one batch's time at the end."""
+    batches, k = [], 0
+    while k < len(ids):
+        size = max(1, min(BATCH, math.ceil((len(ids) - k) / (4 * n_workers))))
+        batches.append(ids[k:k + size])
+        k += size
+    return batches
 
 
 def gather_swings(futures, progress=None) -> list[str]:

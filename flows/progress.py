@@ -40,6 +40,8 @@ class Progress:
                           MofNCompleteColumn(), TimeElapsedColumn(), console=self.console,
                           disable=not self.bars)
         self.timings: dict[str, float] = {}
+        #: each stage's (start, end) in wall-clock seconds (``time.time()``)
+        self.spans: dict[str, list[float]] = {}
         self._t0: dict[str, float] = {}
         self._ids: dict[str, int] = {}
 
@@ -52,6 +54,7 @@ class Progress:
 
     def start(self, stage: str, total: int = 1) -> None:
         self._t0[stage] = time.perf_counter()
+        self.spans[stage] = [time.time(), float("nan")]
         self._ids[stage] = self._bars.add_task(stage, total=max(int(total), 1))
         if self.lines:
             self.console.print(f"{stage}: started ({total})", highlight=False)
@@ -62,6 +65,7 @@ class Progress:
 
     def finish(self, stage: str, total: int = 1) -> None:
         self.timings[stage] = time.perf_counter() - self._t0.get(stage, time.perf_counter())
+        self.spans.setdefault(stage, [time.time(), 0.0])[1] = time.time()
         self.update(stage, total, total)
         if self.lines:
             self.console.print(f"{stage}: done in {self.timings[stage]:.1f} s", highlight=False)

@@ -182,6 +182,8 @@ def catalog(mission_path: str, rectified: list[str], mosaic_path: str | None, ca
         rectified, mos, out.parent, calibration=cal, report=report if report.exists() else None,
         mosaic_report=html if html and html.exists() else (mos.with_suffix(".json") if mos else None),
         quicklook=mos.with_suffix(".png") if mos else None, title=f"swathflow run of {m.name}",
-        catalog_id=f"swathflow-{m.name}", acquired=acquired)
+        catalog_id=f"swathflow-{m.name}", acquired=acquired,
+        facts={Path(p).stem: f for p in rectified
+               if (f := swings.recorded_facts(p)) is not None})
     mark_done(out, key)
     return path

@@ -78,8 +78,38 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
     t0 = time.perf_counter()
     to_cog(rectified(mission, image_id, calibration, bands=mission_bands(mission, image_id),
                      dtype=None), out)
-    mark_done(out, key, seconds=round(time.perf_counter() - t0, 3))
+    seconds = round(time.perf_counter() - t0, 3)
+    mark_done(out, key, seconds=seconds, **catalog_facts(out))
     return str(out)
+
+
+def catalog_facts(path) -> dict:
+    """What the run's STAC catalogue says of the swing just written to ``path`` (its
+    footprint traced here, in the worker that wrote it, while the file is in the page
+    cache: the catalogue stage would otherwise open and trace every swing again, one after
+    the other, at the end of the run), with the file's stamp: ``{"stac": facts,
+    "stac_stamp": [size, mtime_ns]}`` for the swing's stage manifest
+    (:func:`recorded_facts` reads it back)."""
+    from swathflow.formats.stac import raster_facts
+    st = Path(path).stat()
+    return {"stac": raster_facts(path), "stac_stamp": [st.st_size, st.st_mtime_ns]}
+
+
+def recorded_facts(path) -> dict | None:
+    """The catalogue facts :func:`catalog_facts` recorded for ``path``, when the file is
+    still the one they describe (same size and modification time); else None."""
+    import json
+
+    from swathflow.cache import manifest_path
+    try:
+        with open(manifest_path(path), encoding="utf-8") as f:
+            doc = json.load(f)
+        st = Path(path).stat()
+        if doc.get("stac_stamp") == [st.st_size, st.st_mtime_ns]:
+            return doc["stac"]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return None
 
 
 def rectify_batch(image_ids, mission_path: str, calibration: str,
@@ -98,6 +128,11 @@ def warm() -> None:
     """Import the rectification engine and load its compiled kernels (from numba's
     cache) in a worker while the client does the first stages."""
     import numpy as np
+
+    import pystac.extensions.raster  # noqa: F401  (catalog_facts, after each swing)
+    import rasterio.features  # noqa: F401
+    import rasterio.warp  # noqa: F401
+    import shapely  # noqa: F401
 
     import swathflow.rectification.api  # noqa: F401
     import swathflow.rectification.kernel  # noqa: F401

@@ -96,6 +96,15 @@ def test_truncated_envi_refused(tmp_path, capsys):
     _bad(capsys, mm, "L1", "truncated")
 
 
+def test_truncated_geotiff_refused(m, capsys):
+    """A raw GeoTIFF cut short (a copy that stopped) is refused by the mission check, the
+    file named: its image blocks end beyond the file."""
+    p = m / "images" / "L1.tif"
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) - 200])
+    _bad(capsys, m, "L1.tif", "truncated")
+
+
 def test_multiband_image_warned(m, capsys):
     p = m / "images" / "L1.tif"
     with rasterio.open(p) as src:

@@ -2,6 +2,7 @@
 every declared extension validated against its JSON schema held offline
 (tests/data/stac-schemas, see tests/stac_schemas.py), pystac's extension classes reading
 back the fields, and footprints against the known valid-data polygon of synthetic COGs."""
+import datetime as dt
 import json
 import socket
 from pathlib import Path
@@ -172,3 +173,34 @@ def test_extension_schemas_reject_wrong_fields(tmp_path, offline, where, key, ba
         d["assets"]["data"][f"{where}:bands"][0][key] = bad
     with pytest.raises(jsonschema.ValidationError):
         validate_extensions(d)
+
+
+def test_facts_recorded_with_a_swing_describe_it_until_it_changes(tmp_path, offline):
+    """The flow's rectify task records each swing's catalogue facts (footprint traced as
+    the swing is written) in its stage manifest; the catalogue uses them, with the truth
+    footprint, only while the file is the one they describe."""
+    from swathflow.cache import mark_done
+    from swathflow.tasks.swings import catalog_facts, recorded_facts
+    (tmp_path / "r").mkdir()
+    corners = _rotated(300, 200, 520, 140, 25)
+    path = tmp_path / "r" / "L1.tif"
+    _write_swing(path, corners, tags={"image_id": "L1"})
+    mark_done(path, "key", **catalog_facts(path))
+    facts = recorded_facts(path)
+    assert facts is not None
+    when = dt.datetime(2026, 5, 1, tzinfo=dt.UTC)
+    cat = write_catalog([path], None, tmp_path / "stac", facts={"L1": facts}, acquired=when)
+    item = next(pystac.Catalog.from_file(cat).get_items())
+    validate_dict(item.to_dict(), extensions=[])
+    validate_extensions(item.to_dict())
+    assert _iou(shape(item.geometry), _truth_lonlat(corners)) > 0.98
+    assert item.properties["swathflow:image_id"] == "L1"
+    again = write_catalog([path], None, tmp_path / "stac2", acquired=when)   # from the file
+    read = next(pystac.Catalog.from_file(again).get_items()).to_dict()
+    given = item.to_dict()
+    for d in (read, given):
+        d["properties"].pop("created")
+        d.pop("links")
+    assert read == given
+    _write_swing(path, _rotated(300, 200, 400, 100, -10))     # the swing rewritten
+    assert recorded_facts(path) is None

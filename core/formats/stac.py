@@ -95,25 +95,40 @@ def _wavelengths(src, given) -> list | None:
     return found
 
 
-def _item(path: str, item_id: str, when: dt.datetime, level: str, lineage: str,
-          wavelengths=None, properties: Mapping | None = None):
-    import pystac
+def raster_facts(path) -> dict:
+    """What a catalogue item says of a COG, read from the file (JSON-ready): its valid-data
+    footprint (:func:`valid_footprint`) and tracing resolution, the projection fields, the
+    raster bands, the band wavelengths (band tags), the band count and the product tags.
+    The flow's rectify task records them with each swing as it is written
+    (:func:`swathflow.tasks.swings.rectify_swing`), so the catalogue need not read the
+    swings again."""
     import rasterio
+    with rasterio.open(os.fspath(path)) as src:
+        geom, res = valid_footprint(src)
+        return {"geometry": geom, "resolution": res, "proj": _proj(src),
+                "bands": [b.to_dict() for b in _raster_bands(src)],
+                "wavelengths": _wavelengths(src, None), "count": src.count,
+                "tags": {k: v for k, v in src.tags().items()
+                         if k in ("image_id", "strip", "direction", "mission", "sensor")}}
+
+
+def _item(path: str, item_id: str, when: dt.datetime, level: str, lineage: str,
+          wavelengths=None, properties: Mapping | None = None, facts: Mapping | None = None):
+    import pystac
     from pystac.extensions.eo import Band, EOExtension
     from pystac.extensions.projection import ProjectionExtension
-    from pystac.extensions.raster import RasterExtension
+    from pystac.extensions.raster import RasterBand, RasterExtension
     from swathflow._version import __version__
-    with rasterio.open(path) as src:
-        geom, res = valid_footprint(src)
-        proj, bands = _proj(src), _raster_bands(src)
-        waves, count = _wavelengths(src, wavelengths), src.count
-        tags = src.tags()
+    facts = facts or raster_facts(path)
+    geom, res, proj = facts["geometry"], facts["resolution"], dict(facts["proj"])
+    bands = [RasterBand(dict(b)) for b in facts["bands"]]
+    waves = [float(w) for w in wavelengths] if wavelengths is not None else facts["wavelengths"]
+    count = facts["count"]
     props = {"processing:software": {"swathflow": __version__}, "processing:level": level,
              "processing:lineage": lineage,
              "created": dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z"),
              "swathflow:footprint_resolution": res}
-    props.update({f"swathflow:{k}": v for k, v in tags.items()
-                  if k in ("image_id", "strip", "direction", "mission", "sensor")})
+    props.update({f"swathflow:{k}": v for k, v in facts["tags"].items()})
     props.update(properties or {})
     item = pystac.Item(item_id, geom, _bbox(geom), when, props)
     item.stac_extensions.append(PROCESSING_SCHEMA)
@@ -151,7 +166,7 @@ def _swap_in(tmp: str, out: str) -> None:
 def write_catalog(rectified: Sequence, mosaic=None, out="stac", *, calibration=None,
                   report=None, mosaic_report=None, quicklook=None, title: str = "swathflow run",
                   catalog_id: str = "swathflow", acquired: dt.datetime | None = None,
-                  wavelengths: Mapping | None = None) -> str:
+                  wavelengths: Mapping | None = None, facts: Mapping | None = None) -> str:
     """Write a self-contained STAC catalogue of a run's products into the folder ``out``
     and return the path of its ``catalog.json``.
 
@@ -160,7 +175,8 @@ def write_catalog(rectified: Sequence, mosaic=None, out="stac", *, calibration=N
     (JSON or HTML) and ``quicklook`` (PNG): assets of the mosaic item. ``acquired``: the
     acquisition time (the mission format has no date: default the processing time).
     ``wavelengths``: item id -> band centre wavelengths in micrometres (default: band tags
-    ``wavelength``).
+    ``wavelength``). ``facts``: item id -> :func:`raster_facts` of that product, already
+    known (the flow's rectify task records them); the others are read from the files.
     """
     import pystac
     when = acquired or dt.datetime.now(dt.UTC)
@@ -170,17 +186,19 @@ def write_catalog(rectified: Sequence, mosaic=None, out="stac", *, calibration=N
     catalog = pystac.Catalog(catalog_id, f"Products of {title}: rectified swings and mosaic",
                              title=title)
     wavelengths = wavelengths or {}
+    facts = facts or {}
     for path in rectified:
         iid = os.path.splitext(os.path.basename(os.fspath(path)))[0]
         item = _item(os.fspath(path), iid, when, "orthorectified swing",
                      "one swing orthorectified onto the terrain with the per-direction "
-                     "calibration", wavelengths.get(iid))
+                     "calibration", wavelengths.get(iid), facts=facts.get(iid))
         _side_assets(item, cal_assets)
         catalog.add_item(item)
     if mosaic is not None:
         item = _item(os.fspath(mosaic), "mosaic", when, "mosaic",
                      f"{len(rectified)} rectified swings strip-matched and blended",
-                     wavelengths.get("mosaic"), {"swathflow:swings": len(rectified)})
+                     wavelengths.get("mosaic"), {"swathflow:swings": len(rectified)},
+                     facts=facts.get("mosaic"))
         _side_assets(item, {**cal_assets,
                             "mosaic-report": (mosaic_report, _media(mosaic_report),
                                               "mosaic report"),
