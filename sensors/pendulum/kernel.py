@@ -10,8 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from swathflow.geometry.navkernel import (body_to_ecef, line_at, nav_trig, pos_epoch,
-                                          pos_from)
+from swathflow.geometry.navkernel import body_to_ecef, line_at, pos_epoch
 from swathflow.geometry.planesolve import bracket_one
 
 DEG = math.pi / 180.0
@@ -73,7 +72,7 @@ def _camera_of(line, g, geo, trig, cam, pos):
         return False
     x, y, z = g[0] - pos[0], g[1] - pos[1], g[2] - pos[2]
     kt = k - k0                    # in the table (the epochs the lines span), or -1
-    if kt >= pos_trig.shape[0]:
+    if kt < 0 or kt >= pos_trig.shape[0]:
         kt = -1
     sl, cl = _epoch_sin_cos(table, pos, pos_trig, k, kt, 3)
     so, co = _epoch_sin_cos(table, pos, pos_trig, k, kt, 4)
@@ -198,35 +197,88 @@ def _secant(g, j, fj, fj1, nvec, geo, trig, tol, max_iter, cam, pos):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2,
-                    pos, out):
-    """The root inside line ``[a, a+1]`` whose times hold one POS epoch ``k`` (a kink of
-    the condition): one exact evaluation at the epoch's fractional line picks the smooth
-    side with the sign change, :func:`_chord_solve` solves there. NaN where the line
-    holds no single epoch, or that solve is rough (the caller solves exactly)."""
+def _dot(cam, nvec):
+    return cam[0] * nvec[0] + cam[1] * nvec[1] + cam[2] * nvec[2]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _piece_end(e, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam, pos):
+    """End ``e`` of the pieces of line ``[a, a+1]`` (0: line a, ``m + 1``: line a + 1,
+    else epoch ``k1 + e - 1``): its fractional line and condition, its camera vector into
+    ``cam`` (an integer line's from its frame); NaN where the POS cannot be
+    interpolated."""
+    if e == 0 or e == m + 1:
+        _frame_vector(r_es, c, a + (e > 0), g, cam)
+        return float(a + (e > 0)), (fa if e == 0 else fb)
     cols, time = geo[0], geo[1]
-    k = trig[2][a] + 1
+    x = a + (time[k1 + e - 1] - cols[a, 0]) / (cols[a + 1, 0] - cols[a, 0])
+    if not _camera_of(x, g, geo, trig, cam, pos):
+        return x, math.nan
+    return x, _dot(cam, nvec)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _split_at_epochs(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2,
+                     pos, out):
+    """The root inside line ``[a, a+1]`` whose times hold POS epochs (a kink of the
+    condition at each): the line's ends and the epochs' fractional lines cut it into
+    pieces on which the condition is smooth. The piece under the secant guess is looked
+    at first (exact evaluations at its epoch ends; an integer end is the line's frame),
+    then its neighbours towards the sign change, until one holds it; there
+    :func:`_chord_solve` solves. One epoch (30 % of the demo's lines): one evaluation at
+    the epoch picks the side, as before; three epochs a line (the survey: a 50 Hz POS,
+    16 lines a second): two or three, where the secant needed five or more. NaN where the
+    line holds no epoch, or that solve is rough (the caller solves exactly)."""
+    cols, time = geo[0], geo[1]
+    nt = time.shape[0]
     t0, t1 = cols[a, 0], cols[a + 1, 0]
-    if not (k + 1 < time.shape[0] and time[k] > t0 and time[k] < t1) or (
-            k + 2 < time.shape[0] and time[k + 1] < t1):
+    k1 = trig[2][a] + 1                 # the first epoch after line a's time
+    if not (k1 >= 1 and k1 + 1 < nt and time[k1] > t0 and time[k1] < t1):
         return math.nan
-    le = a + (time[k] - t0) / (t1 - t0)
-    if not (le > a and le < a + 1):
-        return math.nan
-    if not _camera_of(le, g, geo, trig, cam2, pos):
-        return math.nan
-    fe = cam2[0] * nvec[0] + cam2[1] * nvec[1] + cam2[2] * nvec[2]
-    if fe == 0.0:
-        for q in range(3):
-            out[q] = cam2[q]
-        return le
-    if _sgn(fe) == _sgn(fa):            # the root is after the epoch
-        _frame_vector(r_es, c, a + 1, g, cam0)
-        return _chord_solve(g, le, fe, cam2, a + 1.0, fb, cam0, nvec, geo, trig, rough_line,
-                            cam1, pos, out)
-    _frame_vector(r_es, c, a, g, cam0)
-    return _chord_solve(g, float(a), fa, cam0, le, fe, cam2, nvec, geo, trig, rough_line,
-                        cam1, pos, out)
+    m = 1                               # epochs inside the line: k1 .. k1 + m - 1
+    while k1 + m + 1 < nt and time[k1 + m] < t1:
+        m += 1
+    d = fa - fb
+    guess = a + fa / d if d != 0.0 else math.nan
+    if not math.isfinite(guess):
+        guess = a + 0.5
+    p = 0                               # the piece under the guess: ends p and p + 1
+    while p < m and a + (time[k1 + p] - t0) / (t1 - t0) <= guess:
+        p += 1
+    xl, fl = _piece_end(p, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam0, pos)
+    xr, fr = _piece_end(p + 1, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam2, pos)
+    sa = _sgn(fa)
+    for _ in range(m + 1):
+        if math.isnan(fl) or math.isnan(fr):
+            return math.nan
+        if fl == 0.0 or fr == 0.0:
+            src = cam0 if fl == 0.0 else cam2
+            for q in range(3):
+                out[q] = src[q]
+            return xl if fl == 0.0 else xr
+        if _sgn(fl) != _sgn(fr):
+            if not xr > xl:
+                return math.nan
+            return _chord_solve(g, xl, fl, cam0, xr, fr, cam2, nvec, geo, trig, rough_line,
+                                cam1, pos, out)
+        if _sgn(fl) == sa:              # the root lies after this piece
+            if p == m:
+                return math.nan
+            p += 1
+            xl, fl = xr, fr
+            for q in range(3):
+                cam0[q] = cam2[q]
+            xr, fr = _piece_end(p + 1, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam2,
+                                pos)
+        else:                           # before it
+            if p == 0:
+                return math.nan
+            p -= 1
+            xr, fr = xl, fl
+            for q in range(3):
+                cam2[q] = cam0[q]
+            xl, fl = _piece_end(p, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam0, pos)
+    return math.nan
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -240,8 +292,8 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, 
     k = line_epoch[a] + 1
     line = math.nan
     if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
-        line = _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0,
-                               cam1, cam2, pos, out)
+        line = _split_at_epochs(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0,
+                                cam1, cam2, pos, out)
     if math.isnan(line):
         d = fa - fb
         l1 = a + fa / d if d != 0.0 else math.nan
@@ -295,13 +347,15 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def rays(image, geo, line_epoch, k0, pixel_pitch, y0, focal, c_out, d_out):
+def rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out):
     """Projection centres and unit directions (ECEF) of image points ``(n, 2)``: the
-    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for :func:`refine`,
-    ``line_epoch`` the POS epoch of every line's time). Returns False where a line is not
+    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for
+    :func:`ground_to_image`, ``trig_t`` :func:`trig_tables`: the sines start from the
+    epochs' and the lines', as in :func:`_camera_of`). Returns False where a line is not
     finite or the POS cannot be interpolated at its time (the caller then takes the numpy
     path, which reports it)."""
     cols, time, table, max_gap, r_bp, r_hs, u_gps, u_sen = geo
+    pos_trig, line_trig, line_epoch, e0 = trig_t
     pos = np.empty(8)
     n = cols.shape[0]
     for i in range(image.shape[0]):
@@ -312,10 +366,20 @@ def rays(image, geo, line_epoch, k0, pixel_pitch, y0, focal, c_out, d_out):
         t = cols[j, 0] * (1 - w) + cols[j + 1, 0] * w
         s = cols[j, 1] * (1 - w) + cols[j + 1, 1] * w
         q = cols[j, 2] * (1 - w) + cols[j + 1, 2] * w
-        if not pos_from(time, table, max_gap, t, line_epoch[j], pos):
+        k = pos_epoch(time, table, max_gap, t, line_epoch[j], pos)
+        if k < 0:
             return False
-        trig = nav_trig(pos)
-        ss, cs, sq, cq = math.sin(s), math.cos(s), math.sin(q), math.cos(q)
+        kt = k - e0
+        if kt < 0 or kt >= pos_trig.shape[0]:
+            kt = -1
+        sl, cl = _epoch_sin_cos(table, pos, pos_trig, k, kt, 3)
+        so, co = _epoch_sin_cos(table, pos, pos_trig, k, kt, 4)
+        sr, cr = _epoch_sin_cos(table, pos, pos_trig, k, kt, 5)
+        sp, cp = _epoch_sin_cos(table, pos, pos_trig, k, kt, 6)
+        sh, ch = _epoch_sin_cos(table, pos, pos_trig, k, kt, 7)
+        trig = (sr, cr, sp, cp, sh, ch, sl, cl, so, co)
+        ss, cs = _sin_cos(cols[j, 1], s - cols[j, 1], line_trig[j, 0], line_trig[j, 1])
+        sq, cq = _sin_cos(cols[j, 2], q - cols[j, 2], line_trig[j, 2], line_trig[j, 3])
         # the camera vector in the scan head (R_HS), and the scan head's lever u_sen
         cx, cy, cz = (image[i, 1] - k0) * pixel_pitch, y0, -focal
         hx = r_hs[0, 0] * cx + r_hs[0, 1] * cy + r_hs[0, 2] * cz
