@@ -201,88 +201,105 @@ def _dot(cam, nvec):
     return cam[0] * nvec[0] + cam[1] * nvec[1] + cam[2] * nvec[2]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _piece_end(e, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam, pos):
-    """End ``e`` of the pieces of line ``[a, a+1]`` (0: line a, ``m + 1``: line a + 1,
-    else epoch ``k1 + e - 1``): its fractional line and condition, its camera vector into
-    ``cam`` (an integer line's from its frame); NaN where the POS cannot be
-    interpolated."""
-    if e == 0 or e == m + 1:
-        _frame_vector(r_es, c, a + (e > 0), g, cam)
-        return float(a + (e > 0)), (fa if e == 0 else fb)
+@njit(cache=True, nogil=True, error_model="numpy")
+def epoch_frames(geo, trig, nvec):
+    """The camera frames at the POS epochs ``k0 ..`` of :func:`trig_tables` that fall
+    inside a line (between two line times): their fractional lines, ``R`` ``(n, 3, 3)``
+    and ``C`` ``(n, 3)`` with ``R^T (g - C)`` the camera vector of ``g`` there (as
+    :func:`_camera_of` gives it: the chain is affine in ``g``; its columns from
+    :func:`_camera_of` at points 1024 m apart along the axes, exact differences), and the
+    viewing plane (as the lines' planes); NaN for the other epochs."""
     cols, time = geo[0], geo[1]
-    x = a + (time[k1 + e - 1] - cols[a, 0]) / (cols[a + 1, 0] - cols[a, 0])
-    if not _camera_of(x, g, geo, trig, cam, pos):
-        return x, math.nan
-    return x, _dot(cam, nvec)
+    k0, n = trig[3], trig[0].shape[0]
+    lines = np.full(n, np.nan)
+    r = np.full((n, 3, 3), np.nan)
+    c = np.full((n, 3), np.nan)
+    planes = np.full((n, 4), np.nan)
+    cam0, cam, pos, x = np.empty(3), np.empty(3), np.empty(8), np.empty(3)
+    for kt in range(n):
+        k = k0 + kt
+        a = np.searchsorted(cols[:, 0], time[k], side="right") - 1
+        if not (a >= 0 and a + 1 < cols.shape[0] and time[k] > cols[a, 0]
+                and time[k] < cols[a + 1, 0]):
+            continue
+        le = a + (time[k] - cols[a, 0]) / (cols[a + 1, 0] - cols[a, 0])
+        x[:] = geo[2][k, :3]
+        if not _camera_of(le, x, geo, trig, cam0, pos):
+            continue
+        for j in range(3):
+            x[j] += 1024.0
+            _camera_of(le, x, geo, trig, cam, pos)
+            x[j] -= 1024.0
+            for q in range(3):
+                r[kt, j, q] = (cam[q] - cam0[q]) / 1024.0
+        for j in range(3):
+            c[kt, j] = x[j] - (r[kt, j, 0] * cam0[0] + r[kt, j, 1] * cam0[1]
+                               + r[kt, j, 2] * cam0[2])
+        for j in range(3):
+            planes[kt, j] = r[kt, j, 0] * nvec[0] + r[kt, j, 1] * nvec[1] + r[kt, j, 2] * nvec[2]
+        planes[kt, 3] = -(planes[kt, 0] * c[kt, 0] + planes[kt, 1] * c[kt, 1]
+                          + planes[kt, 2] * c[kt, 2])
+        lines[kt] = le
+    return lines, r, c, planes
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _end(e, a, kt0, frames, g, cam):
+    """End ``e`` of the pieces of line ``[a, a+1]`` (-1: line a, -2: line a + 1, else
+    row ``kt0 + e`` of the epoch frames): its fractional line, the camera vector of ``g``
+    into ``cam``."""
+    r_es, c, ep_line, ep_r, ep_c = frames[0], frames[1], frames[2], frames[3], frames[4]
+    if e < 0:
+        j = a if e == -1 else a + 1
+        _frame_vector(r_es, c, j, g, cam)
+        return float(j)
+    _frame_vector(ep_r, ep_c, kt0 + e, g, cam)
+    return ep_line[kt0 + e]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _split_at_epochs(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2,
+def _split_at_epochs(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1, cam2,
                      pos, out):
     """The root inside line ``[a, a+1]`` whose times hold POS epochs (a kink of the
     condition at each): the line's ends and the epochs' fractional lines cut it into
-    pieces on which the condition is smooth. The piece under the secant guess is looked
-    at first (exact evaluations at its epoch ends; an integer end is the line's frame),
-    then its neighbours towards the sign change, until one holds it; there
-    :func:`_chord_solve` solves. One epoch (30 % of the demo's lines): one evaluation at
-    the epoch picks the side, as before; three epochs a line (the survey: a 50 Hz POS,
-    16 lines a second): two or three, where the secant needed five or more. NaN where the
-    line holds no epoch, or that solve is rough (the caller solves exactly)."""
-    cols, time = geo[0], geo[1]
-    nt = time.shape[0]
-    t0, t1 = cols[a, 0], cols[a + 1, 0]
+    pieces on which the condition is smooth. The epochs' viewing planes
+    (:func:`epoch_frames`) find the piece with the sign change, :func:`_chord_solve`
+    solves there (one exact evaluation, as a line without an epoch; the secant needed
+    five or more where a line holds several, as on the survey: a 50 Hz POS, 16 lines a
+    second). NaN where the line holds no epoch, an epoch has no frame, or that solve is
+    rough (the caller solves exactly)."""
+    cols, time, ep_planes = geo[0], geo[1], frames[5]
+    t1 = cols[a + 1, 0]
     k1 = trig[2][a] + 1                 # the first epoch after line a's time
-    if not (k1 >= 1 and k1 + 1 < nt and time[k1] > t0 and time[k1] < t1):
+    kt0 = k1 - trig[3]
+    if not (k1 >= 1 and kt0 >= 0 and k1 + 1 < time.shape[0] and time[k1] < t1):
         return math.nan
-    m = 1                               # epochs inside the line: k1 .. k1 + m - 1
-    while k1 + m + 1 < nt and time[k1 + m] < t1:
-        m += 1
-    d = fa - fb
-    guess = a + fa / d if d != 0.0 else math.nan
-    if not math.isfinite(guess):
-        guess = a + 0.5
-    p = 0                               # the piece under the guess: ends p and p + 1
-    while p < m and a + (time[k1 + p] - t0) / (t1 - t0) <= guess:
-        p += 1
-    xl, fl = _piece_end(p, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam0, pos)
-    xr, fr = _piece_end(p + 1, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam2, pos)
-    sa = _sgn(fa)
-    for _ in range(m + 1):
-        if math.isnan(fl) or math.isnan(fr):
+    left, right, fl, fr = -1, -2, fa, fb
+    e = 0
+    while kt0 + e < ep_planes.shape[0] and k1 + e + 1 < time.shape[0] and time[k1 + e] < t1:
+        f = (ep_planes[kt0 + e, 0] * g[0] + ep_planes[kt0 + e, 1] * g[1]
+             + ep_planes[kt0 + e, 2] * g[2] + ep_planes[kt0 + e, 3])
+        if not math.isfinite(f):
             return math.nan
-        if fl == 0.0 or fr == 0.0:
-            src = cam0 if fl == 0.0 else cam2
-            for q in range(3):
-                out[q] = src[q]
-            return xl if fl == 0.0 else xr
-        if _sgn(fl) != _sgn(fr):
-            if not xr > xl:
-                return math.nan
-            return _chord_solve(g, xl, fl, cam0, xr, fr, cam2, nvec, geo, trig, rough_line,
-                                cam1, pos, out)
-        if _sgn(fl) == sa:              # the root lies after this piece
-            if p == m:
-                return math.nan
-            p += 1
-            xl, fl = xr, fr
-            for q in range(3):
-                cam0[q] = cam2[q]
-            xr, fr = _piece_end(p + 1, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam2,
-                                pos)
-        else:                           # before it
-            if p == 0:
-                return math.nan
-            p -= 1
-            xr, fr = xl, fl
-            for q in range(3):
-                cam2[q] = cam0[q]
-            xl, fl = _piece_end(p, m, a, fa, fb, k1, g, nvec, geo, trig, r_es, c, cam0, pos)
-    return math.nan
+        if f == 0.0 or _sgn(f) != _sgn(fl):
+            right, fr = e, f
+            break
+        left, fl = e, f
+        e += 1
+    xl = _end(left, a, kt0, frames, g, cam0)
+    xr = _end(right, a, kt0, frames, g, cam2)
+    if fr == 0.0:
+        for q in range(3):
+            out[q] = cam2[q]
+        return xr
+    if not (xr > xl and _sgn(fl) != _sgn(fr)):
+        return math.nan
+    return _chord_solve(g, xl, fl, cam0, xr, fr, cam2, nvec, geo, trig, rough_line, cam1,
+                        pos, out)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2, pos,
+def _refine_one(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1, cam2, pos,
                 out):
     """Fractional line of point ``g`` crossing between lines ``a, a+1`` (condition ``fa``,
     ``fb`` there), its camera vector into ``out``; NaN where the POS could not be
@@ -292,7 +309,7 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, 
     k = line_epoch[a] + 1
     line = math.nan
     if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
-        line = _split_at_epochs(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0,
+        line = _split_at_epochs(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0,
                                 cam1, cam2, pos, out)
     if math.isnan(line):
         d = fa - fb
@@ -306,8 +323,8 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, 
         if rough:
             line = math.nan
         else:
-            _frame_vector(r_es, c, a, g, cam0)
-            _frame_vector(r_es, c, a + 1, g, cam2)
+            _frame_vector(frames[0], frames[1], a, g, cam0)
+            _frame_vector(frames[0], frames[1], a + 1, g, cam2)
             _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, out)
     if math.isnan(line):     # rough (or the split's solve was): solve exactly
         line = _secant(g, a, fa, fb, nvec, geo, trig, 1e-9, 30, out, pos)
@@ -315,12 +332,13 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, pixel,
-                    clip, out):
+def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, pixel, clip,
+                    out):
     """``PendulumModel.ground_to_image`` of points ``(n, 3)`` into ``out`` ``(n, 2)``:
     the brackets between the lines' viewing planes (``planesolve.bracket_one`` over the
     coarse ``grid``), :func:`_refine_one` (``geo``: line columns, POS times and table,
-    max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`), then the element
+    max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`; ``frames``: the
+    lines' R_ES and projection centres, then :func:`epoch_frames`), then the element
     (``pixel``: k0, focal length, pixel pitch, elements); NaN behind the camera, where no
     line sees the point and, with ``clip``, off the detector. False where the POS could
     not be interpolated (the caller then takes the numpy path, which reports it)."""
@@ -333,7 +351,7 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, 
         a, fa, fb, found = bracket_one(planes, grid, gi[0], gi[1], gi[2])
         if not found:
             continue
-        line = _refine_one(gi, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1,
+        line = _refine_one(gi, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1,
                            cam2, pos, cam)
         if math.isnan(line):
             return False

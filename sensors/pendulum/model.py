@@ -412,11 +412,15 @@ class PendulumModel(SensorModel):
         if "coarse_grid" not in sh:
             sh["coarse_grid"] = coarse_grid(self.n_lines)
         geo = self._geo()
-        r_es, c = self._line_frames()
+        nvec = np.array([0.0, self._f, self._y0])
+        trig = self._trig(geo)
+        if getattr(self, "_epoch_frames", None) is None:
+            self._epoch_frames = kernel.epoch_frames(geo, trig, nvec)
+        frames = self._line_frames() + self._epoch_frames
         pixel = (self._k0, self._f, self._pp, float(self.n_elements))
         if self.n_lines >= 2 and kernel.ground_to_image(
-                g, self._planes, sh["coarse_grid"], np.array([0.0, self._f, self._y0]), geo,
-                self._trig(geo), r_es, c, ROUGH_LINE, pixel, bool(clip), out):
+                g, self._planes, sh["coarse_grid"], nvec, geo, trig, frames, ROUGH_LINE,
+                pixel, bool(clip), out):
             return out
         return self._ground_to_image_numpy(g, clip)   # the POS has a gap there: it reports
 
