@@ -10,8 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from swathflow.geometry.navkernel import (body_to_ecef, line_at, nav_trig, pos_epoch,
-                                          pos_from)
+from swathflow.geometry.navkernel import body_to_ecef, line_at, pos_epoch
 from swathflow.geometry.planesolve import bracket_one
 
 DEG = math.pi / 180.0
@@ -73,7 +72,7 @@ def _camera_of(line, g, geo, trig, cam, pos):
         return False
     x, y, z = g[0] - pos[0], g[1] - pos[1], g[2] - pos[2]
     kt = k - k0                    # in the table (the epochs the lines span), or -1
-    if kt >= pos_trig.shape[0]:
+    if kt < 0 or kt >= pos_trig.shape[0]:
         kt = -1
     sl, cl = _epoch_sin_cos(table, pos, pos_trig, k, kt, 3)
     so, co = _epoch_sin_cos(table, pos, pos_trig, k, kt, 4)
@@ -198,39 +197,109 @@ def _secant(g, j, fj, fj1, nvec, geo, trig, tol, max_iter, cam, pos):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2,
-                    pos, out):
-    """The root inside line ``[a, a+1]`` whose times hold one POS epoch ``k`` (a kink of
-    the condition): one exact evaluation at the epoch's fractional line picks the smooth
-    side with the sign change, :func:`_chord_solve` solves there. NaN where the line
-    holds no single epoch, or that solve is rough (the caller solves exactly)."""
+def _dot(cam, nvec):
+    return cam[0] * nvec[0] + cam[1] * nvec[1] + cam[2] * nvec[2]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def epoch_frames(geo, trig, nvec):
+    """The camera frames at the POS epochs ``k0 ..`` of :func:`trig_tables` that fall
+    inside a line (between two line times): their fractional lines, ``R`` ``(n, 3, 3)``
+    and ``C`` ``(n, 3)`` with ``R^T (g - C)`` the camera vector of ``g`` there (as
+    :func:`_camera_of` gives it: the chain is affine in ``g``; its columns from
+    :func:`_camera_of` at points 1024 m apart along the axes, exact differences), and the
+    viewing plane (as the lines' planes); NaN for the other epochs."""
     cols, time = geo[0], geo[1]
-    k = trig[2][a] + 1
-    t0, t1 = cols[a, 0], cols[a + 1, 0]
-    if not (k + 1 < time.shape[0] and time[k] > t0 and time[k] < t1) or (
-            k + 2 < time.shape[0] and time[k + 1] < t1):
-        return math.nan
-    le = a + (time[k] - t0) / (t1 - t0)
-    if not (le > a and le < a + 1):
-        return math.nan
-    if not _camera_of(le, g, geo, trig, cam2, pos):
-        return math.nan
-    fe = cam2[0] * nvec[0] + cam2[1] * nvec[1] + cam2[2] * nvec[2]
-    if fe == 0.0:
-        for q in range(3):
-            out[q] = cam2[q]
-        return le
-    if _sgn(fe) == _sgn(fa):            # the root is after the epoch
-        _frame_vector(r_es, c, a + 1, g, cam0)
-        return _chord_solve(g, le, fe, cam2, a + 1.0, fb, cam0, nvec, geo, trig, rough_line,
-                            cam1, pos, out)
-    _frame_vector(r_es, c, a, g, cam0)
-    return _chord_solve(g, float(a), fa, cam0, le, fe, cam2, nvec, geo, trig, rough_line,
-                        cam1, pos, out)
+    k0, n = trig[3], trig[0].shape[0]
+    lines = np.full(n, np.nan)
+    r = np.full((n, 3, 3), np.nan)
+    c = np.full((n, 3), np.nan)
+    planes = np.full((n, 4), np.nan)
+    cam0, cam, pos, x = np.empty(3), np.empty(3), np.empty(8), np.empty(3)
+    for kt in range(n):
+        k = k0 + kt
+        a = np.searchsorted(cols[:, 0], time[k], side="right") - 1
+        if not (a >= 0 and a + 1 < cols.shape[0] and time[k] > cols[a, 0]
+                and time[k] < cols[a + 1, 0]):
+            continue
+        le = a + (time[k] - cols[a, 0]) / (cols[a + 1, 0] - cols[a, 0])
+        x[:] = geo[2][k, :3]
+        if not _camera_of(le, x, geo, trig, cam0, pos):
+            continue
+        for j in range(3):
+            x[j] += 1024.0
+            _camera_of(le, x, geo, trig, cam, pos)
+            x[j] -= 1024.0
+            for q in range(3):
+                r[kt, j, q] = (cam[q] - cam0[q]) / 1024.0
+        for j in range(3):
+            c[kt, j] = x[j] - (r[kt, j, 0] * cam0[0] + r[kt, j, 1] * cam0[1]
+                               + r[kt, j, 2] * cam0[2])
+        for j in range(3):
+            planes[kt, j] = r[kt, j, 0] * nvec[0] + r[kt, j, 1] * nvec[1] + r[kt, j, 2] * nvec[2]
+        planes[kt, 3] = -(planes[kt, 0] * c[kt, 0] + planes[kt, 1] * c[kt, 1]
+                          + planes[kt, 2] * c[kt, 2])
+        lines[kt] = le
+    return lines, r, c, planes
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, cam2, pos,
+def _end(e, a, kt0, frames, g, cam):
+    """End ``e`` of the pieces of line ``[a, a+1]`` (-1: line a, -2: line a + 1, else
+    row ``kt0 + e`` of the epoch frames): its fractional line, the camera vector of ``g``
+    into ``cam``."""
+    r_es, c, ep_line, ep_r, ep_c = frames[0], frames[1], frames[2], frames[3], frames[4]
+    if e < 0:
+        j = a if e == -1 else a + 1
+        _frame_vector(r_es, c, j, g, cam)
+        return float(j)
+    _frame_vector(ep_r, ep_c, kt0 + e, g, cam)
+    return ep_line[kt0 + e]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _split_at_epochs(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1, cam2,
+                     pos, out):
+    """The root inside line ``[a, a+1]`` whose times hold POS epochs (a kink of the
+    condition at each): the line's ends and the epochs' fractional lines cut it into
+    pieces on which the condition is smooth. The epochs' viewing planes
+    (:func:`epoch_frames`) find the piece with the sign change, :func:`_chord_solve`
+    solves there (one exact evaluation, as a line without an epoch; the secant needed
+    five or more where a line holds several, as on the survey: a 50 Hz POS, 16 lines a
+    second). NaN where the line holds no epoch, an epoch has no frame, or that solve is
+    rough (the caller solves exactly)."""
+    cols, time, ep_planes = geo[0], geo[1], frames[5]
+    t1 = cols[a + 1, 0]
+    k1 = trig[2][a] + 1                 # the first epoch after line a's time
+    kt0 = k1 - trig[3]
+    if not (k1 >= 1 and kt0 >= 0 and k1 + 1 < time.shape[0] and time[k1] < t1):
+        return math.nan
+    left, right, fl, fr = -1, -2, fa, fb
+    e = 0
+    while kt0 + e < ep_planes.shape[0] and k1 + e + 1 < time.shape[0] and time[k1 + e] < t1:
+        f = (ep_planes[kt0 + e, 0] * g[0] + ep_planes[kt0 + e, 1] * g[1]
+             + ep_planes[kt0 + e, 2] * g[2] + ep_planes[kt0 + e, 3])
+        if not math.isfinite(f):
+            return math.nan
+        if f == 0.0 or _sgn(f) != _sgn(fl):
+            right, fr = e, f
+            break
+        left, fl = e, f
+        e += 1
+    xl = _end(left, a, kt0, frames, g, cam0)
+    xr = _end(right, a, kt0, frames, g, cam2)
+    if fr == 0.0:
+        for q in range(3):
+            out[q] = cam2[q]
+        return xr
+    if not (xr > xl and _sgn(fl) != _sgn(fr)):
+        return math.nan
+    return _chord_solve(g, xl, fl, cam0, xr, fr, cam2, nvec, geo, trig, rough_line, cam1,
+                        pos, out)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _refine_one(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1, cam2, pos,
                 out):
     """Fractional line of point ``g`` crossing between lines ``a, a+1`` (condition ``fa``,
     ``fb`` there), its camera vector into ``out``; NaN where the POS could not be
@@ -240,8 +309,8 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, 
     k = line_epoch[a] + 1
     line = math.nan
     if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
-        line = _split_at_epoch(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0,
-                               cam1, cam2, pos, out)
+        line = _split_at_epochs(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0,
+                                cam1, cam2, pos, out)
     if math.isnan(line):
         d = fa - fb
         l1 = a + fa / d if d != 0.0 else math.nan
@@ -254,8 +323,8 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, 
         if rough:
             line = math.nan
         else:
-            _frame_vector(r_es, c, a, g, cam0)
-            _frame_vector(r_es, c, a + 1, g, cam2)
+            _frame_vector(frames[0], frames[1], a, g, cam0)
+            _frame_vector(frames[0], frames[1], a + 1, g, cam2)
             _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, out)
     if math.isnan(line):     # rough (or the split's solve was): solve exactly
         line = _secant(g, a, fa, fb, nvec, geo, trig, 1e-9, 30, out, pos)
@@ -263,12 +332,13 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, pixel,
-                    clip, out):
+def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, pixel, clip,
+                    out):
     """``PendulumModel.ground_to_image`` of points ``(n, 3)`` into ``out`` ``(n, 2)``:
     the brackets between the lines' viewing planes (``planesolve.bracket_one`` over the
     coarse ``grid``), :func:`_refine_one` (``geo``: line columns, POS times and table,
-    max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`), then the element
+    max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`; ``frames``: the
+    lines' R_ES and projection centres, then :func:`epoch_frames`), then the element
     (``pixel``: k0, focal length, pixel pitch, elements); NaN behind the camera, where no
     line sees the point and, with ``clip``, off the detector. False where the POS could
     not be interpolated (the caller then takes the numpy path, which reports it)."""
@@ -281,7 +351,7 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, 
         a, fa, fb, found = bracket_one(planes, grid, gi[0], gi[1], gi[2])
         if not found:
             continue
-        line = _refine_one(gi, a, fa, fb, nvec, geo, trig, r_es, c, rough_line, cam0, cam1,
+        line = _refine_one(gi, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1,
                            cam2, pos, cam)
         if math.isnan(line):
             return False
@@ -295,13 +365,15 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, r_es, c, rough_line, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def rays(image, geo, line_epoch, k0, pixel_pitch, y0, focal, c_out, d_out):
+def rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out):
     """Projection centres and unit directions (ECEF) of image points ``(n, 2)``: the
-    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for :func:`refine`,
-    ``line_epoch`` the POS epoch of every line's time). Returns False where a line is not
+    numpy ``PendulumModel.ray`` one point at a time (``geo`` as for
+    :func:`ground_to_image`, ``trig_t`` :func:`trig_tables`: the sines start from the
+    epochs' and the lines', as in :func:`_camera_of`). Returns False where a line is not
     finite or the POS cannot be interpolated at its time (the caller then takes the numpy
     path, which reports it)."""
     cols, time, table, max_gap, r_bp, r_hs, u_gps, u_sen = geo
+    pos_trig, line_trig, line_epoch, e0 = trig_t
     pos = np.empty(8)
     n = cols.shape[0]
     for i in range(image.shape[0]):
@@ -312,10 +384,20 @@ def rays(image, geo, line_epoch, k0, pixel_pitch, y0, focal, c_out, d_out):
         t = cols[j, 0] * (1 - w) + cols[j + 1, 0] * w
         s = cols[j, 1] * (1 - w) + cols[j + 1, 1] * w
         q = cols[j, 2] * (1 - w) + cols[j + 1, 2] * w
-        if not pos_from(time, table, max_gap, t, line_epoch[j], pos):
+        k = pos_epoch(time, table, max_gap, t, line_epoch[j], pos)
+        if k < 0:
             return False
-        trig = nav_trig(pos)
-        ss, cs, sq, cq = math.sin(s), math.cos(s), math.sin(q), math.cos(q)
+        kt = k - e0
+        if kt < 0 or kt >= pos_trig.shape[0]:
+            kt = -1
+        sl, cl = _epoch_sin_cos(table, pos, pos_trig, k, kt, 3)
+        so, co = _epoch_sin_cos(table, pos, pos_trig, k, kt, 4)
+        sr, cr = _epoch_sin_cos(table, pos, pos_trig, k, kt, 5)
+        sp, cp = _epoch_sin_cos(table, pos, pos_trig, k, kt, 6)
+        sh, ch = _epoch_sin_cos(table, pos, pos_trig, k, kt, 7)
+        trig = (sr, cr, sp, cp, sh, ch, sl, cl, so, co)
+        ss, cs = _sin_cos(cols[j, 1], s - cols[j, 1], line_trig[j, 0], line_trig[j, 1])
+        sq, cq = _sin_cos(cols[j, 2], q - cols[j, 2], line_trig[j, 2], line_trig[j, 3])
         # the camera vector in the scan head (R_HS), and the scan head's lever u_sen
         cx, cy, cz = (image[i, 1] - k0) * pixel_pitch, y0, -focal
         hx = r_hs[0, 0] * cx + r_hs[0, 1] * cy + r_hs[0, 2] * cz

@@ -255,9 +255,7 @@ class PendulumModel(SensorModel):
         flat = np.ascontiguousarray(image.reshape(-1, 2))
         c, d = np.empty((flat.shape[0], 3)), np.empty((flat.shape[0], 3))
         geo = self._geo()
-        if "line_epoch" not in self._shared:
-            self._shared["line_epoch"] = np.searchsorted(geo[1], geo[0][:, 0], side="right") - 1
-        if self.n_lines >= 2 and kernel.rays(flat, geo, self._shared["line_epoch"], self._k0,
+        if self.n_lines >= 2 and kernel.rays(flat, geo, self._trig(geo), self._k0,
                                              self._pp, self._y0, self._f, c, d):
             shape = image.shape[:-1] + (3,)
             return c.reshape(shape), d.reshape(shape)
@@ -414,15 +412,23 @@ class PendulumModel(SensorModel):
         if "coarse_grid" not in sh:
             sh["coarse_grid"] = coarse_grid(self.n_lines)
         geo = self._geo()
-        if "trig" not in sh:
-            sh["trig"] = kernel.trig_tables(geo)
-        r_es, c = self._line_frames()
+        nvec = np.array([0.0, self._f, self._y0])
+        trig = self._trig(geo)
+        if getattr(self, "_epoch_frames", None) is None:
+            self._epoch_frames = kernel.epoch_frames(geo, trig, nvec)
+        frames = self._line_frames() + self._epoch_frames
         pixel = (self._k0, self._f, self._pp, float(self.n_elements))
         if self.n_lines >= 2 and kernel.ground_to_image(
-                g, self._planes, sh["coarse_grid"], np.array([0.0, self._f, self._y0]), geo,
-                sh["trig"], r_es, c, ROUGH_LINE, pixel, bool(clip), out):
+                g, self._planes, sh["coarse_grid"], nvec, geo, trig, frames, ROUGH_LINE,
+                pixel, bool(clip), out):
             return out
         return self._ground_to_image_numpy(g, clip)   # the POS has a gap there: it reports
+
+    def _trig(self, geo) -> tuple:
+        """The kernels' sine tables (``kernel.trig_tables``), made once per swing."""
+        if "trig" not in self._shared:
+            self._shared["trig"] = kernel.trig_tables(geo)
+        return self._shared["trig"]
 
     def _geo(self) -> tuple:
         """The kernels' view of the geometry: line columns, POS times and table (ECEF,
