@@ -4,8 +4,11 @@ import sys
 import tempfile
 from pathlib import Path
 
-_home = tempfile.mkdtemp(prefix="swathflow-prefect-")
-os.environ.setdefault("PREFECT_HOME", _home)
+# one Prefect home per test process: pytest-xdist's workers inherit the controller's
+# environment, and two Prefect servers on one SQLite database lock each other out
+if os.environ.get("PREFECT_HOME", "") in ("", os.environ.get("SWATHFLOW_TEST_PREFECT_HOME")):
+    os.environ["PREFECT_HOME"] = os.environ["SWATHFLOW_TEST_PREFECT_HOME"] = \
+        tempfile.mkdtemp(prefix="swathflow-prefect-")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("PREFECT_SERVER_UI_ENABLED", "false")
@@ -18,6 +21,73 @@ sys.path.insert(0, str(Path(__file__).parent))
 import pytest  # noqa: E402
 
 
+def _one_compile_at_a_time(folder: Path, wait_s: float = 900.0) -> None:
+    """pytest-xdist workers on a cold numba cache: a kernel being compiled by one worker is
+    not compiled again by another at the same time (some take minutes of CPU); the second
+    waits on a lock file, then numba loads the first one's result from its cache. Only
+    compilations called from Python take the lock (not those nested inside another, so
+    no wait can hold another lock), and a wait longer than ``wait_s`` compiles anyway."""
+    import fcntl
+    import threading
+    import time
+    from numba.core import sigutils
+    from numba.core.dispatcher import Dispatcher
+    compile_ = Dispatcher.compile
+    nested = threading.local()
+
+    def compile(self, sig):
+        if getattr(nested, "depth", 0) or tuple(sigutils.normalize_signature(sig)[0]) \
+                in self.overloads:
+            return compile_(self, sig)
+        name = f"{self.py_func.__module__}.{self.py_func.__qualname__}"
+        try:
+            lock = open(folder / f"{name}.lock", "w")
+        except OSError:
+            return compile_(self, sig)
+        with lock:
+            end = time.monotonic() + wait_s
+            while time.monotonic() < end:
+                try:
+                    fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    time.sleep(0.2)
+            nested.depth = 1
+            try:
+                return compile_(self, sig)
+            finally:
+                nested.depth = 0
+
+    Dispatcher.compile = compile
+
+
+def pytest_configure(config):
+    """The xdist controller makes the lock folder (its workers inherit the environment);
+    each worker takes its compilations through it."""
+    if hasattr(config, "workerinput"):
+        if os.environ.get("SWATHFLOW_TEST_NUMBA_LOCKS"):
+            _one_compile_at_a_time(Path(os.environ["SWATHFLOW_TEST_NUMBA_LOCKS"]))
+    elif getattr(config.option, "numprocesses", None):
+        os.environ["SWATHFLOW_TEST_NUMBA_LOCKS"] = tempfile.mkdtemp(prefix="swathflow-numba-")
+
+
+def pytest_unconfigure(config):
+    if not hasattr(config, "workerinput") and os.environ.get("SWATHFLOW_TEST_NUMBA_LOCKS"):
+        import shutil
+        shutil.rmtree(os.environ.pop("SWATHFLOW_TEST_NUMBA_LOCKS"), ignore_errors=True)
+
+
+def pytest_collection_modifyitems(config, items):
+    """With pytest-xdist (``--dist loadgroup``): a module's tests stay on one worker (its
+    module-scoped fixtures are built once), and every module that uses the Prefect test
+    server shares one worker (one server for the session, not one per worker)."""
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
+    for item in items:
+        group = "prefect" if "prefect_harness" in item.fixturenames else item.module.__name__
+        item.add_marker(pytest.mark.xdist_group(group))
+
+
 @pytest.fixture(scope="session")
 def prefect_harness():
     """One Prefect test server for the whole session (DESIGN.md: about 10-13 s)."""
@@ -28,8 +98,18 @@ def prefect_harness():
 
 @pytest.fixture(scope="session")
 def tiny_mission(tmp_path_factory):
-    """A simulated ``tiny`` mission (seed 1) with its truth; shared, treat as read-only."""
+    """A simulated ``tiny`` mission (seed 1) with its truth; shared, treat as read-only.
+    Under pytest-xdist the workers share one copy: the first builds it while the others
+    wait (a cold numba cache would otherwise compile the same kernels in every worker)."""
+    import fcntl
     from swathflow.sensors.pendulum.simulate import simulate
-    out = tmp_path_factory.mktemp("tiny") / "mission"
-    simulate(out, preset="tiny", seed=1)
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent                  # the session's folder, above the workers' own
+    out, done = root / "tiny-shared" / "mission", root / "tiny-shared.done"
+    with open(root / "tiny-shared.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            simulate(out, preset="tiny", seed=1)
+            done.touch()
     return out
