@@ -340,6 +340,16 @@ def gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodat
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _checked4(flat, base, offs, wts, c, has_nodata, nodata):
+    """The four bilinear taps of output column ``c``, each tested (:func:`_tap`): NaN
+    where one of non-zero weight is nodata."""
+    return (_tap(flat, base + offs[0, c], wts[0, c], True, has_nodata, nodata)
+            + _tap(flat, base + offs[1, c], wts[1, c], True, has_nodata, nodata)
+            + _tap(flat, base + offs[2, c], wts[2, c], True, has_nodata, nodata)
+            + _tap(flat, base + offs[3, c], wts[3, c], True, has_nodata, nodata))
+
+
 @njit(cache=True, nogil=True)
 def _row_nan(flat, sb, nb, offs, wts, has, r, nearest, out, out_nodata, lo, hi, is_int,
              clamp, avoid, valid):
@@ -360,10 +370,7 @@ def _row_nan(flat, sb, nb, offs, wts, has, r, nearest, out, out_nodata, lo, hi, 
                        + wts[2, c] * flat[base + offs[2, c]]
                        + wts[3, c] * flat[base + offs[3, c]])
                 if acc != acc:
-                    acc = (_tap(flat, base + offs[0, c], wts[0, c], True, False, 0.0)
-                           + _tap(flat, base + offs[1, c], wts[1, c], True, False, 0.0)
-                           + _tap(flat, base + offs[2, c], wts[2, c], True, False, 0.0)
-                           + _tap(flat, base + offs[3, c], wts[3, c], True, False, 0.0))
+                    acc = _checked4(flat, base, offs, wts, c, False, 0.0)
             if acc != acc:
                 valid[r, c] = 0
                 out[b, r, c] = out_nodata
@@ -385,10 +392,7 @@ def _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, o
             if nearest:
                 acc = _tap(flat, base + offs[0, c], 1.0, True, has_nodata, nodata)
             else:
-                acc = (_tap(flat, base + offs[0, c], wts[0, c], True, has_nodata, nodata)
-                       + _tap(flat, base + offs[1, c], wts[1, c], True, has_nodata, nodata)
-                       + _tap(flat, base + offs[2, c], wts[2, c], True, has_nodata, nodata)
-                       + _tap(flat, base + offs[3, c], wts[3, c], True, has_nodata, nodata))
+                acc = _checked4(flat, base, offs, wts, c, has_nodata, nodata)
             if math.isnan(acc):
                 valid[r, c] = 0
                 out[b, r, c] = out_nodata
