@@ -268,3 +268,14 @@ def test_numpy_dask_and_xarray_inputs(case):
         assert got.shape == (20, n // 20, 2)
         assert np.array_equal(got.reshape(-1, 2), want, equal_nan=True)
     assert np.abs(want - img[:n]).max() < TOL_PX
+
+
+@pytest.mark.xfail(strict=True, reason="known defect (stop 24): the numpy path solves a line "
+                   "holding several epochs across their kinks (one quadratic over the whole "
+                   "line) and its roughness test on the line misses it; up to 6.6e-5 line and "
+                   "1.0e-3 px off here. Remove this mark when it splits at every epoch.")
+def test_the_numpy_path_gives_back_the_image_points(case):
+    """The numpy path (the compiled one's reference in test_pendulum_epochs, and its
+    fallback) against the same truth."""
+    truth, lines, model, img, g = case
+    assert np.abs(model._ground_to_image_numpy(g, True) - img).max() < TOL_PX
