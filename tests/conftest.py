@@ -77,15 +77,37 @@ def pytest_unconfigure(config):
         shutil.rmtree(os.environ.pop("SWATHFLOW_TEST_NUMBA_LOCKS"), ignore_errors=True)
 
 
+def _xdist_group(item) -> str:
+    """The item's pytest-xdist group: its module, or "prefect" for every module that uses
+    the Prefect test server."""
+    return "prefect" if "prefect_harness" in item.fixturenames else item.module.__name__
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     """With pytest-xdist (``--dist loadgroup``): a module's tests stay on one worker (its
     module-scoped fixtures are built once), and every module that uses the Prefect test
-    server shares one worker (one server for the session, not one per worker)."""
-    if not config.pluginmanager.hasplugin("xdist"):
-        return
-    for item in items:
-        group = "prefect" if "prefect_harness" in item.fixturenames else item.module.__name__
-        item.add_marker(pytest.mark.xdist_group(group))
+    server shares one worker (one server for the session, not one per worker).
+
+    loadgroup sends the tests whose node ids end in the same ``@group`` to one worker; a
+    worker's own ``pytest_collection_modifyitems`` appends that suffix from the
+    ``xdist_group`` marks. So the marks go on first (this wrapper runs before it), and the
+    suffix is checked after it: pytest-xdist 3.8 writes it to ``item._nodeid``, which
+    pytest 9 no longer reads (the node id is ``item._id``, a NodeId), so there the groups
+    were silently lost and every test was its own group; this writes it where pytest reads
+    it. Nothing happens without pytest-xdist or in the serial run."""
+    xdist = config.pluginmanager.hasplugin("xdist")
+    if xdist:
+        for item in items:
+            item.add_marker(pytest.mark.xdist_group(_xdist_group(item)))
+    result = yield
+    if xdist and getattr(config.option, "loadgroup", False):     # an xdist worker
+        for item in items:
+            suffix = "@" + _xdist_group(item)
+            if not item.nodeid.endswith(suffix) and hasattr(item, "_id"):
+                from _pytest.nodeid import NodeId
+                item._id = NodeId.parse(item.nodeid + suffix)
+    return result
 
 
 @pytest.fixture(scope="session")
