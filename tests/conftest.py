@@ -94,8 +94,9 @@ def pytest_collection_modifyitems(config, items):
     ``xdist_group`` marks. So the marks go on first (this wrapper runs before it), and the
     suffix is checked after it: pytest-xdist 3.8 writes it to ``item._nodeid``, which
     pytest 9 no longer reads (the node id is ``item._id``, a NodeId), so there the groups
-    were silently lost and every test was its own group; this writes it where pytest reads
-    it. Nothing happens without pytest-xdist or in the serial run."""
+    were silently lost and every test was its own group (pytest-xdist issue #1386, open;
+    once xdist writes it itself, the suffix is there and this does nothing); this writes it
+    where pytest reads it. Nothing happens without pytest-xdist or in the serial run."""
     xdist = config.pluginmanager.hasplugin("xdist")
     if xdist:
         for item in items:
