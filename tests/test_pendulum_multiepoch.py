@@ -281,3 +281,34 @@ def test_the_numpy_path_gives_back_the_image_points(case):
     fallback) against the same truth."""
     truth, lines, model, img, g = case
     assert np.abs(model._ground_to_image_numpy(g, True) - img).max() < TOL_PX
+
+
+@pytest.fixture(scope="module")
+def on_epochs():
+    """A 400 Hz POS (24-25 epochs a line) and three image points at every epoch's own
+    fractional line: the root of each lies on an epoch, the end of two pieces."""
+    truth, lines, model = scene(400.0, "R", seed=5)
+    lt, tp = lines["time"], truth.pos["time"]
+    at = np.interp(tp[(tp > lt[3]) & (tp < lt[-4])], lt, np.arange(lt.size, dtype=float))
+    rng = np.random.default_rng(0)
+    img = np.stack([np.repeat(at, 3), rng.uniform(0, SENSOR["n_elements"] - 1, 3 * at.size)],
+                   axis=-1)
+    return truth, lines, model, img, truth_points(truth, img, rng)
+
+
+def test_points_on_the_epochs_are_seen_once_and_the_converged_solve_agrees(on_epochs):
+    truth, lines, model, img, g = on_epochs
+    assert epochs_in_lines(truth.pos["time"], lines["time"]).min() >= 24
+    count, monotonic = crossings(truth, lines, g[::40], img[::40, 0])
+    assert (count == 1).all() and monotonic.all()
+    assert np.abs(model._ground_to_image_converged(g) - img).max() < TOL_PX
+
+
+@pytest.mark.xfail(strict=False, reason="known defect (stop 24): where the compiled split "
+                   "(_split_at_epochs) declines, here for a few points lying exactly on an "
+                   "epoch, _refine_one falls back to one quadratic over the whole line, across "
+                   "its 24 epochs' kinks, and its roughness test misses it: 6 of 8271 points "
+                   "1.2e-4 to 4.9e-4 px off (here; rounding decides which)")
+def test_ground_to_image_on_the_epochs(on_epochs):
+    truth, lines, model, img, g = on_epochs
+    assert np.abs(model.ground_to_image(g) - img).max() < TOL_PX
