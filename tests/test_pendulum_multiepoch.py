@@ -272,10 +272,6 @@ def test_numpy_dask_and_xarray_inputs(case):
     assert np.abs(want - img[:n]).max() < TOL_PX
 
 
-@pytest.mark.xfail(strict=True, reason="known defect (stop 24): the numpy path solves a line "
-                   "holding several epochs across their kinks (one quadratic over the whole "
-                   "line) and its roughness test on the line misses it; up to 6.6e-5 line and "
-                   "1.0e-3 px off here. Remove this mark when it splits at every epoch.")
 def test_the_numpy_path_gives_back_the_image_points(case):
     """The numpy path (the compiled one's reference in test_pendulum_epochs, and its
     fallback) against the same truth."""
@@ -304,11 +300,6 @@ def test_points_on_the_epochs_are_seen_once_and_the_converged_solve_agrees(on_ep
     assert np.abs(model._ground_to_image_converged(g) - img).max() < TOL_PX
 
 
-@pytest.mark.xfail(strict=False, reason="known defect (stop 24): where the compiled split "
-                   "(_split_at_epochs) declines, here for a few points lying exactly on an "
-                   "epoch, _refine_one falls back to one quadratic over the whole line, across "
-                   "its 24 epochs' kinks, and its roughness test misses it: 6 of 8271 points "
-                   "1.2e-4 to 4.9e-4 px off (here; rounding decides which)")
 def test_ground_to_image_on_the_epochs(on_epochs):
     truth, lines, model, img, g = on_epochs
     assert np.abs(model.ground_to_image(g) - img).max() < TOL_PX

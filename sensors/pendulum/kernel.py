@@ -305,13 +305,15 @@ def _refine_one(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1, c
     ``fb`` there), its camera vector into ``out``; NaN where the POS could not be
     interpolated (the caller then takes the numpy path, which reports it)."""
     cols, time, line_epoch = geo[0], geo[1], trig[2]
-    # a POS epoch inside the line puts a kink in the condition: solve each side
+    # a POS epoch inside the line puts a kink in the condition: solve each side; where
+    # that split declines, one quadratic across the kink is not trusted (its roughness
+    # test can miss the kink): the secant below solves it exactly
     k = line_epoch[a] + 1
     line = math.nan
     if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
         line = _split_at_epochs(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0,
                                 cam1, cam2, pos, out)
-    if math.isnan(line):
+    else:
         d = fa - fb
         l1 = a + fa / d if d != 0.0 else math.nan
         if not math.isfinite(l1):

@@ -310,11 +310,24 @@ class PendulumModel(SensorModel):
         lr, cr = self._split_at_epoch(g, j, fj, fj1)
         split = np.isfinite(lr)
         line, cam = np.where(split, lr, line), np.where(split[:, None], cr, cam)
-        rough = rough[~split[rough]] if rough.size else rough
-        if rough.size:      # rough and no single epoch (or the split's solve was rough)
+        # a line holding an epoch and not split (several epochs, or the split declined):
+        # one quadratic across the kinks is not trusted, its roughness test can miss them
+        kinked = np.zeros(j.shape, bool)
+        kinked[rough] = True
+        kinked |= self._holds_epoch(j)
+        rough = np.flatnonzero(kinked & ~split)
+        if rough.size:      # rough, or kinked and not split: solve exactly
             line[rough], cam[rough] = self._solve_exact(g[rough], j[rough], fj[rough],
                                                         fj1[rough], tol=1e-9)
         return line, cam
+
+    def _holds_epoch(self, j):
+        """True where the times of lines ``j`` and ``j + 1`` hold a POS epoch between them
+        (strictly inside: a kink of the condition)."""
+        time = np.asarray(self._trajectory.time, float)
+        t0, t1 = self._line_cols[j, 0], self._line_cols[j + 1, 0]
+        k = np.searchsorted(time, t0, side="right")
+        return (k < time.size) & (time[np.minimum(k, time.size - 1)] < t1)
 
     def _split_at_epoch(self, g, j, fj, fj1):
         """The root inside lines ``[j, j+1]`` whose times hold one POS epoch (a kink of
