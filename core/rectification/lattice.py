@@ -283,10 +283,10 @@ def _every_pixel(exact, h: int, w: int, step: int, raw_shape) -> np.ndarray:
                                       for di in (-1, 0, 1) for dj in (-1, 0, 1)])
         kept |= blank & grown
         # a pixel is kept when any cell whose closed rectangle holds it is kept
-        i = np.arange(H)
-        a, b = np.minimum(i // s, nr - 1), np.maximum((i - 1) // s, 0)
-        j = np.arange(W)
-        ca, cb = np.minimum(j // s, nc - 1), np.maximum((j - 1) // s, 0)
+        i = np.arange(h)
+        a, b = np.minimum(i // s, nr - 1), np.clip((i - 1) // s, 0, nr - 1)
+        j = np.arange(w)
+        ca, cb = np.minimum(j // s, nc - 1), np.clip((j - 1) // s, 0, nc - 1)
         keep = (kept[a][:, ca] | kept[b][:, ca] | kept[a][:, cb] | kept[b][:, cb])
     keep = keep[:h, :w]
     rr, cc = np.nonzero(keep)
