@@ -165,3 +165,27 @@ def _inside(cells, h, w):
     of its pixels)."""
     keep = (cells[:, 0] <= h - 1) & (cells[:, 1] <= w - 1)
     return cells[keep] if not keep.all() else cells
+
+
+@njit(cache=True, nogil=True)
+def corner_bounds(corners, nl, ne):
+    """``(lmin, lmax, emin, emax)`` of the corners ``(n, 4, 2)`` of the leaves whose
+    corners' box (NaN corners left out) meets the raw image (``nl`` x ``ne``, edges at
+    -0.5 and n - 0.5); NaN where no leaf does."""
+    lmin = emin = math.inf
+    lmax = emax = -math.inf
+    for k in range(corners.shape[0]):
+        lo_l = lo_e = math.inf
+        hi_l = hi_e = -math.inf
+        for p in range(4):
+            a, b = corners[k, p, 0], corners[k, p, 1]
+            if not math.isnan(a):
+                lo_l, hi_l = min(lo_l, a), max(hi_l, a)
+            if not math.isnan(b):
+                lo_e, hi_e = min(lo_e, b), max(hi_e, b)
+        if hi_l >= -0.5 and lo_l <= nl - 0.5 and hi_e >= -0.5 and lo_e <= ne - 0.5:
+            lmin, lmax = min(lmin, lo_l), max(lmax, hi_l)
+            emin, emax = min(emin, lo_e), max(emax, hi_e)
+    if lmin > lmax:
+        return math.nan, math.nan, math.nan, math.nan
+    return lmin, lmax, emin, emax

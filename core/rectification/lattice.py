@@ -44,7 +44,7 @@ from numba import njit
 
 from swathflow.geometry.grid import tile_frame
 from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,
-                                           _off_image, _unknown)
+                                           _off_image, _unknown, corner_bounds)
 from swathflow.rectification.paint import touching
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
@@ -103,16 +103,8 @@ class Leaves:
                 return None
             return (float(li[on].min()), float(li[on].max()),
                     float(ei[on].min()), float(ei[on].max()))
-        q = self.corners
-        with np.errstate(invalid="ignore"):
-            lo = np.nanmin(q, axis=1) if q.size else np.zeros((0, 2))
-            hi = np.nanmax(q, axis=1) if q.size else np.zeros((0, 2))
-        touch = ((hi[:, 0] >= -0.5) & (lo[:, 0] <= n_lines - 0.5)
-                 & (hi[:, 1] >= -0.5) & (lo[:, 1] <= n_elements - 0.5))
-        if not touch.any():
-            return None
-        return (float(lo[touch, 0].min()), float(hi[touch, 0].max()),
-                float(lo[touch, 1].min()), float(hi[touch, 1].max()))
+        b = corner_bounds(self.corners, n_lines, n_elements)
+        return None if math.isnan(b[0]) else tuple(float(v) for v in b)
 
 
 class _Exact:
