@@ -145,12 +145,6 @@ class _Exact:
         self._evaluate(*_cell_unknown(cells, self.known, tests))
 
 
-
-
-
-
-
-
 @njit(cache=True, nogil=True)
 def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     """One level of the refinement (every test point of ``cells`` known in ``v``):
@@ -217,7 +211,6 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     kids = _inside(_children(rest[go], split_r[go], split_c[go]), h, w)
     sure_kids = _inside(_children(rest[sure], split_r[sure], split_c[sure]), h, w)
     return leaf, corners, kids, sure_kids
-
 
 
 def _dense_cheaper(exact, cells, h: int, w: int, half: float) -> bool:
