@@ -159,3 +159,27 @@ def test_lattice_chooses_every_pixel_where_the_mapping_kinks_at_every_pixel(scen
         ok = np.isfinite(got[..., 0]) & np.isfinite(ex[..., 0])
         assert ok.sum() > 5_000
         assert np.abs(got[ok] - ex[ok]).max() < TOL
+
+
+@pytest.mark.parametrize("shape", [(200, 300), (97, 256), (256, 131)])
+def test_partial_tile_evaluated_at_every_pixel(scene, shape):
+    """A tile smaller than the lattice's power-of-two cell (the grid's last row or column
+    of tiles), chosen for every-pixel evaluation: every pixel on the image is the exact
+    model's value, nodata exactly where the exact model puts it off the image."""
+    model, dem, grid = scene["model"], scene["dem"], scene["grid"]
+    nl, ne = model.shape
+    sub = grid.window(slice(0, shape[0]), slice(0, shape[1]))
+    rr, cc = np.indices(sub.shape)
+    wiggle = _Wiggle(model, sub)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lv = L.leaves(wiggle, sub, dem, TOL, raw_shape=model.shape)
+        ex = L.exact_raw(wiggle, sub, dem, rr, cc)
+    assert lv.pixels is not None and lv.pixels.shape == sub.shape + (2,)
+    li, ei = ex[..., 0], ex[..., 1]
+    with np.errstate(invalid="ignore"):
+        on = (li >= -0.5) & (li <= nl - 0.5) & (ei >= -0.5) & (ei <= ne - 0.5)
+    assert on.sum() > 1_000
+    got = _paint_absolute(lv, nl, ne)
+    assert (np.isfinite(got[..., 0]) == on).all()
+    assert np.abs(lv.pixels[on] - ex[on]).max() < 1e-9

@@ -110,14 +110,20 @@ class Trajectory:
     def interpolate(self, t) -> dict[str, np.ndarray]:
         """Position (ECEF and lat/lon) and attitude at times ``t`` (any shape)."""
         i, w = self._locate(t)
-        tab = self.__dict__.get("_table")
-        if tab is None:         # one gather per end instead of one per column
-            tab = np.column_stack([self.ecef, self.lat, self.lon, self.attitude])
-            object.__setattr__(self, "_table", tab)
+        tab = self.table()          # one gather per end instead of one per column
         a = tab[i]
         v = a + (tab[i + 1] - a) * w[..., None]
         return {"ecef": v[..., 0:3], "lat": v[..., 3], "lon": v[..., 4], "roll": v[..., 5],
                 "pitch": v[..., 6], "heading": v[..., 7]}
+
+    def table(self) -> np.ndarray:
+        """The columns ECEF x, y, z, lat, lon, roll, pitch, heading ``(n, 8)`` side by side
+        (made once per trajectory; read only by convention)."""
+        tab = self.__dict__.get("_table")
+        if tab is None:
+            tab = np.column_stack([self.ecef, self.lat, self.lon, self.attitude])
+            object.__setattr__(self, "_table", tab)
+        return tab
 
     def to_dataset(self) -> xr.Dataset:
         if self.source is not None:

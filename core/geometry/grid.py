@@ -214,9 +214,7 @@ class TileFrame:
     def __init__(self, grid: "Grid", terrain, H: int, W: int):
         self.grid, self.terrain = grid, terrain
         d = FRAME_DEGREE
-        k = np.arange(d + 1)
-        rn = (H - 1) / 2 * (1 - np.cos(np.pi * k / d))
-        cn = (W - 1) / 2 * (1 - np.cos(np.pi * k / d))
+        (rn, self.b_rows), (cn, self.b_cols) = _nodes_basis(H), _nodes_basis(W)
         x, y = grid.xy(rn[:, None, None], cn[None, :, None])
         x, y, h = np.broadcast_arrays(x, y, np.array([0.0, 1000.0]))
         p = np.stack(_to_ecef(grid.crs).transform(x, y, h), axis=-1)    # one call
@@ -224,7 +222,6 @@ class TileFrame:
         self.origin = p0[d // 2, d // 2].copy()    # the polynomials carry offsets from it
         self.nodes = np.ascontiguousarray(np.concatenate([p0 - self.origin, (p1 - p0) / 1000.0],
                                                          axis=-1))
-        self.b_rows, self.b_cols = _basis(rn, H), _basis(cn, W)
         # the heights as _map_heights takes them: a constant, or the DEM in the grid's CRS
         t = grid.transform
         self.heights = ((t.a, t.c, t.e, t.f), np.zeros((0, 0)), (0.0,) * 6,
@@ -242,6 +239,17 @@ class TileFrame:
         _frame_ecef(self.nodes, self.b_rows, self.b_cols, rows, cols, self.heights,
                     self.origin, out)
         return out
+
+
+@lru_cache(maxsize=16)
+def _nodes_basis(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The :data:`FRAME_DEGREE` + 1 Chebyshev nodes over ``0 .. n - 1`` and their
+    Lagrange basis there (:func:`_basis`; shared by every tile of a size: not to be
+    written)."""
+    k = np.arange(FRAME_DEGREE + 1)
+    nodes = (n - 1) / 2 * (1 - np.cos(np.pi * k / FRAME_DEGREE))
+    b = _basis(nodes, n)
+    return nodes, b
 
 
 def _basis(nodes, n) -> np.ndarray:

@@ -15,10 +15,10 @@ DEG = math.pi / 180.0
 def pos_table(trajectory) -> tuple[np.ndarray, np.ndarray, float]:
     """``(time, table, max_gap)`` of a trajectory, as the kernels take it (``pos_from``):
     the POS times, the table they interpolate (ECEF, lat, lon (deg), roll, pitch, heading
-    (deg), one row per epoch) and the longest gap interpolated across."""
-    return (np.ascontiguousarray(trajectory.time, dtype=float),
-            np.column_stack([trajectory.ecef, trajectory.lat, trajectory.lon,
-                             trajectory.attitude]), float(trajectory.max_gap))
+    (deg), one row per epoch: made once per trajectory, :meth:`Trajectory.table`) and the
+    longest gap interpolated across."""
+    return (np.ascontiguousarray(trajectory.time, dtype=float), trajectory.table(),
+            float(trajectory.max_gap))
 
 
 def epochs(time, t) -> np.ndarray:

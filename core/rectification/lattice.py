@@ -2,40 +2,36 @@
 
 For each output tile the raw image coordinates (line, element) of the ground under the
 output pixel centres (map x, y with terrain heights) come from the sensor model's
-``ground_to_image``, evaluated on a coarse lattice of the tile. Every lattice cell (a
-rectangle of power-of-two sides) is checked at its centre and edge midpoints against the
-exact model; where bilinear interpolation of the corners misses by ``TEST_SHARE * tol``
-raw pixels or more there (the margin keeps the error between test points below ``tol``:
-with 0.5, as before, one demo swing missed by 0.052 px; with 0.4 the worst of the eight
-is 0.045 px) the cell is
+``ground_to_image`` on a lattice of the tile. It starts from one cell over the whole tile,
+halved down to ``step`` pixels a side except where a cell lies clearly off the raw image
+(its pixels are nodata: a few evaluations, not a lattice). Every cell (a rectangle of
+power-of-two sides) is checked at its centre and edge midpoints against the exact model;
+where bilinear interpolation of the corners misses by ``TEST_SHARE * tol`` raw pixels or
+more there (the margin keeps the error between test points below ``tol``: with 0.5 one
+demo swing missed by 0.052 px; with 0.4 the worst of the eight is 0.045 px) the cell is
 halved across the failing direction (rows, columns, or both) and checked again, down to
 single pixels (exact). All-NaN cells touching split cells are split too, so the
-footprint's edge is traced at pixel resolution. Cells clearly off the raw image are not
-refined when the caller gives the raw image's shape.
+footprint's edge is traced at pixel resolution.
 
 Why rectangles: with a real POS (noise at every epoch, interpolated linearly) the exact
-mapping has a kink at every epoch, along curves of constant raw line (measured on the
-demo mission: second differences up to 0.1 px every ~5 output pixels, so square cells
-of 2 px already miss by 0.09-0.13 px and the lattice evaluated nearly every pixel).
-Along those curves it stays smooth, and a rectangle one or two pixels across the kinks
-and 8-32 long along them keeps the bound with a fraction of the calls.
+mapping has a kink at every epoch, along curves of constant raw line (on the demo mission
+second differences up to 0.1 px every ~5 output pixels). Along those curves it stays
+smooth, and a rectangle one or two pixels across the kinks and 8-32 long along them keeps
+the bound with a fraction of the calls.
 
 The result is a list of *leaves*: rectangles of output pixels with their four corner
 values, in the order they must be painted (coarse first; finer leaves overwrite the
 shared edges). :mod:`.paint` paints them; no per-pixel array is built here.
 
-Or, per tile, the exact model at every pixel, when that is cheaper. Where the mapping
-kinks more densely than the output pixels (the survey preset: a 50 Hz POS, 2 m pixels,
-a kink every 0.6 px) the lattice ends in unit cells nearly everywhere: 0.66 exact
-evaluations per pixel, each costing about 2.5x a plain evaluation in bookkeeping (the
-tests, the splits, one model call per level). The tile first tests a sample of 2 x 2
-cells spread over it (:func:`_dense_cheaper`, about 600 evaluations): when at least
-:data:`DENSE_SHARE` of them miss the bound, the adaptive refinement would go down to
-single pixels over that share of the tile anyway, and the tile is evaluated exactly at
-every pixel instead (:attr:`Leaves.pixels`; with the raw image's shape, 16-pixel cells
-clearly off the image are skipped first, as the refinement skips them). Measured on the
-survey's swings (2 x 2 cells missing: 97 %) and the demo's (19 %: the lattice, 0.2
-evaluations per pixel, stays cheaper there).
+Or, per tile, the exact model at every pixel, when that is cheaper: where the mapping
+kinks more densely than the output pixels (the survey preset: a 50 Hz POS, 2 m pixels, a
+kink every 0.6 px) the lattice ends in unit cells nearly everywhere, each evaluation
+costing about 2.5x a plain one in bookkeeping. A sample of 2 x 2 cells among the cells of
+``step`` (:func:`_dense_cheaper`) decides: when at least :data:`DENSE_SHARE` of them miss
+the bound the tile is evaluated at every pixel instead (:attr:`Leaves.pixels`; 16-pixel
+cells clearly off the image skipped first). Measured on the survey's swings (2 x 2 cells
+missing: 97 %) and the demo's (19 %: the lattice, 0.2 evaluations per pixel, stays
+cheaper there).
 """
 from __future__ import annotations
 
@@ -47,19 +43,22 @@ import numpy as np
 from numba import njit
 
 from swathflow.geometry.grid import tile_frame
+from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,
+                                           _off_image, _unknown, corner_bounds)
 from swathflow.rectification.paint import touching
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
 TOLERANCE_PX = 0.05
 #: share of the bound that the interpolation may miss by at a cell's test points
 TEST_SHARE = 0.4
-#: least distance (raw pixels) beyond the raw image's edge of a cell left unrefined
-OFF_MARGIN_PX = 4.0
 #: share of a tile's sampled 2 x 2 cells missing the bound from which the tile is
 #: evaluated exactly at every pixel instead of refined (:func:`_dense_cheaper`)
 DENSE_SHARE = 0.5
 #: cells (pixels a side) of the off-image check before a tile's exact evaluation
 DENSE_CELL = 16
+#: a first sample of 16 cells settles :func:`_dense_cheaper` when its share of misses is
+#: at most this or at least 1 minus this
+SETTLED = 0.25
 
 
 def exact_raw(model, grid, terrain, rows, cols, frame=None) -> np.ndarray:
@@ -104,16 +103,8 @@ class Leaves:
                 return None
             return (float(li[on].min()), float(li[on].max()),
                     float(ei[on].min()), float(ei[on].max()))
-        q = self.corners
-        with np.errstate(invalid="ignore"):
-            lo = np.nanmin(q, axis=1) if q.size else np.zeros((0, 2))
-            hi = np.nanmax(q, axis=1) if q.size else np.zeros((0, 2))
-        touch = ((hi[:, 0] >= -0.5) & (lo[:, 0] <= n_lines - 0.5)
-                 & (hi[:, 1] >= -0.5) & (lo[:, 1] <= n_elements - 0.5))
-        if not touch.any():
-            return None
-        return (float(lo[touch, 0].min()), float(hi[touch, 0].max()),
-                float(lo[touch, 1].min()), float(hi[touch, 1].max()))
+        b = corner_bounds(self.corners, n_lines, n_elements)
+        return None if math.isnan(b[0]) else tuple(float(v) for v in b)
 
 
 class _Exact:
@@ -155,161 +146,23 @@ class _Exact:
 
 
 @njit(cache=True, nogil=True)
-def _unknown(r, c, known):
-    """The points of ``r, c`` not yet ``known``, each once; marks them known (the caller
-    evaluates them at once)."""
-    rr = np.empty(r.shape[0], np.int64)
-    cc = np.empty(r.shape[0], np.int64)
-    k = 0
-    for i in range(r.shape[0]):
-        if not known[r[i], c[i]]:
-            known[r[i], c[i]] = True
-            rr[k], cc[k] = r[i], c[i]
-            k += 1
-    return rr[:k], cc[:k]
-
-
-@njit(cache=True, nogil=True)
-def _cell_unknown(cells, known, tests):
-    """:func:`_unknown` of the corners of ``cells`` ``(n, 4)`` and, with ``tests``, of
-    their test points (edge midpoints across a side of 2 or more, centre)."""
-    n = cells.shape[0]
-    r = np.empty(9 * n, np.int64)
-    c = np.empty(9 * n, np.int64)
-    k = 0
-    for i in range(n):
-        r0, c0, sr, sc = cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3]
-        hr, hc = sr // 2, sc // 2
-        r[k:k + 4] = (r0, r0, r0 + sr, r0 + sr)
-        c[k:k + 4] = (c0, c0 + sc, c0, c0 + sc)
-        k += 4
-        if tests and sc >= 2:
-            r[k], c[k], r[k + 1], c[k + 1] = r0, c0 + hc, r0 + sr, c0 + hc
-            k += 2
-        if tests and sr >= 2:
-            r[k], c[k], r[k + 1], c[k + 1] = r0 + hr, c0, r0 + hr, c0 + sc
-            k += 2
-        if tests and sr >= 2 and sc >= 2:
-            r[k], c[k] = r0 + hr, c0 + hc
-            k += 1
-    return _unknown(r[:k], c[:k], known)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _miss(v, r, c, a0, a1, pts, i, p):
-    """The interpolation's miss at point (r, c) of ``v`` (the larger of line and element;
-    inf where NaN) against the interpolated ``(a0, a1)``; ``pts[i, p]`` set to the exact
-    value."""
-    e0, e1 = v[r, c, 0], v[r, c, 1]
-    pts[i, p, 0], pts[i, p, 1] = e0, e1
-    d0, d1 = abs(e0 - a0), abs(e1 - a1)
-    if math.isnan(d0) or math.isnan(d1):
-        return math.inf
-    return max(d0, d1)
-
-
-@njit(cache=True, nogil=True)
-def _cell_tests(cells, v):
-    """Test the cells ``(n, 4)`` (r, c, sr, sc) at their edge midpoints and centre (all
-    known in ``v``): the error of interpolation across columns (top and bottom
-    midpoints), across rows (left and right midpoints) and both (centre), NaN as inf, 0
-    where a size is 1; the points' values ``(n, 9, 2)``: the corners (r, c), (r, c + sc),
-    (r + sr, c), (r + sr, c + sc), then the test points (NaN where a test does not
-    exist)."""
-    n = cells.shape[0]
-    err_c, err_r, err_m = np.zeros(n), np.zeros(n), np.zeros(n)
-    pts = np.full((n, 9, 2), np.nan)
-    for i in range(n):
-        r, c, sr, sc = cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3]
-        hr, hc = sr // 2, sc // 2
-        for q in range(2):
-            pts[i, 0, q], pts[i, 1, q] = v[r, c, q], v[r, c + sc, q]
-            pts[i, 2, q], pts[i, 3, q] = v[r + sr, c, q], v[r + sr, c + sc, q]
-        q00, q01, q10, q11 = pts[i, 0], pts[i, 1], pts[i, 2], pts[i, 3]
-        if sc >= 2:
-            e1 = _miss(v, r, c + hc, (q00[0] + q01[0]) / 2, (q00[1] + q01[1]) / 2,
-                       pts, i, 4)
-            e2 = _miss(v, r + sr, c + hc, (q10[0] + q11[0]) / 2, (q10[1] + q11[1]) / 2,
-                       pts, i, 5)
-            err_c[i] = max(e1, e2)
-        if sr >= 2:
-            e1 = _miss(v, r + hr, c, (q00[0] + q10[0]) / 2, (q00[1] + q10[1]) / 2,
-                       pts, i, 6)
-            e2 = _miss(v, r + hr, c + sc, (q01[0] + q11[0]) / 2, (q01[1] + q11[1]) / 2,
-                       pts, i, 7)
-            err_r[i] = max(e1, e2)
-        if sr >= 2 and sc >= 2:
-            err_m[i] = _miss(v, r + hr, c + hc, (q00[0] + q01[0] + q10[0] + q11[0]) / 4,
-                             (q00[1] + q01[1] + q10[1] + q11[1]) / 4, pts, i, 8)
-    return err_c, err_r, err_m, pts
-
-
-@njit(cache=True, nogil=True)
-def _off_image(points, err, nl, ne):
-    """Cells whose test points and corners ``points`` ``(k, 9, 2)`` all lie beyond one
-    edge of the raw image (``nl`` lines x ``ne`` elements) by more than ``OFF_MARGIN_PX``
-    plus twice the cell's interpolation error there: every pixel of such a cell is off
-    the image (NaN), however its coordinates are interpolated. A NaN point (or a test
-    that does not exist) never qualifies on its coordinate."""
-    k = points.shape[0]
-    out = np.zeros(k, np.bool_)
-    for i in range(k):
-        m = OFF_MARGIN_PX + 2 * err[i] if math.isfinite(err[i]) else math.inf
-        off = False
-        for q in range(2):
-            lo, hi = math.inf, -math.inf
-            nan = False
-            for p in range(points.shape[1]):
-                x = points[i, p, q]
-                if math.isnan(x):
-                    nan = True
-                    break
-                lo, hi = min(lo, x), max(hi, x)
-            edge = (nl if q == 0 else ne) - 0.5
-            if not nan and (lo > edge + m or hi < -0.5 - m):
-                off = True
-        out[i] = off
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _children(cells, split_r, split_c):
-    """The halves (or quarters) of cells split across rows and / or columns (the
-    cells with neither flag are kept whole): first every cell's top-left part, then the
-    lower, right and lower-right parts, each in the cells' order."""
-    n = cells.shape[0]
-    m = n
-    for i in range(n):
-        m += int(split_r[i]) + int(split_c[i]) + int(split_r[i] and split_c[i])
-    out = np.empty((m, 4), np.int64)
-    k = 0
-    for part in range(4):
-        for i in range(n):
-            if part == 1 and not split_r[i] or part == 2 and not split_c[i] or (
-                    part == 3 and not (split_r[i] and split_c[i])):
-                continue
-            nsr = cells[i, 2] // 2 if split_r[i] else cells[i, 2]
-            nsc = cells[i, 3] // 2 if split_c[i] else cells[i, 3]
-            out[k, 0] = cells[i, 0] + (nsr if part == 1 or part == 3 else 0)
-            out[k, 1] = cells[i, 1] + (nsc if part >= 2 else 0)
-            out[k, 2], out[k, 3] = nsr, nsc
-            k += 1
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _level(cells, v, half, tol, nl, ne, smooth, H, W):
+def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     """One level of the refinement (every test point of ``cells`` known in ``v``):
     ``(leaves, corners, kids, sure)``: the unit cells, then the cells that pass (or lie
     clearly off the raw image, with ``nl`` > 0), as leaves with their corners; the
     children of the cells to refine; with ``smooth`` the children taken as leaves without
-    tests (:func:`leaves`; their corners for the caller to look up)."""
+    tests (:func:`leaves`; their corners for the caller to look up). A cell longer than
+    ``leaf_max`` on a side is a leaf only when it lies off the raw image; otherwise it is
+    halved across that side (whatever its tests say), children that start beyond the
+    tile's ``h`` x ``w`` pixels dropped."""
     n = cells.shape[0]
     unit = (cells[:, 2] == 1) & (cells[:, 3] == 1)
     rest = cells[~unit]
     err_c, err_r, err_m, pts = _cell_tests(rest, v)
     err = np.maximum(np.maximum(err_c, err_r), err_m)
-    good = err < half
+    big_r, big_c = rest[:, 2] > leaf_max, rest[:, 3] > leaf_max
+    big = big_r | big_c
+    good = (err < half) & ~big
     if nl > 0:
         good |= _off_image(pts, err, nl, ne)
     k = rest.shape[0]
@@ -338,46 +191,54 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W):
             j += 1
     bad = ~good & ~all_nan
     near = np.zeros(k, np.bool_)
-    if bad.any():           # all-NaN cells touching a refined one: the footprint's edge
-        near = all_nan & touching(rest, rest[bad], H, W)
-    split = bad | near
+    if bad.any() and all_nan.any():   # all-NaN cells touching a refined one: the edge of
+        near[all_nan] = touching(rest[all_nan], rest[bad], H, W)      # the footprint
+    split = bad | near | (big & all_nan)     # a big all-NaN cell may hide the footprint
     can_r, can_c = rest[:, 2] >= 2, rest[:, 3] >= 2
     pick_r = (err_r >= half) & (err_c < half / 2)
     pick_c = (err_c >= half) & (err_r < half / 2)
     both = near | ~(pick_r | pick_c)
-    split_r = split & can_r & (pick_r | both | ~can_c)
-    split_c = split & can_c & (pick_c | both | ~can_r)
+    split_r = split & np.where(big, big_r, can_r & (pick_r | both | ~can_c))
+    split_c = split & np.where(big, big_c, can_c & (pick_c | both | ~can_r))
     sure = np.zeros(split.shape[0], np.bool_)
     if smooth:
         # on a smooth mapping the interpolation error falls with the square of the cell
         # size: children of a cell that missed by less than ``tol`` miss by about a
         # quarter of it, half the acceptance threshold. They are leaves without tests
         # (their corners are the parent's tested points).
-        sure = split & (err < tol)
+        sure = split & (err < tol) & ~big
     go = split & ~sure
-    kids = _children(rest[go], split_r[go], split_c[go])
-    sure_kids = _children(rest[sure], split_r[sure], split_c[sure])
+    kids = _inside(_children(rest[go], split_r[go], split_c[go]), h, w)
+    sure_kids = _inside(_children(rest[sure], split_r[sure], split_c[sure]), h, w)
     return leaf, corners, kids, sure_kids
 
 
-def _dense_cheaper(exact, h: int, w: int, half: float) -> bool:
-    """Whether at least :data:`DENSE_SHARE` of a sample of 2 x 2 cells (up to 8 x 8 of
-    them, spread over the tile) miss ``half`` at their test points: the adaptive
-    refinement would then end in single pixels over most of the tile, and evaluating
-    every pixel is cheaper. Cells whose tests meet NaN (off the footprint) are left out
-    of the share; none left: False."""
-    if h < 3 or w < 3:
+def _dense_cheaper(exact, cells, h: int, w: int, half: float) -> bool:
+    """Whether at least :data:`DENSE_SHARE` of a sample of 2 x 2 cells miss ``half`` at
+    their test points: the adaptive refinement would then end in single pixels over most
+    of the tile, and evaluating every pixel is cheaper. The sample's cells sit at the
+    top-left corners of up to 64 of the lattice's ``cells`` (those left to refine, spread
+    over them: none off the raw image), 16 of them first, all 64 only where those 16 do
+    not settle it (a share between :data:`SETTLED` and 1 - :data:`SETTLED`, or fewer
+    than 8 seen). Cells whose tests meet NaN (off the footprint) are left out of the
+    share; none left: False."""
+    if h < 3 or w < 3 or not len(cells):
         return False
-    r = np.unique(np.linspace(0, h - 3, min(8, h - 2)).astype(np.int64))
-    c = np.unique(np.linspace(0, w - 3, min(8, w - 2)).astype(np.int64))
-    rr, cc = np.meshgrid(r, c, indexing="ij")
-    n = rr.size
-    cells = np.stack([rr.ravel(), cc.ravel(), np.full(n, 2), np.full(n, 2)], axis=-1)
-    exact.cells(cells)
-    err_c, err_r, err_m, _ = _cell_tests(cells, exact.values)
-    err = np.maximum(np.maximum(err_c, err_r), err_m)
-    seen = np.isfinite(err)
-    return bool(seen.any() and (err[seen] >= half).mean() >= DENSE_SHARE)
+    pick = np.unique(np.linspace(0, len(cells) - 1, min(64, len(cells))).astype(np.int64))
+    r = np.minimum(cells[pick, 0], h - 3)
+    c = np.minimum(cells[pick, 1], w - 3)
+    sample = np.stack([r, c, np.full(r.size, 2), np.full(r.size, 2)], axis=-1)
+    share = None
+    for part in (sample[::4], sample):
+        exact.cells(part)
+        err_c, err_r, err_m, _ = _cell_tests(part, exact.values)
+        err = np.maximum(np.maximum(err_c, err_r), err_m)
+        seen = np.isfinite(err)
+        share = float((err[seen] >= half).mean()) if seen.any() else 0.0
+        if len(part) == len(sample) or (seen.sum() >= 8 and not
+                                         SETTLED < share < 1 - SETTLED):
+            break
+    return share >= DENSE_SHARE
 
 
 def _every_pixel(exact, h: int, w: int, step: int, raw_shape) -> np.ndarray:
@@ -390,7 +251,9 @@ def _every_pixel(exact, h: int, w: int, step: int, raw_shape) -> np.ndarray:
     keep = np.ones((H, W), bool)
     s = min(DENSE_CELL, step)                     # divides the lattice's step
     if raw_shape is not None and h > s and w > s:
-        nr, nc = (H - 1) // s, (W - 1) // s       # step is a multiple of s: cells tile H x W
+        # step is a multiple of s: cells tile H x W; those past the tile's pixels left out
+        nr = min((H - 1) // s, max(math.ceil((h - 1) / s), 1))
+        nc = min((W - 1) // s, max(math.ceil((w - 1) / s), 1))
         ci, cj = np.meshgrid(np.arange(nr) * s, np.arange(nc) * s, indexing="ij")
         k = ci.size
         cells = np.stack([ci.ravel(), cj.ravel(), np.full(k, s), np.full(k, s)], axis=-1)
@@ -405,10 +268,10 @@ def _every_pixel(exact, h: int, w: int, step: int, raw_shape) -> np.ndarray:
                                       for di in (-1, 0, 1) for dj in (-1, 0, 1)])
         kept |= blank & grown
         # a pixel is kept when any cell whose closed rectangle holds it is kept
-        i = np.arange(H)
-        a, b = np.minimum(i // s, nr - 1), np.maximum((i - 1) // s, 0)
-        j = np.arange(W)
-        ca, cb = np.minimum(j // s, nc - 1), np.maximum((j - 1) // s, 0)
+        i = np.arange(h)
+        a, b = np.minimum(i // s, nr - 1), np.clip((i - 1) // s, 0, nr - 1)
+        j = np.arange(w)
+        ca, cb = np.minimum(j // s, nc - 1), np.clip((j - 1) // s, 0, nc - 1)
         keep = (kept[a][:, ca] | kept[b][:, ca] | kept[a][:, cb] | kept[b][:, cb])
     keep = keep[:h, :w]
     rr, cc = np.nonzero(keep)
@@ -416,6 +279,14 @@ def _every_pixel(exact, h: int, w: int, step: int, raw_shape) -> np.ndarray:
     out = exact.values[:h, :w].copy()
     out[~keep] = np.nan
     return out
+
+
+def _dense_leaves(exact, h: int, w: int, step: int, raw_shape) -> Leaves:
+    """:class:`Leaves` of the exact model at every pixel (:func:`_every_pixel`; the
+    ground points by pyproj)."""
+    exact.drop_frame()
+    px = _every_pixel(exact, h, w, step, raw_shape)
+    return Leaves(np.zeros((0, 4), np.int64), np.zeros((0, 4, 2)), (h, w), exact.count, px)
 
 
 def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
@@ -440,30 +311,33 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     :func:`_dense_cheaper`."""
     h, w = grid.shape
     step = 1 << max(int(math.log2(max(step, 1))), 0)
-    nr = max(math.ceil((h - 1) / step), 1)       # cells along rows
-    nc = max(math.ceil((w - 1) / step), 1)
-    H, W = nr * step + 1, nc * step + 1
-    exact = _Exact(model, grid, terrain, H, W)
-    rr, cc = np.meshgrid(np.arange(nr + 1) * step, np.arange(nc + 1) * step, indexing="ij")
-    exact(rr.ravel(), cc.ravel())
     half = tol * TEST_SHARE                      # a share of the bound at the test points
-    if dense is None:
-        dense = _dense_cheaper(exact, h, w, half)
     if dense:           # the exact model itself at every pixel: ground points by pyproj
-        exact.drop_frame()
-        px = _every_pixel(exact, h, w, step, raw_shape)
-        return Leaves(np.zeros((0, 4), np.int64), np.zeros((0, 4, 2)), (h, w), exact.count,
-                      px)
-    ci, cj = np.meshgrid(np.arange(nr), np.arange(nc), indexing="ij")
-    n = ci.size
-    cells = np.stack([ci.ravel() * step, cj.ravel() * step, np.full(n, step),
-                      np.full(n, step)], axis=-1).astype(np.int64)
+        nr = max(math.ceil((h - 1) / step), 1)
+        nc = max(math.ceil((w - 1) / step), 1)
+        exact = _Exact(model, grid, terrain, nr * step + 1, nc * step + 1)
+        return _dense_leaves(exact, h, w, step, raw_shape)
+    # one cell over the whole tile (power-of-two sides, at least ``step``), halved down
+    # to ``step`` where it does not lie off the raw image: a tile's parts off the image
+    # cost a few evaluations, not a lattice of ``step`` cells each
+    sr, sc = step, step
+    while sr < h - 1:
+        sr *= 2
+    while sc < w - 1:
+        sc *= 2
+    H, W = sr + 1, sc + 1
+    exact = _Exact(model, grid, terrain, H, W)
+    cells = np.array([[0, 0, sr, sc]], np.int64)
     out_cells, out_corners = [], []
     nl, ne = raw_shape if raw_shape is not None else (0, 0)
     while cells.size:                  # one model call and one compiled pass a level
+        if dense is None and cells[:, 2:].max() <= step:
+            dense = False              # decided once, on the cells of ``step`` left
+            if _dense_cheaper(exact, cells, h, w, half):
+                return _dense_leaves(exact, h, w, step, raw_shape)
         exact.cells(cells)
         leaf, corners, cells, sure = _level(cells, exact.values, half, tol, nl, ne, smooth,
-                                            H, W)
+                                            H, W, step, h, w)
         out_cells.append(leaf)
         out_corners.append(corners)
         if len(sure):

@@ -12,6 +12,7 @@ import numpy as np
 
 from swathflow.errors import FormatError
 from swathflow.geometry.linesolve import bracket_lines, plane_brackets, secant_lines
+from swathflow.geometry.navkernel import pos_table
 from swathflow.geometry.planesolve import coarse_grid
 from swathflow.geometry.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
 
@@ -446,12 +447,9 @@ class PendulumModel(SensorModel):
     def _geo(self) -> tuple:
         """The kernels' view of the geometry: line columns, POS times and table (ECEF,
         lat, lon, attitude), max gap, R_BP, R_HS, u_gps, u_sen."""
-        tr = self._trajectory
-        if "pos_table" not in self._shared:
-            self._shared["pos_table"] = np.column_stack([tr.ecef, tr.lat, tr.lon, tr.attitude])
-        return (self._line_cols, np.asarray(tr.time, float), self._shared["pos_table"],
-                float(tr.max_gap), self._r_bp_t, self._r_hs, np.asarray(self._u_gps, float),
-                np.asarray(self._u_sen, float))
+        time, table, max_gap = pos_table(self._trajectory)
+        return (self._line_cols, time, table, max_gap, self._r_bp_t, self._r_hs,
+                np.asarray(self._u_gps, float), np.asarray(self._u_sen, float))
 
     def _pixels(self, line, cam, clip: bool) -> np.ndarray:
         """(line, element) from fractional lines and camera vectors; NaN behind the camera
