@@ -29,14 +29,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit
 from swathflow.io import atomic_path
+from swathflow.rectification.store import store_here
 
 if TYPE_CHECKING:   # an annotation only: the mosaic's writer does not import pyproj for it
     from swathflow.geometry.grid import Grid
 
 #: GDAL block cache while writing (MB): GDAL's default is 5 % of the machine's memory
 GDAL_CACHE_MB = 256
-#: bound on the finished blocks held before they are written (bytes)
-BATCH_BYTES = 256 * 2 ** 20
 #: the streamed .part file is uncompressed below this size (bytes), else deflate level 1
 PART_RAW_BYTES = 2 ** 30
 #: deflate level of the COG: with the predictor, level 1 measured 20 % faster than 6 and
@@ -52,7 +51,7 @@ CODECS = ("deflate", "zstd")
 
 
 class _WindowWriter:
-    """A ``__setitem__`` target for ``dask.array.store`` writing windows of a rasterio
+    """A ``__setitem__`` target for :func:`.store.store_here` writing windows of a rasterio
     dataset (2-D: band 1; 3-D: bands)."""
 
     def __init__(self, dst, bands: int | None = None, mask: bool = False, level1=None):
@@ -82,44 +81,6 @@ class _WindowWriter:
             self.dst.write(np.asarray(value), window=Window(cs.start, rs.start,
                                                             cs.stop - cs.start,
                                                             rs.stop - rs.start))
-
-
-def _store_here(sources, targets, scheduler=None, batch: int | None = None) -> None:
-    """Compute the arrays' blocks on the active scheduler (threads, or a distributed
-    cluster) and write each block in THIS process as it arrives. The targets are open
-    files, which must never travel to a worker; memory stays bounded by one batch of
-    blocks. Blocks of one batch share their graph, so common tiles are computed once."""
-    import dask
-    from dask.array.core import slices_from_chunks
-    items = []
-    for arr, tgt in zip(sources, targets):
-        for blk, slc in zip(arr.to_delayed().ravel(), slices_from_chunks(arr.chunks)):
-            items.append((blk, slc, tgt))
-    client = None
-    if scheduler is None:
-        try:
-            from distributed import default_client
-            client = default_client()
-        except (ImportError, ValueError):
-            client = None
-    n = batch or (4 * max(1, sum(client.nthreads().values())) if client else 16)
-    # multi-band tiles are large: at most about BATCH_BYTES of finished blocks at a time
-    biggest = max((int(np.prod([max(c) for c in a.chunks])) * a.dtype.itemsize
-                   for a in sources), default=1)
-    n = max(2, min(n, BATCH_BYTES // max(biggest, 1)))
-    for i in range(0, len(items), n):
-        chunk = items[i:i + n]
-        if client is not None:
-            from distributed import as_completed
-            futures = client.compute([blk for blk, _, _ in chunk])
-            index = {f.key: k for k, f in enumerate(futures)}
-            for fut, value in as_completed(futures, with_results=True):
-                _, slc, tgt = chunk[index[fut.key]]
-                tgt[slc] = value
-        else:
-            values = dask.compute(*[blk for blk, _, _ in chunk], scheduler=scheduler)
-            for (_, slc, tgt), value in zip(chunk, values):
-                tgt[slc] = value
 
 
 def _band_metadata(dst, infos) -> None:
@@ -288,7 +249,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1))
             parts.append((dst, part, final, o["path"], level1, profile))
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
-            _store_here(sources, targets, scheduler)
+            store_here(sources, targets, scheduler)
         for (dst, part, final, path, level1, profile), o in zip(parts, outputs):
             dst.close()
             if o.get("mask"):
