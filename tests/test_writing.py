@@ -239,3 +239,39 @@ def test_synchronous_blocks_run_each_task_once(tmp_path):
     with rasterio.open(tmp_path / "s.tif") as src:
         assert np.array_equal(src.read(1), truth.astype(np.uint16))
     assert sorted(calls) == [(i, j) for i in range(2) for j in range(3)]
+
+
+@pytest.mark.parametrize("dtype,nodata", [(np.uint16, 0), (np.float32, float("nan")),
+                                          (np.int16, -32768)])
+def test_tiles_of_nodata_are_written_as_gdal_writes_them(tmp_path, dtype, nodata):
+    """GDAL leaves the tiles holding only nodata out of the streamed file and of the
+    overview levels (SPARSE_OK); the COG still has every tile, each left-out one with the
+    bytes GDAL itself writes for a nodata tile (a GeoTIFF written without SPARSE_OK),
+    and reads back the same pixels and overviews."""
+    from swathflow.rectification.tifflayout import read_first_ifd
+    data = _cube(2, dtype)
+    data[:, :, :700] = nodata                   # whole tiles of nodata, at every level
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+    path = tmp_path / "sparse.tif"
+    write_cogs([{"path": path, "array": data, "grid": grid, "nodata": nodata}], blocksize=256)
+    assert _cog_layout_problems(path) == []
+    ref = tmp_path / "ref.tif"
+    with rasterio.open(ref, "w", driver="GTiff", width=W, height=H, count=2, dtype=data.dtype,
+                       nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
+                       compress="deflate", zlevel=1, predictor=3 if dtype == np.float32 else 2,
+                       interleave="band") as dst:
+        dst.write(data)
+    with open(path, "rb") as f, open(ref, "rb") as g:
+        ours, gdal = read_first_ifd(f), read_first_ifd(g)
+        assert ours.counts.size == gdal.counts.size and (ours.counts > 0).all()
+        assert np.array_equal(ours.counts, gdal.counts)
+        for off, n, goff in zip(ours.offsets, ours.counts, gdal.offsets):
+            f.seek(int(off))
+            g.seek(int(goff))
+            assert f.read(int(n)) == g.read(int(n))
+    with rasterio.open(path) as src:
+        assert np.array_equal(src.read(), data, equal_nan=True)
+        for k, f in enumerate(src.overviews(1)):
+            with rasterio.open(path, overview_level=k) as ov:
+                assert ov.read(window=((0, 1), (0, 1)))[0, 0, 0] == nodata or (
+                    math.isnan(nodata) and math.isnan(ov.read()[0, 0, 0]))

@@ -123,8 +123,8 @@ def _part_profile(o, shape, bands, dtype, blocksize, compress) -> dict:
                "dtype": dtype.name, "tiled": True, "blockxsize": blocksize,
                "blockysize": blocksize, "compress": "none" if small else compress,
                "BIGTIFF": "IF_SAFER", "interleave": "band"}
-    if not o.get("mask"):
-        profile.update(_compression(compress, dtype))
+    if not o.get("mask"):           # laid out by tifflayout, which fills left-out tiles
+        profile.update(_compression(compress, dtype), sparse_ok=True)
     elif not small and compress == "deflate":
         profile["zlevel"] = 1
     if o.get("grid") is not None:
@@ -326,7 +326,7 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
             for k in _CODEC_OPTIONS:
                 profile.pop(k, None)
             profile.update(height=h, width=w, tiled=True, blockxsize=blocksize,
-                           blockysize=blocksize, BIGTIFF="IF_SAFER",
+                           blockysize=blocksize, BIGTIFF="IF_SAFER", sparse_ok=True,
                            **(compression or {"compress": "none"}))
             profile["transform"] = src.transform @ src.transform.scale(src.width / w,
                                                                      src.height / h)
@@ -373,7 +373,42 @@ def _layout_cog(part: str, final: str, target: str, level1: _Level1 | None, prof
             files = [stack.enter_context(open(p, "rb")) for p in paths]
         with open(part, "rb") as src, open(final, "wb") as out:
             levels = [(read_first_ifd(src), src)] + [(read_first_ifd(f), f) for f in files]
-            write_cog_layout(out, levels)
+            left_out = any((i.counts == 0).any() for i, _ in levels)
+            write_cog_layout(out, levels, _empty_tiles(profile, blocksize) if left_out else None)
+
+
+def _empty_tiles(profile: dict, blocksize: int):
+    """``empty(rows, cols)``: the compressed bytes of a tile of nodata (0 without a nodata
+    value) with ``rows`` x ``cols`` pixels inside the image (fewer at the right and bottom
+    edges), as GDAL writes it with the output's codec and predictor (each shape compressed
+    once). The streamed ``.part`` and the overview levels are sparse (``SPARSE_OK``): GDAL
+    skips the tiles holding nothing but nodata (1.6 ms each for uint16 deflate; a quarter
+    of the demo's tiles at 0.05 m) and the COG layout writes these bytes in their place:
+    the same file as without ``SPARSE_OK``."""
+    import io
+
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.io import MemoryFile
+    from swathflow.rectification.tifflayout import read_first_ifd
+    dt = np.dtype(profile["dtype"])
+    nodata = profile.get("nodata")
+    opts = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
+    made: dict = {}
+
+    def empty(rows: int, cols: int) -> bytes:
+        if (rows, cols) not in made:
+            with MemoryFile() as mem, warnings.catch_warnings():
+                warnings.simplefilter("ignore", NotGeoreferencedWarning)
+                with mem.open(driver="GTiff", width=cols, height=rows, count=1, dtype=dt.name,
+                              nodata=nodata, tiled=True, blockxsize=blocksize,
+                              blockysize=blocksize, **opts) as dst:
+                    dst.write(np.full((1, rows, cols), 0 if nodata is None else nodata, dt))
+                f = io.BytesIO(mem.read())
+            ifd = read_first_ifd(f)
+            f.seek(int(ifd.offsets[0]))
+            made[(rows, cols)] = f.read(int(ifd.counts[0]))
+        return made[(rows, cols)]
+    return empty
 
 
 def _cache_env():
@@ -393,7 +428,7 @@ def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression
     ov_profile = {k: profile[k] for k in ("count", "dtype", "nodata", "interleave")
                   if k in profile}
     ov_profile.update(driver="GTiff", tiled=True, blockxsize=blocksize, blockysize=blocksize,
-                      **compression)
+                      sparse_ok=True, **compression)
     lv = level1.array
     files = []
     for k in range(n_levels):
