@@ -187,16 +187,21 @@ def write_cog_layout(out, levels, empty=None) -> None:
     first = min((int(o[o > 0].min()) - 4 for o in offsets if (o > 0).any()), default=pos)
     out.write(bytes(first - pos))
     for k in range(len(levels) - 1, -1, -1):
-        ifd, src = levels[k]
-        for j, (off, c) in enumerate(zip(ifd.offsets.tolist(), ifd.counts.tolist())):
-            if not c:
-                continue
-            tile = src.tile(j, off, c) if isinstance(src, _Filled) else _read(src, off, c)
-            if len(tile) != c:
-                raise ValueError("a tile of the source TIFF is cut short")
-            out.write(struct.pack("<I", c))
-            out.write(tile)
-            out.write(tile[-4:] if c >= 4 else tile + bytes(4 - c))
+        _copy_tiles(out, *levels[k])
+
+
+def _copy_tiles(out, ifd: Ifd, src) -> None:
+    """A level's tiles from ``src``, each with its size before it and its last four bytes
+    after it."""
+    for j, (off, c) in enumerate(zip(ifd.offsets.tolist(), ifd.counts.tolist())):
+        if not c:
+            continue
+        tile = src.tile(j, off, c) if isinstance(src, _Filled) else _read(src, off, c)
+        if len(tile) != c:
+            raise ValueError("a tile of the source TIFF is cut short")
+        out.write(struct.pack("<I", c))
+        out.write(tile)
+        out.write(tile[-4:] if c >= 4 else tile + bytes(4 - c))
 
 
 def _read(src, off: int, count: int) -> bytes:
