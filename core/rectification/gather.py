@@ -310,10 +310,7 @@ def gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodat
                 for c in range(w):
                     out[b, r, c] = out_nodata
             continue
-        if check and not has_nodata:
-            _row_nan(flat, sb, nb, offs, wts, has, r, nearest, out, out_nodata, lo, hi,
-                     is_int, clamp, avoid, valid)
-        elif check:
+        if check:
             _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, out,
                          out_nodata, lo, hi, is_int, clamp, avoid, valid)
         elif band_inner:
@@ -351,49 +348,31 @@ def _checked4(flat, base, offs, wts, c, has_nodata, nodata):
 
 
 @njit(cache=True, nogil=True)
-def _row_nan(flat, sb, nb, offs, wts, has, r, nearest, out, out_nodata, lo, hi, is_int,
-             clamp, avoid, valid):
-    """:func:`_row_checked` for a window whose only nodata is NaN (a float raw type without
-    a nodata value): the plain weighted sum first (no test per tap: it equals the checked
-    sum wherever no tap is NaN), the checked sum only where it came out NaN (a NaN tap,
-    perhaps of zero weight)."""
+def _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, out,
+                 out_nodata, lo, hi, is_int, clamp, avoid, valid):
+    """One row with nodata tests on every tap of non-zero weight: a band's pixel is
+    nodata where one of its taps is; ``valid`` is 0 where any band's is. Without a nodata
+    value (a float raw type: NaN is the only nodata) the plain weighted sum comes first
+    (no test per tap: it equals the checked sum wherever no tap is NaN) and the checked
+    sum only where it came out NaN (a NaN tap, perhaps of zero weight)."""
     w = offs.shape[1]
+    plain = not (nearest or has_nodata)
     for b in range(nb):
         base = b * sb
         for c in range(w):
             if not has[c]:
                 continue
-            if nearest:
-                acc = flat[base + offs[0, c]] * 1.0
-            else:
+            if plain:
                 acc = (wts[0, c] * flat[base + offs[0, c]] + wts[1, c] * flat[base + offs[1, c]]
                        + wts[2, c] * flat[base + offs[2, c]]
                        + wts[3, c] * flat[base + offs[3, c]])
                 if acc != acc:
                     acc = _checked4(flat, base, offs, wts, c, False, 0.0)
-            if acc != acc:
-                valid[r, c] = 0
-                out[b, r, c] = out_nodata
-                continue
-            out[b, r, c] = _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
-
-
-@njit(cache=True, nogil=True)
-def _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, out,
-                 out_nodata, lo, hi, is_int, clamp, avoid, valid):
-    """One row with nodata tests on every tap of non-zero weight: a band's pixel is
-    nodata where one of its taps is; ``valid`` is 0 where any band's is."""
-    w = offs.shape[1]
-    for b in range(nb):
-        base = b * sb
-        for c in range(w):
-            if not has[c]:
-                continue
-            if nearest:
+            elif nearest:
                 acc = _tap(flat, base + offs[0, c], 1.0, True, has_nodata, nodata)
             else:
-                acc = _checked4(flat, base, offs, wts, c, has_nodata, nodata)
-            if math.isnan(acc):
+                acc = _checked4(flat, base, offs, wts, c, True, nodata)
+            if acc != acc:
                 valid[r, c] = 0
                 out[b, r, c] = out_nodata
                 continue
