@@ -54,6 +54,14 @@ def _tap(flat, k, wgt, check, has_nodata, nodata):
     return wgt * v
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_taps(li, ei, nl, ne, sl, se):
+    """Bilinear taps of one pixel: (flat offset of its first tap, the four weights)."""
+    i, p = _taps_1d(li, nl, False)
+    j, q = _taps_1d(ei, ne, False)
+    return i * sl + j * se, (1 - p) * (1 - q), (1 - p) * q, p * (1 - q), p * q
+
+
 @njit(cache=True, nogil=True)
 def _row_taps(coords, r, nl, ne, sl, se, nearest, offs, wts, has, valid):
     """Flat offsets ``(4, w)`` and weights of row ``r``'s taps; returns the number of
@@ -242,13 +250,7 @@ def gather_int_bip(flat, nb, sl, se, nl, ne, coords, out, out_nodata, nd_cmp, va
                         acc[t, b] = np.nan
                     continue
                 valid[r, c] = 255
-                i, p = _taps_1d(li, nl, False)
-                j, q = _taps_1d(ei, ne, False)
-                k = i * sl + j * se
-                w0 = (1 - p) * (1 - q)
-                w1 = (1 - p) * q
-                w2 = p * (1 - q)
-                w3 = p * q
+                k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se)
                 for b in range(nb):
                     acc[t, b] = (w0 * flat[k + b] + w1 * flat[k + de + b]
                                  + w2 * flat[k + dl + b] + w3 * flat[k + dl + de + b])
@@ -410,13 +412,7 @@ def gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid):
                 valid[r, c] = 0
                 o[r, c] = out_nodata
                 continue
-            i, p = _taps_1d(li, nl, False)
-            j, q = _taps_1d(ei, ne, False)
-            k = i * sl + j * se
-            w0 = (1 - p) * (1 - q)
-            w1 = (1 - p) * q
-            w2 = p * (1 - q)
-            w3 = p * q
+            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se)
             v0 = flat[k]
             v1 = flat[k + de]
             v2 = flat[k + dl]
