@@ -91,6 +91,29 @@ def test_multiband_each_band_its_own_pattern():
     assert np.allclose(v[2, 0], 10)
 
 
+def test_large_tiles_reuse_only_memory_nothing_refers_to(monkeypatch):
+    """Output tiles of 16 MB or more come from a pool (no fresh pages to zero): a tile in
+    use is never handed out again, a freed one is, and a tile resampled into the dirty
+    memory of an earlier one holds its own closed form in every pixel."""
+    monkeypatch.setattr(K, "_POOL", [])                 # no tiles of earlier tests
+    li, ei = np.mgrid[0:24, 0:24].astype(float)
+    co = np.stack(np.meshgrid(np.linspace(1, 21, 512), np.linspace(2, 20, 512),
+                              indexing="ij")).astype(np.float32)
+    pl, pe = co[0].astype(float), co[1].astype(float)
+    nb = 40                                             # 40 x 512 x 512 uint16: 21 MB
+    first, _ = K.resample_window(np.stack([1000 + 0 * li] * nb).astype(np.uint16), co,
+                                 "bilinear", None, np.uint16, 0)
+    other = K.tile_buffer(first.shape, np.uint16)
+    assert not np.shares_memory(first, other)           # the first tile is in use
+    where = first.__array_interface__["data"][0]
+    del first, other
+    cube = np.stack([100 + 7 * b + 3 * li + 2 * ei for b in range(nb)]).astype(np.uint16)
+    v, ok = K.resample_window(cube, co, "bilinear", None, np.uint16, 0)
+    assert v.__array_interface__["data"][0] == where    # the freed memory, reused
+    truth = np.stack([100 + 7 * b + 3 * pl + 2 * pe for b in range(nb)])
+    assert ok.all() and np.abs(v - truth).max() <= 0.5 + 1e-6
+
+
 # ----------------------------------------------------------------------------------------
 # raw images: ENVI BSQ / BIL / BIP with headers, multi-band GeoTIFF, band selection
 # ----------------------------------------------------------------------------------------

@@ -199,9 +199,11 @@ def test_cog_codecs(tmp_path, compress):
         assert np.array_equal(src.read(1), data)
 
 
-def test_any_chunking_of_a_dask_array(tmp_path):
+@pytest.mark.parametrize("scheduler", [None, "sync"])
+def test_any_chunking_of_a_dask_array(tmp_path, scheduler):
     """Blocks split across bands, or of odd sizes (the first overview level then comes
-    from the streamed file), a raster smaller than one tile: same pixels, valid COGs."""
+    from the streamed file), a raster smaller than one tile: same pixels, valid COGs (on
+    the threads, and block by block in this process on the synchronous scheduler)."""
     import dask.array as da
     for shape, chunks in [((3, 600, 600), (1, 300, 300)), ((513, 1100), 255),
                           ((100, 90), 512)]:
@@ -209,7 +211,67 @@ def test_any_chunking_of_a_dask_array(tmp_path):
         grid = Grid("EPSG:32633", from_origin(500000, 6000000, 1, 1), shape[-2:])
         path = tmp_path / f"c{len(shape)}_{shape[-1]}.tif"
         write_cogs([{"path": path, "array": da.from_array(data, chunks=chunks), "grid": grid,
-                     "nodata": 0}], blocksize=256)
+                     "nodata": 0}], blocksize=256, scheduler=scheduler)
         assert _cog_layout_problems(path) == []
         with rasterio.open(path) as src:
             assert np.array_equal(src.read() if len(shape) == 3 else src.read(1), data)
+
+
+def test_synchronous_blocks_run_each_task_once(tmp_path):
+    """On the synchronous scheduler the writer runs the graph itself (store.py): a slice
+    of a larger array whose blocks share a task, rechunked, gives the pixels of the same
+    expression in numpy, each needed block computed once and no block outside the slice."""
+    import dask.array as da
+    calls = []
+
+    def f(x, block_id=None):
+        calls.append(block_id)
+        return x * 3 + 1
+
+    data = (np.arange(900 * 700) % 5000).reshape(900, 700).astype(np.uint16)
+    base = da.from_array(data, chunks=300).map_blocks(f, dtype=np.uint16)
+    arr = (base[:600] + base[:600, ::-1]).rechunk(256)       # blocks read two tasks each
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 1, 1), arr.shape)
+    calls.clear()                            # dask's own probes while building the graph
+    write_cogs([{"path": tmp_path / "s.tif", "array": arr, "grid": grid, "nodata": 0}],
+               blocksize=256, scheduler="sync")
+    truth = (data[:600] * 3 + 1) + (data[:600, ::-1] * 3 + 1)
+    with rasterio.open(tmp_path / "s.tif") as src:
+        assert np.array_equal(src.read(1), truth.astype(np.uint16))
+    assert sorted(calls) == [(i, j) for i in range(2) for j in range(3)]
+
+
+@pytest.mark.parametrize("dtype,nodata", [(np.uint16, 0), (np.float32, float("nan")),
+                                          (np.int16, -32768)])
+def test_tiles_of_nodata_are_written_as_gdal_writes_them(tmp_path, dtype, nodata):
+    """GDAL leaves the tiles holding only nodata out of the streamed file and of the
+    overview levels (SPARSE_OK); the COG still has every tile, each left-out one with the
+    bytes GDAL itself writes for a nodata tile (a GeoTIFF written without SPARSE_OK),
+    and reads back the same pixels and overviews."""
+    from swathflow.rectification.tifflayout import read_first_ifd
+    data = _cube(2, dtype)
+    data[:, :, :700] = nodata                   # whole tiles of nodata, at every level
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+    path = tmp_path / "sparse.tif"
+    write_cogs([{"path": path, "array": data, "grid": grid, "nodata": nodata}], blocksize=256)
+    assert _cog_layout_problems(path) == []
+    ref = tmp_path / "ref.tif"
+    with rasterio.open(ref, "w", driver="GTiff", width=W, height=H, count=2, dtype=data.dtype,
+                       nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
+                       compress="deflate", zlevel=1, predictor=3 if dtype == np.float32 else 2,
+                       interleave="band") as dst:
+        dst.write(data)
+    with open(path, "rb") as f, open(ref, "rb") as g:
+        ours, gdal = read_first_ifd(f), read_first_ifd(g)
+        assert ours.counts.size == gdal.counts.size and (ours.counts > 0).all()
+        assert np.array_equal(ours.counts, gdal.counts)
+        for off, n, goff in zip(ours.offsets, ours.counts, gdal.offsets):
+            f.seek(int(off))
+            g.seek(int(goff))
+            assert f.read(int(n)) == g.read(int(n))
+    with rasterio.open(path) as src:
+        assert np.array_equal(src.read(), data, equal_nan=True)
+        for k, f in enumerate(src.overviews(1)):
+            with rasterio.open(path, overview_level=k) as ov:
+                left = ov.read()[:, :, :700 // f].astype(float)      # nodata only
+                assert (np.isnan(left) if math.isnan(nodata) else left == nodata).all()

@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 from numba import njit
+from swathflow.rectification.rawimage import _memmap_of, release_pages
 
 
 
@@ -51,6 +52,14 @@ def _tap(flat, k, wgt, check, has_nodata, nodata):
         if v != v or (has_nodata and v == nodata):
             return np.nan
     return wgt * v
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_taps(li, ei, nl, ne, sl, se):
+    """Bilinear taps of one pixel: (flat offset of its first tap, the four weights)."""
+    i, p = _taps_1d(li, nl, False)
+    j, q = _taps_1d(ei, ne, False)
+    return i * sl + j * se, (1 - p) * (1 - q), (1 - p) * q, p * (1 - q), p * q
 
 
 @njit(cache=True, nogil=True)
@@ -241,13 +250,7 @@ def gather_int_bip(flat, nb, sl, se, nl, ne, coords, out, out_nodata, nd_cmp, va
                         acc[t, b] = np.nan
                     continue
                 valid[r, c] = 255
-                i, p = _taps_1d(li, nl, False)
-                j, q = _taps_1d(ei, ne, False)
-                k = i * sl + j * se
-                w0 = (1 - p) * (1 - q)
-                w1 = (1 - p) * q
-                w2 = p * (1 - q)
-                w3 = p * q
+                k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se)
                 for b in range(nb):
                     acc[t, b] = (w0 * flat[k + b] + w1 * flat[k + de + b]
                                  + w2 * flat[k + dl + b] + w3 * flat[k + dl + de + b])
@@ -310,10 +313,7 @@ def gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodat
                 for c in range(w):
                     out[b, r, c] = out_nodata
             continue
-        if check and not has_nodata:
-            _row_nan(flat, sb, nb, offs, wts, has, r, nearest, out, out_nodata, lo, hi,
-                     is_int, clamp, avoid, valid)
-        elif check:
+        if check:
             _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, out,
                          out_nodata, lo, hi, is_int, clamp, avoid, valid)
         elif band_inner:
@@ -351,26 +351,30 @@ def _checked4(flat, base, offs, wts, c, has_nodata, nodata):
 
 
 @njit(cache=True, nogil=True)
-def _row_nan(flat, sb, nb, offs, wts, has, r, nearest, out, out_nodata, lo, hi, is_int,
-             clamp, avoid, valid):
-    """:func:`_row_checked` for a window whose only nodata is NaN (a float raw type without
-    a nodata value): the plain weighted sum first (no test per tap: it equals the checked
-    sum wherever no tap is NaN), the checked sum only where it came out NaN (a NaN tap,
-    perhaps of zero weight)."""
+def _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, out,
+                 out_nodata, lo, hi, is_int, clamp, avoid, valid):
+    """One row with nodata tests on every tap of non-zero weight: a band's pixel is
+    nodata where one of its taps is; ``valid`` is 0 where any band's is. Without a nodata
+    value (a float raw type: NaN is the only nodata) the plain weighted sum comes first
+    (no test per tap: it equals the checked sum wherever no tap is NaN) and the checked
+    sum only where it came out NaN (a NaN tap, perhaps of zero weight)."""
     w = offs.shape[1]
+    plain = not (nearest or has_nodata)
     for b in range(nb):
         base = b * sb
         for c in range(w):
             if not has[c]:
                 continue
-            if nearest:
-                acc = flat[base + offs[0, c]] * 1.0
-            else:
+            if plain:
                 acc = (wts[0, c] * flat[base + offs[0, c]] + wts[1, c] * flat[base + offs[1, c]]
                        + wts[2, c] * flat[base + offs[2, c]]
                        + wts[3, c] * flat[base + offs[3, c]])
                 if acc != acc:
                     acc = _checked4(flat, base, offs, wts, c, False, 0.0)
+            elif nearest:
+                acc = _tap(flat, base + offs[0, c], 1.0, True, has_nodata, nodata)
+            else:
+                acc = _checked4(flat, base, offs, wts, c, True, nodata)
             if acc != acc:
                 valid[r, c] = 0
                 out[b, r, c] = out_nodata
@@ -378,26 +382,51 @@ def _row_nan(flat, sb, nb, offs, wts, has, r, nearest, out, out_nodata, lo, hi, 
             out[b, r, c] = _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tap_v(v, wgt):
+    """:func:`_tap` of a loaded value (``check`` on, no nodata value)."""
+    if wgt == 0.0:
+        return 0.0
+    if v != v:
+        return np.nan
+    return wgt * v
+
+
 @njit(cache=True, nogil=True)
-def _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, out,
-                 out_nodata, lo, hi, is_int, clamp, avoid, valid):
-    """One row with nodata tests on every tap of non-zero weight: a band's pixel is
-    nodata where one of its taps is; ``valid`` is 0 where any band's is."""
-    w = offs.shape[1]
-    for b in range(nb):
-        base = b * sb
+def gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid):
+    """:func:`gather_bands` for one band, bilinear, float output, without a nodata value
+    (NaN the only nodata of a float raw type), in one pass per pixel: taps, weights and
+    the plain weighted sum, no row buffers (12-15 % less time than the row form on the
+    kernel benchmark's tiles; the same arithmetic, so the same values). A NaN sum is
+    redone with each tap tested (:func:`_tap`): nodata where a tap of non-zero weight
+    is NaN. (For integer output the row form measured as fast or faster.)"""
+    _, h, w = coords.shape
+    dl = sl if nl > 1 else 0
+    de = se if ne > 1 else 0
+    o = out[0]
+    for r in range(h):
         for c in range(w):
-            if not has[c]:
-                continue
-            if nearest:
-                acc = _tap(flat, base + offs[0, c], 1.0, True, has_nodata, nodata)
-            else:
-                acc = _checked4(flat, base, offs, wts, c, has_nodata, nodata)
-            if math.isnan(acc):
+            li = coords[0, r, c]
+            ei = coords[1, r, c]
+            if math.isnan(li) or math.isnan(ei):
                 valid[r, c] = 0
-                out[b, r, c] = out_nodata
+                o[r, c] = out_nodata
                 continue
-            out[b, r, c] = _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
+            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se)
+            v0 = flat[k]
+            v1 = flat[k + de]
+            v2 = flat[k + dl]
+            v3 = flat[k + dl + de]
+            acc = w0 * v0 + w1 * v1 + w2 * v2 + w3 * v3
+            if acc != acc:
+                acc = _tap_v(v0, w0) + _tap_v(v1, w1) + _tap_v(v2, w2) + _tap_v(v3, w3)
+                if acc != acc:
+                    valid[r, c] = 0
+                    o[r, c] = out_nodata
+                    continue
+            valid[r, c] = 255
+            o[r, c] = acc
+    return out
 
 
 def storage_view(raw: np.ndarray):
@@ -456,39 +485,9 @@ def _gather(flat, strides, shape, coords, nearest, check, clamp, has_nodata, nod
         if nb >= 4:
             gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, cmp, valid)
             return
+    if nb == 1 and not (nearest or has_nodata or is_int):
+        gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid)
+        return
     gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodata,
                      nodata, out, out_nodata, lo, hi, is_int, clamp, avoid, valid,
                      sb == 1 and nb > 1)
-
-
-def _memmap_of(a):
-    """The :class:`numpy.memmap` an array is a view of: the one made over the open mmap
-    (its ``base``), whose data start ``offset % ALLOCATIONGRANULARITY`` bytes into the
-    mapping (views of a memmap are memmaps too, but start elsewhere); or None."""
-    import mmap
-    while a is not None:
-        if isinstance(a, np.memmap) and isinstance(a.base, mmap.mmap):
-            return a
-        a = a.base
-    return None
-
-
-def release_pages(window: np.ndarray) -> None:
-    """Drop the pages of a memory-mapped window from the process (``madvise`` with
-    ``MADV_DONTNEED``; the file's data stay in the page cache and a later read maps them
-    again). Without it every page a tile touched stays mapped, so the resident memory of
-    a rectification grows with the swing (an 8 GB ENVI cube: 8 GB), not with the tile."""
-    import mmap
-    mm = _memmap_of(window)
-    if mm is None or not hasattr(mmap, "MADV_DONTNEED") or window.size == 0 or \
-            min(window.strides) < 0:
-        return
-    nbytes = window.itemsize + sum((n - 1) * st for n, st in zip(window.shape, window.strides))
-    base = mm.ctypes.data - (mm.offset % mmap.ALLOCATIONGRANULARITY)
-    start = window.__array_interface__["data"][0] - base
-    mm = mm.base
-    page = mmap.PAGESIZE
-    lo = max(start // page * page, 0)
-    hi = min(-(-(start + nbytes) // page) * page, len(mm))
-    if hi > lo:
-        mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)

@@ -139,10 +139,15 @@ def _level_tags(ifd: Ifd, overview: bool) -> dict:
     return tags
 
 
-def write_cog_layout(out, levels) -> None:
+def write_cog_layout(out, levels, empty=None) -> None:
     """Write the COG into the binary file ``out`` from ``levels``: (IFD, source file
     object) pairs of the full resolution then each overview, largest first (each a tiled
-    TIFF with the same compression, read by :func:`read_first_ifd`)."""
+    TIFF with the same compression, read by :func:`read_first_ifd`). ``empty(rows,
+    cols)``: the compressed bytes of a tile of nodata with ``rows`` x ``cols`` pixels
+    inside the image, written for every tile a source left out (a sparse GeoTIFF's byte
+    count 0), so the COG has every tile, as GDAL's COG driver writes it."""
+    if empty is not None:
+        levels = [_filled(i, f, empty) for i, f in levels]
     data_size = sum(int(i.counts.sum()) + 8 * int((i.counts > 0).sum()) for i, _ in levels)
     tag_size = sum(sum(len(v[2]) + 24 for v in i.tags.values()) + 16 * i.offsets.size + 64
                    for i, _ in levels)
@@ -182,14 +187,52 @@ def write_cog_layout(out, levels) -> None:
     first = min((int(o[o > 0].min()) - 4 for o in offsets if (o > 0).any()), default=pos)
     out.write(bytes(first - pos))
     for k in range(len(levels) - 1, -1, -1):
-        ifd, src = levels[k]
-        for off, c in zip(ifd.offsets.tolist(), ifd.counts.tolist()):
-            if not c:
-                continue
-            src.seek(off)
-            tile = src.read(c)
-            if len(tile) != c:
-                raise ValueError("a tile of the source TIFF is cut short")
-            out.write(struct.pack("<I", c))
-            out.write(tile)
-            out.write(tile[-4:] if c >= 4 else tile + bytes(4 - c))
+        _copy_tiles(out, *levels[k])
+
+
+def _copy_tiles(out, ifd: Ifd, src) -> None:
+    """A level's tiles from ``src``, each with its size before it and its last four bytes
+    after it."""
+    for j, (off, c) in enumerate(zip(ifd.offsets.tolist(), ifd.counts.tolist())):
+        if not c:
+            continue
+        tile = src.tile(j, off, c) if isinstance(src, _Filled) else _read(src, off, c)
+        if len(tile) != c:
+            raise ValueError("a tile of the source TIFF is cut short")
+        out.write(struct.pack("<I", c))
+        out.write(tile)
+        out.write(tile[-4:] if c >= 4 else tile + bytes(4 - c))
+
+
+def _read(src, off: int, count: int) -> bytes:
+    src.seek(off)
+    return src.read(count)
+
+
+def _tag_int(ifd: Ifd, tag: int) -> int:
+    return int(_values(*ifd.tags[tag][:2], ifd.tags[tag][2])[0])
+
+
+def _filled(ifd: Ifd, f, empty):
+    """(the IFD with its left-out tiles' byte counts, a source reading them as
+    ``empty(rows, cols)``)."""
+    w, h = _tag_int(ifd, 256), _tag_int(ifd, 257)
+    tw, th = _tag_int(ifd, 322), _tag_int(ifd, 323)
+    across, down = -(-w // tw), -(-h // th)
+    counts, tiles = ifd.counts.copy(), {}
+    for j in np.flatnonzero(ifd.counts == 0).tolist():
+        r, c = divmod(j % (across * down), across)
+        tiles[j] = empty(min(th, h - r * th), min(tw, w - c * tw))
+        counts[j] = len(tiles[j])
+    return Ifd(ifd.tags, ifd.offsets, counts, ifd.at), _Filled(f, tiles)
+
+
+class _Filled:
+    """A source TIFF whose left-out tiles (byte count 0) read as given."""
+
+    def __init__(self, f, tiles: dict):
+        self.f, self.tiles = f, tiles
+
+    def tile(self, j: int, off: int, count: int) -> bytes:
+        t = self.tiles.get(j)
+        return t if t is not None else _read(self.f, off, count)
