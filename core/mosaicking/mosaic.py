@@ -247,20 +247,29 @@ def _log_matching(log, rep) -> None:
 
 def _products(out, rep, png, report, layout) -> None:
     """The quicklook PNG, the seams/residuals picture and the HTML report, from one read
-    of the mosaic's overviews."""
+    of the mosaic's overviews. The report picture is drawn and encoded on a second thread
+    while this one encodes the quicklook and writes the HTML (Pillow's encoder and
+    resampling release the GIL)."""
     stem = os.path.splitext(os.fspath(out))[0]
     t1 = time.perf_counter()
     figures = report and "overlaps" in rep
     if png or figures:
+        from concurrent.futures import ThreadPoolExecutor
+
         from swathflow.mosaicking.drawing import png_bytes
         data, f = overview(out, 1024)
         grey = stretch(data)
-        encoded = png_bytes(grey)           # the quicklook, also the maps' backdrop
-        if png:
-            quicklook(out, stem + ".png", png=encoded)
-        if figures:
-            from swathflow.mosaicking.report import seams_picture
-            from swathflow.mosaicking.report_html import mosaic_report_html
-            seams_picture(out, rep, layout, stem + ".report.png", grey, f)
-            mosaic_report_html(out, rep, layout, stem + ".html", grey, f, encoded)
+        with ThreadPoolExecutor(1, thread_name_prefix="swathflow-report") as ex:
+            picture = None
+            if figures:
+                from swathflow.mosaicking.report import seams_picture
+                from swathflow.mosaicking.report_html import mosaic_report_html
+                picture = ex.submit(seams_picture, out, rep, layout, stem + ".report.png",
+                                    grey, f)
+            encoded = png_bytes(grey)           # the quicklook, also the maps' backdrop
+            if png:
+                quicklook(out, stem + ".png", png=encoded)
+            if figures:
+                mosaic_report_html(out, rep, layout, stem + ".html", grey, f, encoded)
+                picture.result()
     rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)
