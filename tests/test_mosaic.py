@@ -165,6 +165,25 @@ def test_tiling_does_not_change_the_result(scene, tmp_path):
     assert np.nanmax(np.abs(a - b)) < 1e-3
 
 
+def test_swings_corrected_first_or_on_demand_same_pixels(scene, tmp_path, monkeypatch):
+    """The corrected swings made first on all threads (they fit in the cache) or on demand
+    by the tiles (a cache too small for them, evicting): the same pixels."""
+    import functools
+
+    from swathflow.mosaicking import output
+    lay = M.scan_inputs(scene["paths"])
+    off = np.repeat(scene["shifts"], 3, axis=0)
+    rad = np.repeat(scene["rads"], 3)
+    M.write_mosaic(lay, tmp_path / "first.tif", off, rad, tile=128, cog=False, workers=2)
+    monkeypatch.setattr(output, "swing_cache",
+                        functools.partial(output.swing_cache, max_bytes=2 ** 20))
+    M.write_mosaic(lay, tmp_path / "lazy.tif", off, rad, tile=128, cog=False, workers=2)
+    a, _, _ = _read(tmp_path / "first.tif")
+    b, _, _ = _read(tmp_path / "lazy.tif")
+    assert np.isfinite(a).any()
+    assert np.array_equal(a, b, equal_nan=True)
+
+
 def test_seams_vanish_with_feathering(tmp_path):
     """Strips with a slow radiometric drift along track (constant offsets cannot remove it):
     seams show with hard cuts, not with feathering."""
