@@ -13,7 +13,9 @@
           mosaic() in one process (threads; the same work), swathflow blending only
           (feather + COG), `rio merge`, gdalbuildvrt + gdal_translate -of COG, gdalwarp -of
           COG, gdal_merge.py, and rasterio.merge.merge + a tiled GTiff write in `python -c`
-          (the reference of the ratios; the peers do no blending).
+          (the reference of the ratios; the peers do no blending). Each also with its
+          wall time on an idle machine estimated from the scheduler's accounting (the
+          machine is shared: under load the wall times say little).
 --peers16 the same on 16x the area (768 swings, 58 Mpx).
 --quick   with --peers/--peers16: only mosaic() in one process, the blend alone and
           rasterio.merge (the long 16x run in a few minutes).
@@ -78,8 +80,69 @@ print(json.dumps({k: rep[k] for k in ("seconds", "mpx_per_s", "shape")} |
 """
 
 
+def _sched(pid, out=None) -> dict:
+    """(on-CPU ns, run-queue wait ns) of every thread of ``pid`` and its descendants, from
+    /proc/PID/task/TID/schedstat (Linux); empty where /proc is missing."""
+    out = {} if out is None else out
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for t in tids:
+        try:
+            with open(f"/proc/{pid}/task/{t}/schedstat") as f:
+                a, b = f.read().split()[:2]
+            out[(pid, t)] = (int(a), int(b))
+            with open(f"/proc/{pid}/task/{t}/children") as f:
+                kids = [int(c) for c in f.read().split()]
+        except (OSError, ValueError):
+            continue
+        for c in kids:
+            _sched(c, out)
+    return out
+
+
+class _IdleWall:
+    """The wall time a command would take on an idle machine of ``cores`` cores, estimated
+    from the scheduler's accounting while it runs on a loaded one (the machine is shared):
+    per window of at least ``window`` s, its threads' CPU time over the number of them
+    that were runnable (on a CPU or waiting for one; threads waiting on a lock or on I/O
+    do not count), at most ``cores``. A single thread's estimate is its CPU time; two
+    threads always runnable count half. On a loaded machine it ignores what the load
+    does besides taking CPUs (caches, memory bandwidth), so compare ratios of commands run
+    side by side. A busy loop of 1.03 CPU-s at load 6 gave 1.02. ``seconds`` is NaN where
+    /proc is missing."""
+
+    def __init__(self, pid, cores: int = 2, window: float = 0.1):
+        self.pid, self.cores, self.window = pid, cores, window
+        self.prev = _sched(pid)
+        self.t = time.perf_counter()
+        self.seconds = 0.0 if self.prev else float("nan")
+        self.run = self.wait = 0
+
+    def sample(self, final: bool = False) -> None:
+        cur = _sched(self.pid)
+        for k, (a, b) in cur.items():
+            pa, pb = self.prev.get(k, (0, 0))
+            self.run += a - pa
+            self.wait += b - pb
+        self.prev.update(cur)
+        dt = time.perf_counter() - self.t
+        if dt >= self.window or final:
+            if self.run > 0 and dt > 0:
+                n = (self.run + self.wait) / 1e9 / dt
+                self.seconds += self.run / 1e9 / min(max(n, 1.0), self.cores)
+            self.t += dt
+            self.run = self.wait = 0
+
+
+#: the idle-machine wall estimate (s) of the last command :func:`_measured` ran
+LAST_IDLE = [float("nan")]
+
+
 def _measured(argv, env=None):
-    """(wall, cpu, peak RSS MB, stdout) of one whole command (rusage of the children)."""
+    """(wall, cpu, peak RSS MB, stdout) of one whole command (rusage of the children);
+    its idle-machine wall estimate (:class:`_IdleWall`) goes to ``LAST_IDLE[0]``."""
     import resource
     # the peak RSS through GNU time: a child forked from this (large) process would report
     # this process's size as its own peak
@@ -90,19 +153,30 @@ def _measured(argv, env=None):
         argv = [timer, "-f", "%M", "-o", rss_file, *argv]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env=env)
-    _, status, ru = os.wait4(p.pid, 0)
+    # the command's output goes to files: a pipe could fill while this polls
+    fo, fe = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
+    p = subprocess.Popen(argv, stdout=fo, stderr=fe, text=True, env=env)
+    idle = _IdleWall(p.pid, cores=os.cpu_count() or 1)
+    while True:
+        pid, status, ru = os.wait4(p.pid, os.WNOHANG)
+        if pid:
+            break
+        idle.sample()
+        time.sleep(0.005)
     wall = time.perf_counter() - t0
+    idle.sample(final=True)             # the last window, up to the command's exit
+    LAST_IDLE[0] = idle.seconds
     rss = ru.ru_maxrss / 1024.0
     if timer:
         with open(rss_file) as f:
             lines = f.read().split()
         rss = float(lines[-1]) / 1024.0 if lines and lines[-1].isdigit() else float("nan")
     os.remove(rss_file)
-    out, err = p.stdout.read(), p.stderr.read()
-    p.stdout.close()
-    p.stderr.close()
+    fo.seek(0)
+    fe.seek(0)
+    out, err = fo.read(), fe.read()
+    fo.close()
+    fe.close()
     p.returncode = os.waitstatus_to_exitcode(status)
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(argv[:3])}: {err[-3000:]}")
@@ -118,6 +192,7 @@ def mosaic_subprocess(paths, out, **opts):
     sec, cpu, rss, stdout = _measured([sys.executable, "-c", _CHILD, arg])
     rep = json.loads(stdout.strip().splitlines()[-1])
     rep["cpu"] = cpu
+    rep["idle"] = LAST_IDLE[0]
     return sec, rss, rep
 
 
@@ -194,7 +269,7 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
     paths = g["paths"]
     env = dict(os.environ, GDAL_NUM_THREADS="2")
     sf = os.path.join(os.path.dirname(sys.executable), "swathflow")
-    rows = []       # (name, whole wall, whole cpu, in-process s, rss)
+    rows = []       # (name, whole wall, whole cpu, in-process s, rss, idle-machine wall est.)
     # once before measuring: the first run after an install compiles and caches the numba
     # kernels (a one-off cost of several seconds a user meets once, not per mosaic)
     _measured([sf, "mosaic", d, "--out", os.path.join(work, "warm.tif"), "--anchor", "0",
@@ -204,24 +279,26 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
     if not quick:
         w, c, r, _ = _measured([sf, "mosaic", d, "--out", os.path.join(work, "cli.tif"),
                                 "--anchor", "0", "-q"], env)
-        rows.append(("swathflow mosaic (CLI: match+network+feather, COG+PNG)", w, c, None, r))
+        rows.append(("swathflow mosaic (CLI: match+network+feather, COG+PNG)", w, c, None, r,
+                     LAST_IDLE[0]))
     w, r, rep = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"))
     err = offset_errors(rep, g["shifts"]).max()
     rows.append(("swathflow mosaic() one process, threads (same work)", w, rep["cpu"],
-                 rep["seconds"], r))
+                 rep["seconds"], r, rep["idle"]))
     w, r, rb = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), match=False,
                                  png=False)
-    rows.append(("swathflow blend only (feather, COG)", w, rb["cpu"], rb["seconds"], r))
+    rows.append(("swathflow blend only (feather, COG)", w, rb["cpu"], rb["seconds"], r,
+                 rb["idle"]))
     for name, cmds in ([] if quick else _peer_commands(work, d, paths)):
-        w = c = r = 0.0
+        w = c = r = e = 0.0
         for argv in cmds:
             w1, c1, r1, _ = _measured(argv, env)
-            w, c, r = w + w1, c + c1, max(r, r1)
-        rows.append((name, w, c, None, r))
+            w, c, r, e = w + w1, c + c1, max(r, r1), e + LAST_IDLE[0]
+        rows.append((name, w, c, None, r, e))
     w, c, r, out = _measured([sys.executable, "-c", _MERGE, json.dumps(dict(
         paths=paths, out=os.path.join(work, "merge.tif")))], env)
     rows.append(("rasterio.merge.merge + write (python -c)", w, c,
-                 json.loads(out)["seconds"], r))
+                 json.loads(out)["seconds"], r, LAST_IDLE[0]))
     ref = rows[-1]
     print(f"grid {H} x {W} = {mpx:.2f} Mpx, {len(paths)} swings; strip offsets recovered to "
           f"{err:.3f} px (max); in one process: match {rep['seconds_match']:.2f} s, render "
@@ -229,13 +306,16 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
           f" s, PNGs {rep['seconds_quicklook']:.2f} s")
     print("whole = the command from start to exit (interpreter start-up and imports "
           "included); in-process = the call alone, timed inside; CPU = user + sys of the "
-          "process and its children")
+          "process and its children; idle est. = the whole command's wall time on an idle "
+          f"machine of {os.cpu_count()} cores, estimated from the scheduler's accounting "
+          "(its threads' CPU time over how many were runnable: meaningful under load, when "
+          "the wall times are not)")
     print(f"{'tool':<56} {'whole s':>8} {'CPU s':>7} {'in-proc s':>9} {'RSS MB':>7} "
-          f"{'whole/merge':>11} {'in-proc/merge':>13}")
-    for name, w, c, ip, r in rows:
+          f"{'whole/merge':>11} {'in-proc/merge':>13} {'idle est. s':>11} {'idle/merge':>10}")
+    for name, w, c, ip, r, e in rows:
         ipr = "" if ip is None else f"{ip / ref[3]:.2f}"
         print(f"{name:<56} {w:>8.2f} {c:>7.2f} {'' if ip is None else f'{ip:.2f}':>9} "
-              f"{r:>7.0f} {w / ref[1]:>11.2f} {ipr:>13}")
+              f"{r:>7.0f} {w / ref[1]:>11.2f} {ipr:>13} {e:>11.2f} {e / ref[5]:>10.2f}")
     shutil.rmtree(d, ignore_errors=True)
     return rows
 

@@ -165,6 +165,25 @@ def test_tiling_does_not_change_the_result(scene, tmp_path):
     assert np.nanmax(np.abs(a - b)) < 1e-3
 
 
+def test_swings_corrected_first_or_on_demand_same_pixels(scene, tmp_path, monkeypatch):
+    """The corrected swings made first on all threads (they fit in the cache) or on demand
+    by the tiles (a cache too small for them, evicting): the same pixels."""
+    import functools
+
+    from swathflow.mosaicking import output
+    lay = M.scan_inputs(scene["paths"])
+    off = np.repeat(scene["shifts"], 3, axis=0)
+    rad = np.repeat(scene["rads"], 3)
+    M.write_mosaic(lay, tmp_path / "first.tif", off, rad, tile=128, cog=False, workers=2)
+    monkeypatch.setattr(output, "swing_cache",
+                        functools.partial(output.swing_cache, max_bytes=2 ** 20))
+    M.write_mosaic(lay, tmp_path / "lazy.tif", off, rad, tile=128, cog=False, workers=2)
+    a, _, _ = _read(tmp_path / "first.tif")
+    b, _, _ = _read(tmp_path / "lazy.tif")
+    assert np.isfinite(a).any()
+    assert np.array_equal(a, b, equal_nan=True)
+
+
 def test_seams_vanish_with_feathering(tmp_path):
     """Strips with a slow radiometric drift along track (constant offsets cannot remove it):
     seams show with hard cuts, not with feathering."""
@@ -246,3 +265,31 @@ def test_cli(scene, tmp_path):
     assert main(["mosaic", str(empty), "--out", str(tmp_path / "x.tif")]) == 2
     with pytest.raises(SwathflowError, match="anchor"):
         M.mosaic(scene["paths"][:3], tmp_path / "y.tif", anchors=["nope"])
+
+
+def test_report_arrows_stay_in_the_map():
+    """The residual arrows of the report's map stay inside the map's frame: an overlap at
+    the left edge whose residual points left (the survey's arrow ran past the edge), one
+    at the top edge pointing up, and one whose residual is much the smallest, keep their
+    direction and stay in."""
+    from swathflow.drawing import Canvas
+    from swathflow.mosaicking.report import map_panel
+    grey = np.zeros((2, 100, 200), np.uint8)
+    ov = [dict(window=[40, 0, 60, 30], residual=[0.0, -0.008], used=True, ok=True),
+          dict(window=[10, 150, 30, 200], residual=[0.01, 0.004], used=True, ok=True),
+          dict(window=[0, 60, 8, 80], residual=[-0.01, 0.0], used=True, ok=True),
+          dict(window=[50, 90, 90, 110], residual=[0.0003, 0.0002], used=True, ok=True)]
+    cv = Canvas(600, 400)
+    box = (10, 40, 410, 240)                  # 2 canvas px per overview px, f = 2
+    map_panel(cv, box, {"overlaps": ov}, grey, 2.0)
+    arrows = [it[1] for it in cv.items if it[0] == "path" and it[2] == "#00bcd4"]
+    assert len(arrows) == 2 * len(ov)          # a shaft and a head each
+    for pts in arrows:
+        for x, y in pts:
+            assert box[0] <= x <= box[2] and box[1] <= y <= box[3], (x, y)
+    shafts = arrows[::2]
+    for (a, b), o in zip(shafts, ov):          # each shaft along its residual
+        d = np.array([b[0] - a[0], b[1] - a[1]])
+        r = np.array([o["residual"][1], o["residual"][0]])
+        assert np.linalg.norm(d) > 0
+        assert np.dot(d, r) / np.linalg.norm(d) / np.linalg.norm(r) > 0.999

@@ -186,7 +186,9 @@ def match_all(layout: Layout, pairs, max_shift: int = 12, block: int = 128,
     client = _active_client()
     n = max(1, sum(client.nthreads().values())) if client is not None else \
         max(1, workers or os.cpu_count() or 1)
-    size = max(1, math.ceil(len(jobs) / (4 * n)))
+    # batches for the cluster's workers (a task has its overheads); one overlap at a time
+    # on local threads, so none is left alone with the last batch
+    size = max(1, math.ceil(len(jobs) / (4 * n))) if client is not None else 1
     batches = [jobs[k:k + size] for k in range(0, len(jobs), size)]
     if client is not None:
         lay = client.scatter(layout, broadcast=True)

@@ -58,8 +58,7 @@ def map_panel(cv: Canvas, box, rep: dict, grey, f: float, png=None) -> None:
     cv.image(x0, y0, w, h, grey, png)
     cv.rect(x0, y0, w, h, stroke="#444444", width=0.8)
     k = s / f                                  # canvas px per grid px
-    used = res[np.isfinite(res)]
-    gain = 0.1 * max(w, h) / max(float(used.max()) if used.size else 0.0, 1e-3)
+    gain = _arrow_gain(rep.get("overlaps", []), res, (x0, y0, w, h), k)
     for o, r in zip(rep.get("overlaps", []), res):
         r0, c0, r1, c1 = o["window"]
         xa, ya, ww, hh = x0 + c0 * k, y0 + r0 * k, max((c1 - c0) * k, 1), max((r1 - r0) * k, 1)
@@ -73,10 +72,41 @@ def map_panel(cv: Canvas, box, rep: dict, grey, f: float, png=None) -> None:
         if np.isfinite(r):
             r0, c0, r1, c1 = o["window"]
             xc, yc = x0 + (c0 + c1) / 2 * k, y0 + (r0 + r1) / 2 * k
-            cv.arrow(xc, yc, xc + o["residual"][1] * gain, yc + o["residual"][0] * gain)
+            dx, dy = o["residual"][1] * gain, o["residual"][0] * gain
+            t = _inside((xc, yc), (dx, dy), (x0, y0, w, h))
+            cv.arrow(xc, yc, xc + t * dx, yc + t * dy)
     cv.text(x0, y0 + h + 16, f"arrows: residual vectors, {gain / k:.3g} grid px per px", 10)
     colour_bar(cv, (x0 + w + 14, y0, x0 + w + 28, y0 + min(h, 320)), top,
                "residual after adjustment (px)")
+
+
+def _inside(p, d, frame) -> float:
+    """The largest ``t <= 1`` with ``p + t * d`` inside ``frame`` (x, y, w, h), less the
+    room of an arrow head (6 px), for ``p`` inside it."""
+    x, y, w, h = frame
+    t = 1.0
+    for c, v, lo, hi in ((p[0], d[0], x, x + w), (p[1], d[1], y, y + h)):
+        if v > 1e-9:
+            t = min(t, max(0.0, hi - 3.0 - c) / v)
+        elif v < -1e-9:
+            t = min(t, max(0.0, c - lo - 3.0) / -v)
+    return t
+
+
+def _arrow_gain(overlaps, res, frame, k) -> float:
+    """Canvas px per px of residual, common to every arrow: the largest arrow a tenth of
+    the map's size, shrunk (to a quarter of that at most) so that the arrows stay in the
+    map; one still too long for its place is cut at the frame (:func:`_inside`)."""
+    used = res[np.isfinite(res)]
+    gain = 0.1 * max(frame[2], frame[3]) / max(float(used.max()) if used.size else 0.0, 1e-3)
+    fit = gain
+    for o, r in zip(overlaps, res):
+        if np.isfinite(r) and r > 0:
+            r0, c0, r1, c1 = o["window"]
+            p = (frame[0] + (c0 + c1) / 2 * k, frame[1] + (r0 + r1) / 2 * k)
+            d = (o["residual"][1] * gain, o["residual"][0] * gain)
+            fit = min(fit, gain * _inside(p, d, frame))
+    return max(fit, 0.25 * gain)
 
 
 def _node_order(name):
