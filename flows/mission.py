@@ -13,14 +13,9 @@ import math
 import os
 from pathlib import Path
 
-QUIET_PREFECT = {
-    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
-    "PREFECT_SERVER_UI_ENABLED": "false",
-    "PREFECT_LOGGING_LEVEL": "CRITICAL",  # failures are reported once, by the CLI
-    "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "60",
-    "DASK_LOGGING__DISTRIBUTED": "warning",
-    "DO_NOT_TRACK": "1",   # Prefect's client telemetry and its first-run notice: off
-}
+from swathflow.flows import standby  # noqa: E402  (no Prefect there)
+
+QUIET_PREFECT = standby.QUIET_PREFECT
 for _k, _v in QUIET_PREFECT.items():
     os.environ.setdefault(_k, _v)
 # raw scanner images have no geotransform by nature (see flows/cli.py)
@@ -29,6 +24,7 @@ warnings.filterwarnings("ignore", message="Dataset has no geotransform")
 
 from prefect import flow  # noqa: E402
 
+from swathflow.cache import manifest_path  # noqa: E402
 from swathflow.cluster import dask_client, local_cluster  # noqa: E402
 from swathflow.flows.progress import Progress  # noqa: E402
 from swathflow.tasks import stages, swings  # noqa: E402
@@ -63,12 +59,15 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         # them; the mission check already found the POS covering every line)
         prog.start("rectify", len(ids))
         futures = submit_swings(client, mission, ids, cal, out, loaded=stages._load(mission))
+        first = not os.path.exists(manifest_path(Path(out) / "mosaic.tif"))
+        warming = _beside(_warm_mosaic if first else lambda: None)
         prog.start("interpolate-pos")
         eo = stages.interpolate_pos(mission, out)
         prog.finish("interpolate-pos")
         rectified = gather_swings(futures, lambda done: prog.update("rectify", done, len(ids)))
         prog.finish("rectify", len(ids))
         del warm
+        warming.join()
         prog.start("mosaic")
         mos = stages.mosaic(rectified, out, mission, cal)
         prog.finish("mosaic")
@@ -79,6 +78,25 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     return {"mission": info["name"], "eo": eo, "calibration": cal,
             "report": report if os.path.exists(report) else None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
+
+
+def _beside(fn):
+    """``fn()`` run in a thread of this process (its failure ignored: the stage that needs
+    its work does it again and reports); the started thread."""
+    import threading
+    t = threading.Thread(target=_quietly, args=(fn,), daemon=True)
+    t.start()
+    return t
+
+
+def _warm_mosaic() -> None:
+    """The mosaic stage's code imported and its compiled kernels loaded (numba's start
+    and cache, about 1 CPU-s) in this process while the workers rectify, instead of at
+    the start of the mosaic stage, which runs here once every swing is rectified (done
+    for a first run only: a mosaic made before may well be fresh again)."""
+    import swathflow.mosaicking.api  # noqa: F401
+    from swathflow.mosaicking.mosaic import load_kernels
+    load_kernels(matching=True)
 
 
 #: environment variable naming a JSON file for the run's timeline (:func:`_task_stream`)
@@ -118,12 +136,16 @@ def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
     :data:`BATCH` swings, smaller and smaller towards the end so the workers finish
     together; a lost worker's task is run
     again by Dask on another, a failed one retried once, its finished swings kept).
-    ``loaded``: the client's loaded Mission, handed once to every worker's memo (no task
-    depends on it: a worker started later loads and validates the mission itself). The
+    ``loaded``: the client's loaded Mission, handed once to the memo of every worker that
+    does not hold it yet (no task depends on it: a worker started later loads and
+    validates the mission itself). The
     futures, in ``ids`` order (:func:`gather_swings` waits for them)."""
     batches = swing_batches(list(ids), max(len(client.scheduler_info()["workers"]), 1))
-    if loaded is not None:
-        client.run(swings.remember, mission, loaded, on_error="ignore")  # a lost worker loads it
+    if loaded is not None:      # (a worker of an earlier run may hold it already)
+        have = client.run(swings.loaded, mission, on_error="return")
+        need = [w for w, ok in have.items() if ok is not True]
+        if need:                # a lost worker loads it
+            client.run(swings.remember, mission, loaded, workers=need, on_error="ignore")
     return client.map(swings.rectify_batch, batches, mission_path=mission,
                       calibration=calibration, out_dir=out, pure=False, retries=1)
 
@@ -210,7 +232,9 @@ def _launch_server() -> None:
     """Start Prefect's temporary server as Prefect's ``SubprocessASGIServer`` does (same
     command, same environment), without importing the server's code in this process
     (about 3 CPU-s that the flow never uses); stopped when this process exits, like
-    Prefect's. Returns at once; :func:`_server_ready` waits for it."""
+    Prefect's. The process that imported the server's code while the mission was checked
+    (:mod:`swathflow.flows.standby`) serves, when there is one. Returns at once;
+    :func:`_server_ready` waits for it."""
     import atexit
     import subprocess
 
@@ -219,11 +243,12 @@ def _launch_server() -> None:
     if proc is not None and proc.poll() is None:
         return
     port = _free_port()
-    env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
-           "PREFECT__SERVER_FINAL": "1",
-           **get_current_settings().to_environment_variables(exclude_unset=True)}
-    _SERVER.update(process=subprocess.Popen(_server_command(port), env=env),
-                   url=f"http://127.0.0.1:{port}/api", env=env, ready=False)
+    settings = get_current_settings().to_environment_variables(exclude_unset=True)
+    env = {**os.environ, **standby.SERVER_ENV, **settings}
+    proc = standby.claim(port, settings, env)   # its code imported during the check
+    if proc is None:
+        proc = subprocess.Popen(_server_command(port), env=env)
+    _SERVER.update(process=proc, url=f"http://127.0.0.1:{port}/api", env=env, ready=False)
     if not _SERVER.get("atexit"):
         atexit.register(_stop_server)
         _SERVER["atexit"] = True
@@ -241,7 +266,8 @@ def _server_ready() -> str:
     limit = time.monotonic() + float(PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS.value())
     while not _SERVER.get("ready"):
         proc = _SERVER["process"]
-        if proc.poll() == 3:                        # uvicorn: the port is taken
+        if proc.poll() in (3, standby.STALE):   # uvicorn: the port is taken; or a
+            # standby spawned with other Prefect settings than the ones in force now
             port = _free_port()
             _SERVER.update(process=subprocess.Popen(_server_command(port), env=_SERVER["env"]),
                            url=f"http://127.0.0.1:{port}/api")
@@ -290,14 +316,17 @@ def _started(mission, dask_address, cluster, workers):
     own_server = not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value()
     if own_server:
         _launch_server()
-    loader = threading.Thread(target=_quietly, args=(swings.load, str(Path(mission).resolve())),
-                              daemon=True)
-    loader.start()
+    root = str(Path(mission).resolve())
+    loader = None
+    if not swings.loaded(root):
+        loader = threading.Thread(target=_quietly, args=(swings.load, root), daemon=True)
+        loader.start()
     with contextlib.ExitStack() as stack:
         address = dask_address
         if not dask_address and cluster == "local":
             address = stack.enter_context(
                 local_cluster(workers, preload=(swings.__name__,))).scheduler_address
         url = _server_ready() if own_server else None
-        loader.join()
+        if loader is not None:
+            loader.join()
         yield address, url
