@@ -280,41 +280,12 @@ def main(argv: list[str] | None = None) -> int:
     program = argv is None       # the swathflow program itself (not a call from Python)
     if program:
         gc.disable()             # start-up: imports, parsing (see _main)
-        _end_at_once()
     try:
         code = _main(argv, program)
     finally:
         if program:      # the program ends here: leave its objects to the process's end
             gc.freeze()  # rather than to the collector's last passes over every module
-    _END["code"] = code  # (0.3-0.5 CPU-s after a rectification)
-    return code
-
-
-_END: dict = {}
-
-
-def _end_at_once() -> None:
-    """The program's last act, once its threads are joined and every other exit handler
-    has run (registered first, it runs last): output flushed, then ``os._exit`` with the
-    command's exit code, skipping the interpreter's teardown of everything loaded (the
-    engine, Prefect, Dask: 1-3 s after ``swathflow run`` on the survey, load 7). Only
-    when :func:`main` returned a code; an uncaught exception ends the usual way."""
-    import atexit
-
-    def end() -> None:
-        code = _END.get("code")
-        if not isinstance(code, int):
-            return
-        import logging
-        import os
-        logging.shutdown()
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError, AttributeError):
-                pass
-        os._exit(code)
-    atexit.register(end)
+    return code          # (0.3-0.5 CPU-s after a rectification)
 
 
 def _main(argv: list[str] | None, program: bool = False) -> int:
