@@ -316,6 +316,8 @@ def _started(mission, dask_address, cluster, workers):
     own_server = not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value()
     if own_server:
         _launch_server()
+    else:
+        standby.discard()   # a server is named (e.g. by a profile): the standby is not needed
     root = str(Path(mission).resolve())
     loader = None
     if not swings.loaded(root):
