@@ -24,7 +24,6 @@ warnings.filterwarnings("ignore", message="Dataset has no geotransform")
 
 from prefect import flow  # noqa: E402
 
-from swathflow.cache import manifest_path  # noqa: E402
 from swathflow.cluster import dask_client, local_cluster  # noqa: E402
 from swathflow.flows.progress import Progress  # noqa: E402
 from swathflow.tasks import stages, swings  # noqa: E402
@@ -48,6 +47,9 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             _task_stream(client, prog):
         warm = [client.submit(swings.warm, workers=[w], pure=False)
                 for w in client.scheduler_info()["workers"]]
+        # the loaded mission sent to the workers (0.5-0.7 s for the survey's 48 MB, load
+        # 7) while this process starts the flow run and its first stages
+        handing = _beside(hand_mission, client, mission, stages._load(mission))
         prog.start("ingest")
         info = stages.ingest(mission)
         prog.finish("ingest")
@@ -58,16 +60,14 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         # the workers rectify while this process writes the POS products (no swing needs
         # them; the mission check already found the POS covering every line)
         prog.start("rectify", len(ids))
-        futures = submit_swings(client, mission, ids, cal, out, loaded=stages._load(mission))
-        first = not os.path.exists(manifest_path(Path(out) / "mosaic.tif"))
-        warming = _beside(_warm_mosaic if first else lambda: None)
+        handing.join()
+        futures = submit_swings(client, mission, ids, cal, out)
         prog.start("interpolate-pos")
         eo = stages.interpolate_pos(mission, out)
         prog.finish("interpolate-pos")
         rectified = gather_swings(futures, lambda done: prog.update("rectify", done, len(ids)))
         prog.finish("rectify", len(ids))
         del warm
-        warming.join()
         prog.start("mosaic")
         mos = stages.mosaic(rectified, out, mission, cal)
         prog.finish("mosaic")
@@ -80,23 +80,13 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
 
 
-def _beside(fn):
-    """``fn()`` run in a thread of this process (its failure ignored: the stage that needs
-    its work does it again and reports); the started thread."""
+def _beside(fn, *args):
+    """``fn(*args)`` run in a thread of this process (its failure ignored: the stage that
+    needs its work does it again and reports); the started thread."""
     import threading
-    t = threading.Thread(target=_quietly, args=(fn,), daemon=True)
+    t = threading.Thread(target=_quietly, args=(fn, *args), daemon=True)
     t.start()
     return t
-
-
-def _warm_mosaic() -> None:
-    """The mosaic stage's code imported and its compiled kernels loaded (numba's start
-    and cache, about 1 CPU-s) in this process while the workers rectify, instead of at
-    the start of the mosaic stage, which runs here once every swing is rectified (done
-    for a first run only: a mosaic made before may well be fresh again)."""
-    import swathflow.mosaicking.api  # noqa: F401
-    from swathflow.mosaicking.mosaic import load_kernels
-    load_kernels(matching=True)
 
 
 #: environment variable naming a JSON file for the run's timeline (:func:`_task_stream`)
@@ -129,6 +119,16 @@ def _task_stream(client, prog):
                                  "workers": sorted(client.scheduler_info()["workers"])}))
 
 
+def hand_mission(client, mission: str, loaded) -> None:
+    """The client's ``loaded`` Mission of ``mission`` handed once to the memo of every
+    worker that does not hold it yet (a worker of an earlier run may): no task depends on
+    it, a worker started later loads and validates the mission itself."""
+    have = client.run(swings.loaded, mission, on_error="return")
+    need = [w for w, ok in have.items() if ok is not True]
+    if need:
+        client.run(swings.remember, mission, loaded, workers=need, on_error="ignore")
+
+
 def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
                   loaded=None) -> list:
     """Every swing handed to the Dask workers, several per Dask task
@@ -136,16 +136,12 @@ def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
     :data:`BATCH` swings, smaller and smaller towards the end so the workers finish
     together; a lost worker's task is run
     again by Dask on another, a failed one retried once, its finished swings kept).
-    ``loaded``: the client's loaded Mission, handed once to the memo of every worker that
-    does not hold it yet (no task depends on it: a worker started later loads and
-    validates the mission itself). The
-    futures, in ``ids`` order (:func:`gather_swings` waits for them)."""
+    ``loaded``: the client's loaded Mission, handed to the workers first
+    (:func:`hand_mission`). The futures, in ``ids`` order (:func:`gather_swings` waits
+    for them)."""
     batches = swing_batches(list(ids), max(len(client.scheduler_info()["workers"]), 1))
-    if loaded is not None:      # (a worker of an earlier run may hold it already)
-        have = client.run(swings.loaded, mission, on_error="return")
-        need = [w for w, ok in have.items() if ok is not True]
-        if need:                # a lost worker loads it
-            client.run(swings.remember, mission, loaded, workers=need, on_error="ignore")
+    if loaded is not None:
+        hand_mission(client, mission, loaded)
     return client.map(swings.rectify_batch, batches, mission_path=mission,
                       calibration=calibration, out_dir=out, pure=False, retries=1)
 
