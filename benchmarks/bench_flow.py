@@ -32,6 +32,7 @@ _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "from swathflow.flows.guard import check_run_inputs\n"
         "from swathflow.flows.mission import run\n"
         "check_run_inputs(sys.argv[1], sys.argv[3])\n"
+        "print('CHECKED', time.time())\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
         "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
 
@@ -93,7 +94,8 @@ def main(argv=None) -> int:
                                   str(n)])
         os.environ.pop("SWATHFLOW_TASK_STREAM", None)
         if args.timeline:
-            _print_timeline(n, timeline, float(text.split("T0", 1)[1].split()[0]), wall)
+            _print_timeline(n, timeline, float(text.split("T0", 1)[1].split()[0]), wall,
+                            float(text.split("CHECKED", 1)[1].split()[0]))
         stages = json.loads(text.split("TIMINGS", 1)[1])
         r_wall, r_cpu, r_text = _timed([cli, "run", str(mission), "--out", str(out),
                                         "--calibration", cal])
@@ -132,13 +134,14 @@ def main(argv=None) -> int:
     return 0
 
 
-def _print_timeline(n: int, path: Path, t0: float, wall: float) -> None:
-    """The run's timeline (``SWATHFLOW_TASK_STREAM``, see flows/mission.py): each stage's
-    span from the process's start, and each worker's busy share of the rectify stage with
-    its idle gaps longer than 0.5 s."""
+def _print_timeline(n: int, path: Path, t0: float, wall: float, checked: float) -> None:
+    """The run's timeline (``SWATHFLOW_TASK_STREAM``, see flows/mission.py): when the
+    inputs' check ended, each stage's span from the process's start, and each worker's
+    busy share of the rectify stage with its idle gaps longer than 0.5 s."""
     doc = json.loads(path.read_text())
     print(f"timeline, {n} worker(s) (s from the process's start; run {wall:.1f} s): "
-          f"flow's cluster up at {doc['flow_start'] - t0:.1f}")
+          f"inputs checked at {checked - t0:.1f}, flow's cluster up at "
+          f"{doc['flow_start'] - t0:.1f}")
     for name, (a, b) in doc["stages"].items():
         print(f"  {name:>16} {a - t0:7.1f} -> {b - t0:7.1f}  ({b - a:6.1f} s)")
     a, b = doc["stages"].get("rectify", (t0, t0 + wall))

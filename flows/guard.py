@@ -180,16 +180,25 @@ def check_run_inputs(mission, calibration=None):
     """``swathflow run``'s inputs, checked before Prefect or Dask start: the mission (every
     problem listed at once) and the calibration file (readable, for the mission's
     sensor). Returns the loaded mission, memoised for the flow's stages (which would
-    otherwise load and check it again)."""
-    from swathflow.ingest.mission import load_mission
-    from swathflow.tasks.swings import remember
-    m = load_mission(mission)
-    remember(mission, m)
-    if calibration:
-        from swathflow.formats.calibfile import read_calibration
-        doc = read_calibration(calibration)
-        if doc.get("sensor") not in (None, m.sensor.get("model")):
-            raise SwathflowError(f"{calibration}: calibration is for sensor {doc['sensor']!r}, "
-                                 f"the mission uses {m.sensor.get('model')!r}: pass the "
-                                 f"calibration of this mission's sensor")
+    otherwise load and check it again). Meanwhile a process imports Prefect's server code
+    (:mod:`swathflow.flows.standby`): it serves only once the flow starts it, and is
+    ended unused when the check fails."""
+    from swathflow.flows import standby
+    standby.start()     # Prefect's server code imported meanwhile, on the other core
+    try:
+        from swathflow.ingest.mission import load_mission
+        from swathflow.tasks.swings import remember
+        m = load_mission(mission)
+        remember(mission, m)
+        if calibration:
+            from swathflow.formats.calibfile import read_calibration
+            doc = read_calibration(calibration)
+            if doc.get("sensor") not in (None, m.sensor.get("model")):
+                raise SwathflowError(f"{calibration}: calibration is for sensor "
+                                     f"{doc['sensor']!r}, the mission uses "
+                                     f"{m.sensor.get('model')!r}: pass the calibration of "
+                                     f"this mission's sensor")
+    except BaseException:
+        standby.discard()   # bad input: no server was started
+        raise
     return m

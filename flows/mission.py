@@ -13,14 +13,9 @@ import math
 import os
 from pathlib import Path
 
-QUIET_PREFECT = {
-    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
-    "PREFECT_SERVER_UI_ENABLED": "false",
-    "PREFECT_LOGGING_LEVEL": "CRITICAL",  # failures are reported once, by the CLI
-    "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "60",
-    "DASK_LOGGING__DISTRIBUTED": "warning",
-    "DO_NOT_TRACK": "1",   # Prefect's client telemetry and its first-run notice: off
-}
+from swathflow.flows import standby  # noqa: E402  (no Prefect there)
+
+QUIET_PREFECT = standby.QUIET_PREFECT
 for _k, _v in QUIET_PREFECT.items():
     os.environ.setdefault(_k, _v)
 # raw scanner images have no geotransform by nature (see flows/cli.py)
@@ -52,6 +47,9 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
             _task_stream(client, prog):
         warm = [client.submit(swings.warm, workers=[w], pure=False)
                 for w in client.scheduler_info()["workers"]]
+        # the loaded mission sent to the workers (0.5-0.7 s for the survey's 48 MB, load
+        # 7) while this process starts the flow run and its first stages
+        handing = _beside(hand_mission, client, mission, stages._load(mission))
         prog.start("ingest")
         info = stages.ingest(mission)
         prog.finish("ingest")
@@ -62,7 +60,8 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         # the workers rectify while this process writes the POS products (no swing needs
         # them; the mission check already found the POS covering every line)
         prog.start("rectify", len(ids))
-        futures = submit_swings(client, mission, ids, cal, out, loaded=stages._load(mission))
+        handing.join()
+        futures = submit_swings(client, mission, ids, cal, out)
         prog.start("interpolate-pos")
         eo = stages.interpolate_pos(mission, out)
         prog.finish("interpolate-pos")
@@ -79,6 +78,15 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     return {"mission": info["name"], "eo": eo, "calibration": cal,
             "report": report if os.path.exists(report) else None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
+
+
+def _beside(fn, *args):
+    """``fn(*args)`` run in a thread of this process (its failure ignored: the stage that
+    needs its work does it again and reports); the started thread."""
+    import threading
+    t = threading.Thread(target=_quietly, args=(fn, *args), daemon=True)
+    t.start()
+    return t
 
 
 #: environment variable naming a JSON file for the run's timeline (:func:`_task_stream`)
@@ -111,6 +119,16 @@ def _task_stream(client, prog):
                                  "workers": sorted(client.scheduler_info()["workers"])}))
 
 
+def hand_mission(client, mission: str, loaded) -> None:
+    """The client's ``loaded`` Mission of ``mission`` handed once to the memo of every
+    worker that does not hold it yet (a worker of an earlier run may): no task depends on
+    it, a worker started later loads and validates the mission itself."""
+    have = client.run(swings.loaded, mission, on_error="return")
+    need = [w for w, ok in have.items() if ok is not True]
+    if need:
+        client.run(swings.remember, mission, loaded, workers=need, on_error="ignore")
+
+
 def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
                   loaded=None) -> list:
     """Every swing handed to the Dask workers, several per Dask task
@@ -118,12 +136,12 @@ def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
     :data:`BATCH` swings, smaller and smaller towards the end so the workers finish
     together; a lost worker's task is run
     again by Dask on another, a failed one retried once, its finished swings kept).
-    ``loaded``: the client's loaded Mission, handed once to every worker's memo (no task
-    depends on it: a worker started later loads and validates the mission itself). The
-    futures, in ``ids`` order (:func:`gather_swings` waits for them)."""
+    ``loaded``: the client's loaded Mission, handed to the workers first
+    (:func:`hand_mission`). The futures, in ``ids`` order (:func:`gather_swings` waits
+    for them)."""
     batches = swing_batches(list(ids), max(len(client.scheduler_info()["workers"]), 1))
     if loaded is not None:
-        client.run(swings.remember, mission, loaded, on_error="ignore")  # a lost worker loads it
+        hand_mission(client, mission, loaded)
     return client.map(swings.rectify_batch, batches, mission_path=mission,
                       calibration=calibration, out_dir=out, pure=False, retries=1)
 
@@ -210,7 +228,9 @@ def _launch_server() -> None:
     """Start Prefect's temporary server as Prefect's ``SubprocessASGIServer`` does (same
     command, same environment), without importing the server's code in this process
     (about 3 CPU-s that the flow never uses); stopped when this process exits, like
-    Prefect's. Returns at once; :func:`_server_ready` waits for it."""
+    Prefect's. The process that imported the server's code while the mission was checked
+    (:mod:`swathflow.flows.standby`) serves, when there is one. Returns at once;
+    :func:`_server_ready` waits for it."""
     import atexit
     import subprocess
 
@@ -219,11 +239,12 @@ def _launch_server() -> None:
     if proc is not None and proc.poll() is None:
         return
     port = _free_port()
-    env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
-           "PREFECT__SERVER_FINAL": "1",
-           **get_current_settings().to_environment_variables(exclude_unset=True)}
-    _SERVER.update(process=subprocess.Popen(_server_command(port), env=env),
-                   url=f"http://127.0.0.1:{port}/api", env=env, ready=False)
+    settings = get_current_settings().to_environment_variables(exclude_unset=True)
+    env = {**os.environ, **standby.SERVER_ENV, **settings}
+    proc = standby.claim(port, settings, env)   # its code imported during the check
+    if proc is None:
+        proc = subprocess.Popen(_server_command(port), env=env)
+    _SERVER.update(process=proc, url=f"http://127.0.0.1:{port}/api", env=env, ready=False)
     if not _SERVER.get("atexit"):
         atexit.register(_stop_server)
         _SERVER["atexit"] = True
@@ -241,7 +262,8 @@ def _server_ready() -> str:
     limit = time.monotonic() + float(PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS.value())
     while not _SERVER.get("ready"):
         proc = _SERVER["process"]
-        if proc.poll() == 3:                        # uvicorn: the port is taken
+        if proc.poll() in (3, standby.STALE):   # uvicorn: the port is taken; or a
+            # standby spawned with other Prefect settings than the ones in force now
             port = _free_port()
             _SERVER.update(process=subprocess.Popen(_server_command(port), env=_SERVER["env"]),
                            url=f"http://127.0.0.1:{port}/api")
@@ -290,14 +312,19 @@ def _started(mission, dask_address, cluster, workers):
     own_server = not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value()
     if own_server:
         _launch_server()
-    loader = threading.Thread(target=_quietly, args=(swings.load, str(Path(mission).resolve())),
-                              daemon=True)
-    loader.start()
+    else:
+        standby.discard()   # a server is named (e.g. by a profile): the standby is not needed
+    root = str(Path(mission).resolve())
+    loader = None
+    if not swings.loaded(root):
+        loader = threading.Thread(target=_quietly, args=(swings.load, root), daemon=True)
+        loader.start()
     with contextlib.ExitStack() as stack:
         address = dask_address
         if not dask_address and cluster == "local":
             address = stack.enter_context(
                 local_cluster(workers, preload=(swings.__name__,))).scheduler_address
         url = _server_ready() if own_server else None
-        loader.join()
+        if loader is not None:
+            loader.join()
         yield address, url

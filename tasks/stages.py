@@ -130,7 +130,7 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
     """Strip matching and feathered mosaic of the rectified swings: ``OUT/mosaic.tif``.
     ``anchor``: ``"gcp"`` ties the network to the mission's control points, ``"mean"``
     holds the mean offset at zero; ``"auto"``: gcp when the mission has control points."""
-    from swathflow.mosaicking.api import mosaic as run
+    from swathflow.mosaicking.api import write_mosaic   # the files only: no lazy array
     out = Path(out_dir) / "mosaic.tif"
     m = _load(mission_path) if mission_path else None
     has_control = m is not None and m.gcps is not None and \
@@ -148,7 +148,7 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
         return str(out)
     control = mosaic_control(mission_path, calibration) if use_gcp else None
     strips = {iid: e.strip for iid, e in m.images.items()} if m is not None else None
-    run(list(rectified), out, control=control, strips=strips)
+    write_mosaic(list(rectified), out, control=control, strips=strips)
     mark_done(out, key)
     return str(out)
 

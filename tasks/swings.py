@@ -39,6 +39,13 @@ def load(mission_path):
         return _MISSIONS[key]
 
 
+def loaded(mission_path) -> bool:
+    """True when :func:`load` has ``mission_path`` memoised with its files' stamps."""
+    _, key = _key(mission_path)
+    with _MISSIONS_LOCK:
+        return key in _MISSIONS
+
+
 def remember(mission_path, mission) -> None:
     """Memoise an already loaded Mission of ``mission_path``: :func:`load` returns it
     while the folder's files keep their stamps."""

@@ -52,3 +52,48 @@ def test_run_is_a_prefect_flow_run_on_its_own_temporary_server(tiny_mission, tmp
     else:
         with open(f"/proc/{doc['pid']}/stat") as f:       # only a zombie may remain
             assert f.read().split(") ", 1)[1].startswith("Z"), "the server outlived its run"
+
+
+_STANDBY = """
+import json, os, sys, urllib.request
+from swathflow.errors import SwathflowError
+from swathflow.flows import standby
+from swathflow.flows.guard import check_run_inputs
+mission, bad = sys.argv[1], sys.argv[2]
+raised = False
+try:
+    check_run_inputs(bad)
+except SwathflowError:
+    raised = True
+print("BAD", json.dumps({"raised": raised, "left": standby._STANDBY.get("process") is not None}))
+check_run_inputs(mission)
+spawned = standby._STANDBY["process"].pid
+from swathflow.flows import mission as fm
+fm._launch_server()
+url = fm._server_ready()
+with urllib.request.urlopen(url + "/health", timeout=10) as r:
+    health = r.status
+print("GOOD", json.dumps({"spawned": spawned, "serving": fm._SERVER["process"].pid,
+                          "health": health}))
+"""
+
+
+def test_server_code_imported_while_the_mission_is_checked(tiny_mission, tmp_path):
+    """`swathflow run`'s check spawns a standby that imports Prefect's server code: on bad
+    input it is ended unused (the process that spawned it never started a server); after
+    a good check it is the process that serves the flow's temporary server."""
+    import shutil
+    bad = tmp_path / "bad"
+    shutil.copytree(tiny_mission, bad)
+    toml = bad / "mission.toml"
+    toml.write_text(toml.read_text().replace("gsd = 0.4", "gsd = -1"))
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
+    env.pop("PREFECT_API_URL", None)
+    r = subprocess.run([sys.executable, "-c", _STANDBY, str(tiny_mission), str(bad)],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert json.loads(r.stdout.split("BAD ", 1)[1].splitlines()[0]) == {"raised": True,
+                                                                          "left": False}
+    good = json.loads(r.stdout.split("GOOD ", 1)[1].splitlines()[0])
+    assert good["health"] == 200
+    assert good["serving"] == good["spawned"], "the standby did not serve"

@@ -20,9 +20,13 @@ POS_VARIABLES = ("lat", "lon", "h", "roll", "pitch", "heading")
 
 
 def _dataset(time, lat, lon, h, roll, pitch, heading, source: str, check: bool = True) -> xr.Dataset:
-    data = {k: ("time", np.asarray(v, dtype=float)) for k, v in
+    # float64 ndarrays wrapped as they are (fastpath): xarray's general conversion asks
+    # whether each array is a dask array, which imports dask.array (0.4-1 CPU-s) in a
+    # process that needs no dask, e.g. the mission check of `swathflow run`
+    data = {k: xr.Variable(("time",), np.asarray(v, dtype=float), fastpath=True) for k, v in
             zip(POS_VARIABLES, (lat, lon, h, roll, pitch, heading))}
-    ds = xr.Dataset(data, coords={"time": np.asarray(time, dtype=float)},
+    ds = xr.Dataset(data, coords={"time": xr.Variable(("time",), np.asarray(time, dtype=float),
+                                                      fastpath=True)},
                     attrs={"source": source})
     for k in ("lat", "lon", "roll", "pitch", "heading"):
         ds[k].attrs["units"] = "deg"

@@ -198,11 +198,15 @@ class Mission:
 
     def lines(self, image_id: str) -> dict[str, np.ndarray]:
         """The per-line table of an image: column -> array (``line`` as int)."""
-        if image_id not in self._lines:
-            df = pd.read_csv(self.images[image_id].lines_file)
-            df.columns = [str(c).strip() for c in df.columns]
-            self._lines[image_id] = {c: df[c].to_numpy(int if c == "line" else float)
-                                     for c in df.columns}
+        if image_id not in self._lines:   # (filled by load_mission from its check)
+            from swathflow.ingest.linetable import plain_table
+            path = self.images[image_id].lines_file
+            cols = plain_table(path)
+            if cols is None:
+                df = pd.read_csv(path)
+                df.columns = [str(c).strip() for c in df.columns]
+                cols = {c: df[c].to_numpy(float) for c in df.columns}
+            self._lines[image_id] = _typed(cols)
         return dict(self._lines[image_id])
 
     def image(self, image_id: str, chunk_lines: int = 2048) -> xr.Dataset:
@@ -242,6 +246,12 @@ class Mission:
         n = 0 if self.gcps is None else len(self.gcps)
         return (f"<Mission {self.name!r} {len(self.images)} images, {n} GCP rows, "
                 f"crs={self.crs}, gsd={self.gsd}>")
+
+
+def _typed(cols: dict) -> dict[str, np.ndarray]:
+    """A line table's columns as :meth:`Mission.lines` gives them (``line`` as int)."""
+    return {c: (np.asarray(v).astype(int) if c == "line" else np.asarray(v, float))
+            for c, v in cols.items()}
 
 
 # ------------------------------------------------------------------------------------------
@@ -286,7 +296,8 @@ def load_mission(path) -> Mission:
     return Mission(path=p["root"], name=p["name"], config=p["config"], crs=p["crs"],
                    gsd=float(p["gsd"]), sensor=dict(p["sensor"]), pos=p["pos"],
                    trajectory=p["trajectory"], images=p["images"], gcps=p["gcps"],
-                   terrain=p["terrain"], priors=p["priors"])
+                   terrain=p["terrain"], priors=p["priors"],
+                   _lines={iid: _typed(cols) for iid, cols in p.get("tables", {}).items()})
 
 
 def format_problems(path, problems: list[Problem]) -> str:

@@ -221,6 +221,11 @@ def _pos_options(root: Path, posc: dict, options: tuple[str, ...]) -> dict:
 def check_pos(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
     from swathflow.ingest.plausible import check_pos_plausible
     posc = cfg.get("pos", {}) if isinstance(cfg.get("pos", {}), dict) else {}
+    parts["trajectory"] = None
+    if not isinstance(posc.get("format", ""), str):
+        c.add(toml, "[pos].format", f"must be the name of a POS format, got "
+              f"{posc['format']!r}", 'format = "sbet" (docs/navigation-formats.md)')
+        return
     options = _pos_format_options(posc)
     check_keys(posc, KNOWN_KEYS["pos"] + options, toml, "[pos]", c)
     pos_file = posc.get("file")
@@ -318,7 +323,7 @@ def check_images(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -
     from swathflow.ingest.linetable import line_table
     from swathflow.ingest.plausible import check_lines_plausible
     images: dict[str, ImageEntry] = {}
-    parts.update(images=images, lines={}, shapes={}, image_shapes={})
+    parts.update(images=images, lines={}, tables={}, shapes={}, image_shapes={})
     entries = cfg.get("images")
     if not isinstance(entries, list) or not entries:
         c.add(toml, "[[images]]", "no images listed", "add one [[images]] table per swing")
@@ -345,6 +350,7 @@ def check_images(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -
         if cls is not None:
             check_lines_plausible(cls, entry, cols, c)
         parts["lines"][entry.id] = {col: cols[col] for col in need if col != "line"}
+        parts["tables"][entry.id] = cols
         if shape is not None:
             parts["shapes"][entry.id] = shape
 
