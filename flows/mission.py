@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import sys
 from pathlib import Path
 
 from swathflow.flows import standby  # noqa: E402  (no Prefect there)
@@ -18,6 +19,9 @@ from swathflow.flows import standby  # noqa: E402  (no Prefect there)
 QUIET_PREFECT = standby.QUIET_PREFECT
 for _k, _v in QUIET_PREFECT.items():
     os.environ.setdefault(_k, _v)
+if "dask" in sys.modules:   # dask read the environment before these defaults (the mission
+    import dask             # check imports it): read it again, or distributed, imported
+    dask.config.refresh()   # later, logs its INFO lines (the cluster's start and close)
 # raw scanner images have no geotransform by nature (see flows/cli.py)
 import warnings  # noqa: E402
 warnings.filterwarnings("ignore", message="Dataset has no geotransform")
