@@ -310,8 +310,6 @@ def _started(mission, dask_address, cluster, workers):
     for the flow (None: the flow connects as asked) and the temporary server's API url
     (None: Prefect's configured one). A failure here other than the server's is left to
     the flow to report."""
-    import threading
-
     from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
     own_server = not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value()
     if own_server:
@@ -319,10 +317,7 @@ def _started(mission, dask_address, cluster, workers):
     else:
         standby.discard()   # a server is named (e.g. by a profile): the standby is not needed
     root = str(Path(mission).resolve())
-    loader = None
-    if not swings.loaded(root):
-        loader = threading.Thread(target=_quietly, args=(swings.load, root), daemon=True)
-        loader.start()
+    loader = None if swings.loaded(root) else _beside(swings.load, root)
     with contextlib.ExitStack() as stack:
         address = dask_address
         if not dask_address and cluster == "local":
