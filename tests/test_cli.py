@@ -42,3 +42,32 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
            (tiny_mission / "mission.toml").read_text().splitlines()
            if line.replace(" ", "").startswith("id=")]
     assert len(ids) >= 2 and all((out / f"{i}.tif").exists() for i in ids)
+
+
+def _image_ids(mission) -> list[str]:
+    return [line.split("=", 1)[1].strip().strip('"') for line in
+            (mission / "mission.toml").read_text().splitlines()
+            if line.replace(" ", "").startswith("id=")]
+
+
+def test_rectify_program_ends_with_its_code_every_line_and_every_output(tiny_mission, tmp_path):
+    """The swathflow program ends right after 'rectify' returns, without the interpreter's
+    teardown (main._leave): its exit code, every progress line through a pipe, every COG
+    and rectify.json are there; bad input still ends with one error line and exit 2."""
+    import json
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "swathflow.flows.cli", "rectify", str(tiny_mission)]
+    r = subprocess.run(cmd + ["--out", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    ids = _image_ids(tiny_mission)
+    lines = r.stdout.splitlines()
+    assert len(lines) == len(ids) and all(f"{i}: " in line and f"{i}.tif" in line
+                                          for i, line in zip(ids, lines)), r.stdout
+    summary = json.loads((out / "rectify.json").read_text())
+    assert [s["image_id"] for s in summary["images"]] == ids
+    assert all((out / f"{i}.tif").stat().st_size > 0 for i in ids)
+    r = subprocess.run(cmd + ["--out", str(tmp_path / "o2"), "--images", "nope"],
+                       capture_output=True, text=True)
+    errors = [line for line in r.stderr.splitlines() if ": error: " in line]
+    assert r.returncode == 2 and len(errors) == 1 and "nope" in errors[0], r.stderr
+    assert "Traceback" not in r.stderr

@@ -275,17 +275,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: commands whose process, once the command has returned, ends without the interpreter's
+#: teardown (see :func:`_leave`): every output is closed and in place by then
+QUICK_EXIT = ("rectify",)
+
+#: the exit code of the program's command, for :func:`_leave` (None: not returned)
+_CODE: list = [None]
+
+
 def main(argv: list[str] | None = None) -> int:
     import gc
     program = argv is None       # the swathflow program itself (not a call from Python)
     if program:
         gc.disable()             # start-up: imports, parsing (see _main)
+        import atexit
+        atexit.register(_leave)  # first registered: runs after every other exit handler
     try:
         code = _main(argv, program)
     finally:
         if program:      # the program ends here: leave its objects to the process's end
             gc.freeze()  # rather than to the collector's last passes over every module
     return code          # (0.3-0.5 CPU-s after a rectification)
+
+
+def _leave() -> None:
+    """The program's last exit handler: after a command of :data:`QUICK_EXIT` returned,
+    end the process here, once every other exit handler has run (Python runs them last
+    registered first) and stdout and stderr are flushed, without the interpreter's teardown
+    of its 1,600 modules (0.08-0.09 CPU-s, 0.1-0.2 s of wall after a rectification).
+    Any other command, or an exception, takes the usual way out."""
+    if _CODE[0] is None:
+        return
+    import logging
+    import os
+    logging.shutdown()
+    for f in (sys.stdout, sys.stderr):
+        try:
+            f.flush()
+        except (OSError, ValueError):     # a closed pipe or stream: nothing more to say
+            pass
+    os._exit(_CODE[0])
 
 
 def _main(argv: list[str] | None, program: bool = False) -> int:
@@ -317,24 +346,27 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
         with on_sigterm():
             check_outputs(args)
             with output_lock(args):
-                return args.func(args)
+                code = int(args.func(args) or 0)
     except SwathflowError as exc:
         print(f"swathflow {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        code = 2
     except Terminated:
         print(f"swathflow {args.command}: terminated (SIGTERM); finished outputs are kept, "
               f"re-run to complete", file=sys.stderr)
-        return 143
+        code = 143
     except KeyboardInterrupt:
         print(f"swathflow {args.command}: interrupted; finished outputs are kept, "
               f"re-run to complete", file=sys.stderr)
-        return 130
+        code = 130
     except Exception as exc:
         msg = explain_os_error(exc, getattr(args, "out", None))
         if msg is None:
             raise
         print(f"swathflow {args.command}: error: {msg}", file=sys.stderr)
-        return 2
+        code = 2
+    if program and args.command in QUICK_EXIT:
+        _CODE[0] = code
+    return code
 
 
 def _show_warnings(command: str) -> None:
