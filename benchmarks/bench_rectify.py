@@ -297,7 +297,9 @@ def main():
     ap.add_argument("--tile", type=int, default=512)
     ap.add_argument("--kernel", default="bilinear", choices=("nearest", "bilinear", "cubic"))
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeat", type=int, default=3, help="runs per method; best time kept")
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="runs per method; best time kept (--command: ours and --baseline "
+                         "alternately)")
     ap.add_argument("--tolerance", type=float, nargs="*", default=[],
                     help="extra coordinate-interpolation bounds (px) to time beside the default")
     args = ap.parse_args()
@@ -318,7 +320,7 @@ def main():
                     else [None]):
             X.main("command", mission_dir=args.command, preset=args.preset,
                    threads=args.threads, gsd=gsd, baseline=args.baseline,
-                   peers=not args.no_peers)
+                   peers=not args.no_peers, repeat=args.repeat)
     elif args.cube:
         for nw in (1, args.threads):
             X.main("cube", bands=args.cube, threads=nw)

@@ -36,6 +36,16 @@ def _run(cmd, env=None) -> tuple[float, float, str]:
     return wall, cpu, p.stdout
 
 
+def _run_idle(cmd, env=None) -> tuple[float, float, float]:
+    """(wall s, CPU s, idle-machine wall estimate s) of a whole command: the estimate is
+    bench_mosaic's (its threads' CPU time over how many of them were runnable, window by
+    window, from /proc schedstat), for commands run on the shared, loaded machine."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_mosaic as BM
+    wall, cpu, _, _ = BM._measured([str(c) for c in cmd], env=env)
+    return wall, cpu, BM.LAST_IDLE[0]
+
+
 # ----------------------------------------------------------------------------------------
 # start-up
 # ----------------------------------------------------------------------------------------
@@ -198,10 +208,11 @@ def _peers(rows, grid, mission, model, iid, truth, threads, dtype):
                str(grid.height), "-r", "bilinear", "-dstnodata", "0", "-ot", dtype,
                "-multi", "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES",
                "-co", "COMPRESS=DEFLATE", str(vrt), str(tmp / "gdal.tif")]
-        w, c, _ = _run(cmd)
+        w, c, idle = _run_idle(cmd)
         r = rows["gdalwarp"]
         r["wall"] += w
         r["cpu"] += c
+        r["idle"] += idle
         r["px"] += n
         g = _read(tmp / "gdal.tif")
         r["shifts"].append(_shift(np.where(g > 0, g, np.nan), grid, truth))
@@ -222,12 +233,13 @@ def _peers(rows, grid, mission, model, iid, truth, threads, dtype):
 
 
 def command(mission_dir, preset="demo", threads=2, gsd=None, baseline=None,
-            peers=True) -> dict:
+            peers=True, repeat: int = 1) -> dict:
     """``swathflow rectify`` (a subprocess: start-up, every swing, COG writing) against
     ``gdalwarp -geoloc`` and ``rasterio.warp.reproject`` on the same swings and grids, the
     peers given their geolocation arrays (pixel corners, our model) for free. ``gsd``:
     the output pixel size (default the mission's); ``baseline``: another ``swathflow``
-    executable (e.g. main's) run the same way beside ours."""
+    executable (e.g. main's) run the same way beside ours, the two alternately ``repeat``
+    times (best wall, CPU and idle-machine estimate kept, each run's in ``runs``)."""
     from swathflow.formats.calibfile import calibration_priors, read_calibration
     from swathflow.formats.raster import read_raster
     from swathflow.geometry.grid import Grid
@@ -241,13 +253,21 @@ def command(mission_dir, preset="demo", threads=2, gsd=None, baseline=None,
     runs = {"ours": str(BIN / "swathflow")}
     if baseline:
         runs["baseline"] = baseline
-    rows = {k: dict(wall=0.0, cpu=0.0, px=0, shifts=[]) for k in
+    rows = {k: dict(wall=0.0, cpu=0.0, idle=0.0, px=0, shifts=[]) for k in
             list(runs) + ["gdalwarp", "rasterio"]}
+    rows["rasterio"]["idle"] = float("nan")      # in this process: no command to watch
+    seen: dict = {k: [] for k in runs}
+    for _ in range(max(repeat, 1)):
+        for k, exe in runs.items():
+            shutil.rmtree(out / k, ignore_errors=True)
+            seen[k].append(_run_idle([exe, "rectify", m, "--calibration", cal,
+                                      "--out", out / k], env=env)
+                           + (os.getloadavg()[0],))
     for k, exe in runs.items():
-        wall, cpu, _ = _run([exe, "rectify", str(m), "--calibration", str(cal),
-                             "--out", str(out / k)], env=env)
-        rows[k].update(wall=wall, cpu=cpu, cmd=f"{exe} rectify {m} --calibration {cal} "
-                                              f"--out OUT")
+        rows[k].update(wall=min(t[0] for t in seen[k]), cpu=min(t[1] for t in seen[k]),
+                       idle=min(t[2] for t in seen[k]),
+                       runs=[[round(v, 2) for v in t] for t in seen[k]],
+                       cmd=f"{exe} rectify {m} --calibration {cal} --out OUT")
     mission = load_mission(m)
     params = mission.priors.updated(calibration_priors(read_calibration(cal)))
     for iid in mission.image_ids:
@@ -272,10 +292,13 @@ def _table(rows, gsd) -> dict:
             continue
         sh = r.pop("shifts")
         res[k] = {"wall_s": round(r["wall"], 2), "cpu_s": round(r["cpu"], 2),
+                  "idle_wall_s": round(r.get("idle", float("nan")), 2),
                   "out_mpx": round(r["px"] / 1e6, 2),
                   "mpx_per_cpu_s": round(r["px"] / 1e6 / max(r["cpu"], 1e-9), 2),
                   "median_whole_shift_px": round(float(np.median([s["whole_px"] for s in sh])), 4),
                   "worst_tile_px": round(float(np.nanmax([s["worst_tile_px"] for s in sh])), 4)}
+        if "runs" in r:
+            res[k]["runs_wall_cpu_idle_load"] = r["runs"]
         if "cmd" in r:
             res[k]["cmd"] = r["cmd"][:200]
     o = res.get("ours")
@@ -283,7 +306,8 @@ def _table(rows, gsd) -> dict:
         if o and k in res:
             res[f"ours_faster_than_{k}"] = {
                 "wall": round(res[k]["wall_s"] / max(o["wall_s"], 1e-9), 2),
-                "cpu": round(res[k]["cpu_s"] / max(o["cpu_s"], 1e-9), 2)}
+                "cpu": round(res[k]["cpu_s"] / max(o["cpu_s"], 1e-9), 2),
+                "idle_wall": round(res[k]["idle_wall_s"] / max(o["idle_wall_s"], 1e-9), 2)}
     return res
 
 
