@@ -71,3 +71,22 @@ def test_rectify_program_ends_with_its_code_every_line_and_every_output(tiny_mis
     errors = [line for line in r.stderr.splitlines() if ": error: " in line]
     assert r.returncode == 2 and len(errors) == 1 and "nope" in errors[0], r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_rectify_keeps_openblas_on_one_thread():
+    """The rectify command's parallelism is its worker processes: numpy's OpenBLAS starts
+    no thread of its own (each spun 0.1 CPU-s at import), unless the environment asks."""
+    import os
+
+    import pytest
+    if not os.path.isdir("/proc/self/task"):
+        pytest.skip("needs /proc")
+    code = ("import os\nfrom swathflow.flows.cli import commands\n"
+            "commands._one_blas_thread()\nimport numpy\n"
+            "print(os.environ['OPENBLAS_NUM_THREADS'], len(os.listdir('/proc/self/task')))\n")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert r.stdout.split() == ["1", "1"], r.stdout + r.stderr
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env=dict(env, OPENBLAS_NUM_THREADS="2"))
+    assert r.stdout.split()[0] == "2", r.stdout + r.stderr
