@@ -101,6 +101,19 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
     out = np.zeros((h, w), np.float32)
     valid = np.zeros((h, w), np.bool_)
     tmp = np.empty(w + 3)
+    # the 4 x 4 support's min and max, separably: over columns j - 1 .. j + 2 of every row
+    # first (edge-extended), then over the 4 rows (the same values as the 16-pixel loop)
+    lo_r = np.empty((h, w))
+    hi_r = np.empty((h, w))
+    for a in range(h):
+        for j in range(w):
+            lo, hi = np.inf, -np.inf
+            for b in range(j - 1, j + 3):
+                x = filled[a, min(max(b, 0), w - 1)]
+                lo = min(lo, x)
+                hi = max(hi, x)
+            lo_r[a, j] = lo
+            hi_r[a, j] = hi
     for i in range(h):
         empty = True
         for j in range(w):
@@ -126,10 +139,8 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
             lo, hi = np.inf, -np.inf
             for a in range(i - 1, i + 3):
                 aa = min(max(a, 0), h - 1)
-                for b in range(j - 1, j + 3):
-                    x = filled[aa, min(max(b, 0), w - 1)]
-                    lo = min(lo, x)
-                    hi = max(hi, x)
+                lo = min(lo, lo_r[aa, j])
+                hi = max(hi, hi_r[aa, j])
             v = min(max(v, lo), hi)
             out[i, j] = v - radiometric
     return out, valid
