@@ -85,6 +85,26 @@ def _b3(x):
 
 
 @njit(cache=True, nogil=True)
+def _row_bounds(filled):
+    """The min and max of ``filled`` over columns ``j - 1 .. j + 2`` of each row (edge
+    extended): :func:`sample_clip` takes its 4 x 4 bounds over 4 rows of these (the same
+    values as over the 16 pixels, at half the reads)."""
+    h, w = filled.shape
+    lo_r = np.empty((h, w))
+    hi_r = np.empty((h, w))
+    for a in range(h):
+        for j in range(w):
+            lo, hi = np.inf, -np.inf
+            for b in range(j - 1, j + 3):
+                x = filled[a, min(max(b, 0), w - 1)]
+                lo = min(lo, x)
+                hi = max(hi, x)
+            lo_r[a, j] = lo
+            hi_r[a, j] = hi
+    return lo_r, hi_r
+
+
+@njit(cache=True, nogil=True)
 def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
     """Shifted values ``out[x] = image(x + f) - radiometric`` (``0 <= f < 1`` per axis) and
     their validity, from ``coef`` (B-spline coefficients of ``filled`` padded by ``pad``
@@ -101,19 +121,7 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
     out = np.zeros((h, w), np.float32)
     valid = np.zeros((h, w), np.bool_)
     tmp = np.empty(w + 3)
-    # the 4 x 4 support's min and max, separably: over columns j - 1 .. j + 2 of every row
-    # first (edge-extended), then over the 4 rows (the same values as the 16-pixel loop)
-    lo_r = np.empty((h, w))
-    hi_r = np.empty((h, w))
-    for a in range(h):
-        for j in range(w):
-            lo, hi = np.inf, -np.inf
-            for b in range(j - 1, j + 3):
-                x = filled[a, min(max(b, 0), w - 1)]
-                lo = min(lo, x)
-                hi = max(hi, x)
-            lo_r[a, j] = lo
-            hi_r[a, j] = hi
+    lo_r, hi_r = _row_bounds(filled)
     for i in range(h):
         empty = True
         for j in range(w):
