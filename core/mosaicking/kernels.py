@@ -184,15 +184,17 @@ def capped_distance(ok, cap):
     h, w = ok.shape
     g = np.empty((h, w))
     c = float(cap)
-    for j in range(w):
-        run = 0.0
-        for i in range(h):
-            run = min(run + 1.0, c) if ok[i, j] else 0.0
-            g[i, j] = run
-        run = 0.0
-        for i in range(h - 1, -1, -1):
-            run = min(run + 1.0, c) if ok[i, j] else 0.0
-            g[i, j] = min(g[i, j], run)
+    # the column pass row by row (the arrays' order): each column's run down, then up
+    run = np.zeros(w)
+    for i in range(h):
+        for j in range(w):
+            run[j] = min(run[j] + 1.0, c) if ok[i, j] else 0.0
+            g[i, j] = run[j]
+    run[:] = 0.0
+    for i in range(h - 1, -1, -1):
+        for j in range(w):
+            run[j] = min(run[j] + 1.0, c) if ok[i, j] else 0.0
+            g[i, j] = min(g[i, j], run[j])
     out = np.zeros((h, w), np.float32)
     f = np.empty(w)
     d = np.empty(w)
