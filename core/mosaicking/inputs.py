@@ -177,7 +177,7 @@ class _Handles:
             cache.move_to_end(path)
             return ds
         # one decoding thread per file: the swings are read on this run's own threads
-        # (GDAL_NUM_THREADS=2 decoded each small swing's strips on a pool besides them:
+        # (GDAL_NUM_THREADS=2 decoded each small swing's strips on a pool beside them:
         # 0.22 against 0.14 CPU-s to decode the 48-swing benchmark's swings)
         ds = cache[path] = rasterio.open(path, NUM_THREADS=1)
         with self._lock:
