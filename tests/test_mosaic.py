@@ -105,6 +105,35 @@ def test_matching_on_a_dask_cluster(scene):
         assert np.hypot(*(np.asarray(net.offsets[k]) - scene["shifts"][int(key)])) < 0.2
 
 
+def test_kept_swings_matched_on_local_threads_beside_a_local_cluster(scene):
+    """With the swings decoded in this process (the flow's mosaic stage: a local cluster
+    of one worker per core is active) the overlaps are matched on local threads over the
+    kept swings, not sent to the workers (which would decode every window again): no task
+    reaches the cluster, and the offsets are the cluster's and the truth's."""
+    from distributed import get_task_stream
+
+    from swathflow.cluster import dask_client
+    lay = M.scan_inputs(scene["paths"])
+    handles = M.swing_store()
+    handles.keep_if_fits(lay.swings)
+    assert handles.keep_bytes > 0
+    try:
+        with dask_client(n_workers=1) as client:
+            assert M._active_client() is client
+            with get_task_stream(client) as kept_tasks:
+                kept, *_ = M.plan(lay, anchors=["0"], handles=handles)
+            with get_task_stream(client) as cluster_tasks:    # nothing kept: the workers
+                on_cluster, *_ = M.plan(lay, anchors=["0"])
+    finally:
+        handles.close()
+    assert len(kept_tasks.data) == 0 and len(cluster_tasks.data) > 0
+    local, *_ = M.plan(lay, anchors=["0"], workers=1)
+    assert np.array_equal(np.asarray(kept.offsets), np.asarray(local.offsets))
+    assert np.array_equal(np.asarray(on_cluster.offsets), np.asarray(local.offsets))
+    for k, key in enumerate(kept.nodes):
+        assert np.hypot(*(np.asarray(kept.offsets[k]) - scene["shifts"][int(key)])) < 0.2
+
+
 def test_low_texture_overlap_reported_and_skipped(result):
     _, rep = result
     lake = [o for o in rep["overlaps"] if (o["ref"], o["mov"]) == ("S0_1", "S1_1")]

@@ -185,9 +185,11 @@ def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 1
     b = np.where(mask, mov - mov[mask].mean(), 0.0) * tap
     fa, fb = np.fft.fft2(a), np.fft.fft2(b)
     prod = fb * fa.conj()
-    prod /= np.maximum(np.abs(prod), 1e-12 * np.abs(prod).max() + 1e-300)
+    mag = np.abs(prod)
+    prod /= np.maximum(mag, 1e-12 * mag.max() + 1e-300)
     cc = np.fft.ifft2(prod)
-    peak_idx = np.unravel_index(np.argmax(np.abs(cc)), cc.shape)
+    acc = np.abs(cc)
+    peak_idx = np.unravel_index(np.argmax(acc), cc.shape)
     shape = np.array(cc.shape)
     d = np.array(peak_idx, float)
     d[d > shape // 2] -= shape[d > shape // 2]
@@ -198,7 +200,7 @@ def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 1
         up = _upsampled_dft(prod.conj(), (size, size), upsample, centre - d * upsample).conj()
         idx = np.array(np.unravel_index(np.argmax(np.abs(up)), up.shape), float)
         d = d + (idx - centre) / upsample
-    peak = float(np.abs(cc).max())
+    peak = float(acc.max())
     return (float(d[0]), float(d[1])), peak
 
 
