@@ -317,12 +317,15 @@ def _started(mission, dask_address, cluster, workers):
     else:
         standby.discard()   # a server is named (e.g. by a profile): the standby is not needed
     root = str(Path(mission).resolve())
-    loader = None if swings.loaded(root) else _beside(swings.load, root)
     with contextlib.ExitStack() as stack:
         address = dask_address
         if not dask_address and cluster == "local":
+            # the workers forked from this process while it runs one thread (the engine
+            # warmed here once; the checked mission inherited), else spawned by Dask
             address = stack.enter_context(
-                local_cluster(workers, preload=(swings.__name__,))).scheduler_address
+                local_cluster(workers, preload=(swings.__name__,),
+                              fork_setup=swings.warm)).scheduler_address
+        loader = None if swings.loaded(root) else _beside(swings.load, root)
         url = _server_ready() if own_server else None
         if loader is not None:
             loader.join()
