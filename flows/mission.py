@@ -304,9 +304,11 @@ def _stop_server() -> None:
 @contextlib.contextmanager
 def _started(mission, dask_address, cluster, workers):
     """Prefect's temporary server (when no server is configured: started first, it takes
-    longest), the local Dask cluster (when no other is asked for) and the mission's
-    loading, side by side: each mostly waits on its own processes, so together they take
-    about the longest of them rather than their sum. Yields the Dask scheduler's address
+    longest), the local Dask cluster (when no other is asked for; its workers forked from
+    this process first, while only its main thread runs, so they inherit the mission the
+    check loaded) and the mission's loading (when no check loaded it), side by side: each
+    mostly waits on its own processes, so together they take about the longest of them
+    rather than their sum. Yields the Dask scheduler's address
     for the flow (None: the flow connects as asked) and the temporary server's API url
     (None: Prefect's configured one). A failure here other than the server's is left to
     the flow to report."""
@@ -317,12 +319,15 @@ def _started(mission, dask_address, cluster, workers):
     else:
         standby.discard()   # a server is named (e.g. by a profile): the standby is not needed
     root = str(Path(mission).resolve())
-    loader = None if swings.loaded(root) else _beside(swings.load, root)
     with contextlib.ExitStack() as stack:
         address = dask_address
         if not dask_address and cluster == "local":
+            # the workers forked from this process while it runs one thread (the engine
+            # warmed here once; the checked mission inherited), else spawned by Dask
             address = stack.enter_context(
-                local_cluster(workers, preload=(swings.__name__,))).scheduler_address
+                local_cluster(workers, preload=(swings.__name__,),
+                              fork_setup=swings.warm)).scheduler_address
+        loader = None if swings.loaded(root) else _beside(swings.load, root)
         url = _server_ready() if own_server else None
         if loader is not None:
             loader.join()

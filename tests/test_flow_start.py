@@ -102,3 +102,66 @@ def test_server_code_imported_while_the_mission_is_checked(tiny_mission, tmp_pat
     good = json.loads(r.stdout.split("GOOD ", 1)[1].splitlines()[0])
     assert good["health"] == 200
     assert good["serving"] == good["spawned"], "the standby did not serve"
+
+
+_FORKED = """
+import json, os, sys, threading, urllib.error, urllib.request
+from distributed import Client
+from swathflow.cluster import local_cluster
+
+def setup():      # left in a module of this process: a forked worker has it, a spawned not
+    json.SET_UP = os.getpid()
+
+def cluster(stop=None):
+    with local_cluster(2, fork_setup=setup) as c, Client(c) as client:
+        seen = client.run(lambda: getattr(sys.modules["json"], "SET_UP", None))
+        pids = list(client.run(os.getpid).values())
+        total = client.submit(sum, range(10)).result()
+        ports = sorted(s.getsockname()[1] for s in c.scheduler.http_server._sockets.values())
+        codes = []
+        for route in ("health", "metrics", "json/counts.json"):
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{ports[0]}/{route}", timeout=10)
+                codes.append(200)
+            except urllib.error.HTTPError as e:
+                codes.append(e.code)
+    left = []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                left += [pid] if not f.read().split(") ", 1)[1].startswith("Z") else []
+        except FileNotFoundError:
+            pass
+    return {"seen": list(seen.values()), "total": total, "ports": ports,
+            "codes": codes, "left": left}
+
+forked = cluster()
+stop = threading.Event()
+t = threading.Thread(target=stop.wait)       # another thread runs: no fork
+t.start()
+try:
+    spawned = cluster()
+finally:
+    stop.set()
+print("RESULT " + json.dumps({"parent": os.getpid(), "forked": forked, "spawned": spawned}))
+"""
+
+
+def test_local_workers_forked_from_a_one_thread_process(tmp_path):
+    """The flow's local Dask workers are forked from its process while only its main thread
+    runs (they share what ``fork_setup`` prepared, e.g. the checked mission, and import
+    nothing again), spawned by Dask's nannies otherwise; either way real workers that run
+    tasks, whose processes are gone once the cluster is closed; and the scheduler's HTTP
+    server serves nothing, and not on Dask's dashboard port 8787."""
+    r = subprocess.run([sys.executable, "-c", _FORKED], capture_output=True, text=True,
+                       timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    doc = json.loads(r.stdout.split("RESULT ", 1)[1])
+    forked, spawned = doc["forked"], doc["spawned"]
+    assert forked["seen"] == [doc["parent"]] * 2, "workers not forked"
+    assert spawned["seen"] == [None, None], "forked beside another thread"
+    for run in (forked, spawned):
+        assert run["total"] == 45
+        assert run["left"] == [], "a worker process outlived its cluster"
+        assert 8787 not in run["ports"]
+        assert run["codes"] == [404, 404, 404]
