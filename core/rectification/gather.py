@@ -32,6 +32,9 @@ def _taps_1d(x, n, nearest):
     if nearest:
         i = math.floor(x + 0.5)
         return min(max(i, 0), n - 1), 0.0
+    if x >= 0 and x < n - 1:        # inside (NaN is not): floor is the truncation, no clamp
+        i = int(x)
+        return i, x - i
     i = math.floor(x)
     i = min(max(i, 0), max(n - 2, 0))
     f = x - i
