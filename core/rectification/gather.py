@@ -32,9 +32,6 @@ def _taps_1d(x, n, nearest):
     if nearest:
         i = math.floor(x + 0.5)
         return min(max(i, 0), n - 1), 0.0
-    if x >= 0 and x < n - 1:        # inside (NaN is not): floor is the truncation, no clamp
-        i = int(x)
-        return i, x - i
     i = math.floor(x)
     i = min(max(i, 0), max(n - 2, 0))
     f = x - i
@@ -59,9 +56,19 @@ def _tap(flat, k, wgt, check, has_nodata, nodata):
 
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_taps(li, ei, nl, ne, sl, se):
-    """Bilinear taps of one pixel: (flat offset of its first tap, the four weights)."""
-    i, p = _taps_1d(li, nl, False)
-    j, q = _taps_1d(ei, ne, False)
+    """Bilinear taps of one pixel: (flat offset of its first tap, the four weights). Inside
+    the raw image (NaN is not) the floor is the truncation and nothing is clamped: the
+    same values as :func:`_taps_1d` without its floor call and clamps (gather_one on the
+    kernel benchmark's 1x tiles 8.2 -> 3.0-3.8 ns per output pixel). (In gather_int's loop
+    nest the same test measured 8 % slower on the cube, whose taps serve 100 bands.)"""
+    if li >= 0 and li < nl - 1 and ei >= 0 and ei < ne - 1:
+        i = int(li)
+        j = int(ei)
+        p = li - i
+        q = ei - j
+    else:
+        i, p = _taps_1d(li, nl, False)
+        j, q = _taps_1d(ei, ne, False)
     return i * sl + j * se, (1 - p) * (1 - q), (1 - p) * q, p * (1 - q), p * q
 
 
