@@ -299,12 +299,14 @@ def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: in
     grid = _grid_of(da)
     nodata = da.rio.nodata if grid is not None else da.attrs.get("_FillValue")
     data = da.data if hasattr(da.data, "chunks") else dsa.from_array(np.asarray(da.data),
-                                                                    chunks=blocksize)
+                                                                    chunks=blocksize,
+                                                                    name=False)
     bands = data if data.ndim == 3 else data[None]
     use_mask = "mask" in da.coords and da.coords["mask"].dims == ("y", "x")
     if use_mask:
         mask = da.coords["mask"].data
-        mask = mask if hasattr(mask, "chunks") else dsa.from_array(mask, chunks=blocksize)
+        mask = mask if hasattr(mask, "chunks") else dsa.from_array(mask, chunks=blocksize,
+                                                                   name=False)
         bands = dsa.concatenate([bands, mask.astype(bands.dtype)[None]], axis=0)
         bands = bands.rechunk({0: -1})         # one block per tile: the tile computed once
         nodata = None
