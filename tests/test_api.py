@@ -197,3 +197,44 @@ def test_mosaic_is_lazy_and_is_the_file_the_cli_writes(tiny_mission, tmp_path):
     assert np.abs(written[ok] - on_cluster[ok]).max() < 1e-3
     assert np.array_equal(on_threads, on_cluster, equal_nan=True)
     _against_truth(mos, tiny_mission)
+
+
+def test_grid_dataarray_is_what_rioxarray_writes():
+    """grid_dataarray writes the CRS, transform and nodata from a template made once per
+    CRS, type and nodata: the same DataArray (coordinates, attributes, encoding, what
+    ``.rio`` reads back) as rioxarray's own write_crs / write_transform / write_nodata."""
+    import rioxarray  # noqa: F401
+    import xarray as xr
+    from affine import Affine
+
+    from swathflow.geometry.grid import Grid
+    from swathflow.rectification.api import grid_dataarray
+
+    def by_rioxarray(data, grid, nodata):
+        t = grid.transform
+        coords = {"y": t.f + t.e * (np.arange(grid.shape[0]) + 0.5),
+                  "x": t.c + t.a * (np.arange(grid.shape[1]) + 0.5)}
+        dims = ("y", "x")
+        if data.ndim == 3:
+            dims = ("band", "y", "x")
+            coords["band"] = np.arange(1, data.shape[0] + 1)
+        out = xr.DataArray(data, dims=dims, coords=coords, name="n", attrs={"k": "v"})
+        out = out.rio.write_crs(grid.crs).rio.write_transform(t)
+        return out.rio.write_nodata(nodata, encoded=False) if nodata is not None else out
+
+    for crs, t in (("EPSG:32651", Affine(0.05, 0, 257420.0, 0, -0.05, 3604966.0)),
+                   ("EPSG:4326", Affine(1e-5, 0, 123.1, 0, -1e-5, 31.2))):
+        grid = Grid(crs, t, (30, 40))
+        for dtype, nodata in ((np.float32, np.nan), (np.uint16, 0), (np.int16, -32768),
+                              (np.uint8, None), (np.float64, -9999.0)):
+            for shape in ((30, 40), (3, 30, 40)):
+                for _ in range(2):                  # the second from the template
+                    data = da.zeros(shape, dtype=dtype, chunks=16)
+                    got = grid_dataarray(data, grid, "n", {"k": "v"}, nodata)
+                    want = by_rioxarray(data, grid, nodata)
+                    xr.testing.assert_identical(got, want)
+                    assert got.encoding == want.encoding
+                    assert got.rio.crs == want.rio.crs
+                    assert got.rio.transform() == want.rio.transform() == t
+                    assert repr(got.rio.nodata) == repr(want.rio.nodata)
+                    assert type(got.attrs.get("_FillValue")) is type(want.attrs.get("_FillValue"))

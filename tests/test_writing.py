@@ -241,6 +241,28 @@ def test_synchronous_blocks_run_each_task_once(tmp_path):
     assert sorted(calls) == [(i, j) for i in range(2) for j in range(3)]
 
 
+def test_configured_synchronous_scheduler_runs_the_blocks_here(tmp_path, monkeypatch):
+    """No scheduler given and dask configured with ``scheduler="sync"`` (the flow's Dask
+    workers, where ``distributed`` is imported): the blocks are computed here one by one,
+    as dask itself would pick the configured scheduler before any Client."""
+    import dask
+    import dask.array as da
+    import distributed  # noqa: F401
+    from swathflow.rectification import store
+    ran = []
+    real = store._blocks_in_order
+    monkeypatch.setattr(store, "_blocks_in_order", lambda arr: ran.append(1) or real(arr))
+    data = (np.arange(600 * 500) % 3000).reshape(600, 500).astype(np.uint16)
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 1, 1), data.shape)
+    with dask.config.set(scheduler="sync"):
+        write_cogs([{"path": tmp_path / "c.tif", "array": da.from_array(data, chunks=256),
+                     "grid": grid, "nodata": 0}], blocksize=256)
+    assert ran == [1]
+    assert _cog_layout_problems(tmp_path / "c.tif") == []
+    with rasterio.open(tmp_path / "c.tif") as src:
+        assert np.array_equal(src.read(1), data)
+
+
 @pytest.mark.parametrize("dtype,nodata", [(np.uint16, 0), (np.float32, float("nan")),
                                           (np.int16, -32768)])
 def test_tiles_of_nodata_are_written_as_gdal_writes_them(tmp_path, dtype, nodata):

@@ -23,7 +23,6 @@ from numba import njit
 from swathflow.rectification.rawimage import _memmap_of, release_pages
 
 
-
 @njit(cache=True, nogil=True, inline="always")
 def _taps_1d(x, n, nearest):
     """(index of the first tap, weight of the second tap) along one axis: bilinear taps
@@ -55,10 +54,17 @@ def _tap(flat, k, wgt, check, has_nodata, nodata):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _pixel_taps(li, ei, nl, ne, sl, se):
-    """Bilinear taps of one pixel: (flat offset of its first tap, the four weights)."""
-    i, p = _taps_1d(li, nl, False)
-    j, q = _taps_1d(ei, ne, False)
+def _pixel_taps(li, ei, nl, ne, sl, se, nearest):
+    """Taps of one pixel: (flat offset of its first tap, the four weights). Inside the
+    image (NaN is not) bilinear taps truncate and need no clamp: :func:`_taps_1d`'s values,
+    30 % faster (gather_one, gather_bands' rows; in gather_int's loop nest it measured 8 %
+    slower on the cube)."""
+    if not nearest and li >= 0 and li < nl - 1 and ei >= 0 and ei < ne - 1:
+        i, j = int(li), int(ei)
+        p, q = li - i, ei - j
+    else:
+        i, p = _taps_1d(li, nl, nearest)
+        j, q = _taps_1d(ei, ne, nearest)
     return i * sl + j * se, (1 - p) * (1 - q), (1 - p) * q, p * (1 - q), p * q
 
 
@@ -83,17 +89,12 @@ def _row_taps(coords, r, nl, ne, sl, se, nearest, offs, wts, has, valid):
             continue
         has[c] = True
         valid[r, c] = 255
-        i, p = _taps_1d(li, nl, nearest)
-        j, q = _taps_1d(ei, ne, nearest)
-        k = i * sl + j * se
+        k, wts[0, c], wts[1, c], wts[2, c], wts[3, c] = _pixel_taps(li, ei, nl, ne, sl, se,
+                                                                    nearest)
         offs[0, c] = k
         offs[1, c] = k + de
         offs[2, c] = k + dl
         offs[3, c] = k + dl + de
-        wts[0, c] = (1 - p) * (1 - q)
-        wts[1, c] = (1 - p) * q
-        wts[2, c] = p * (1 - q)
-        wts[3, c] = p * q
     return bad
 
 
@@ -250,7 +251,7 @@ def gather_int_bip(flat, nb, sl, se, nl, ne, coords, out, out_nodata, nd_cmp, va
                         acc[t, b] = np.nan
                     continue
                 valid[r, c] = 255
-                k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se)
+                k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se, False)
                 for b in range(nb):
                     acc[t, b] = (w0 * flat[k + b] + w1 * flat[k + de + b]
                                  + w2 * flat[k + dl + b] + w3 * flat[k + dl + de + b])
@@ -395,11 +396,10 @@ def _tap_v(v, wgt):
 @njit(cache=True, nogil=True)
 def gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid):
     """:func:`gather_bands` for one band, bilinear, float output, without a nodata value
-    (NaN the only nodata of a float raw type), in one pass per pixel: taps, weights and
-    the plain weighted sum, no row buffers (12-15 % less time than the row form on the
-    kernel benchmark's tiles; the same arithmetic, so the same values). A NaN sum is
-    redone with each tap tested (:func:`_tap`): nodata where a tap of non-zero weight
-    is NaN. (For integer output the row form measured as fast or faster.)"""
+    (NaN the only nodata of a float raw type), in one pass per pixel, no row buffers
+    (12-15 % less time than the row form; the same arithmetic, so the same values). A NaN
+    sum is redone with each tap tested (:func:`_tap`): nodata where a tap of non-zero
+    weight is NaN. (For integer output the row form measured as fast or faster.)"""
     _, h, w = coords.shape
     dl = sl if nl > 1 else 0
     de = se if ne > 1 else 0
@@ -412,7 +412,7 @@ def gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid):
                 valid[r, c] = 0
                 o[r, c] = out_nodata
                 continue
-            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se)
+            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se, False)
             v0 = flat[k]
             v1 = flat[k + de]
             v2 = flat[k + dl]

@@ -15,9 +15,11 @@ def store_here(sources, targets, scheduler=None, batch: int | None = None) -> No
     files, which must never travel to a worker; memory stays bounded by one batch of
     blocks. Blocks of one batch share their graph, so common tiles are computed once.
     On the synchronous scheduler (the command's forked workers) the blocks are computed
-    one by one here (:func:`_blocks_in_order`)."""
+    one by one here (:func:`_blocks_in_order`), also when dask's configuration names it
+    (the flow's Dask workers set ``scheduler="sync"`` around their swings)."""
     import dask
     from dask.array.core import slices_from_chunks
+    scheduler = _configured(scheduler)
     if _synchronous(scheduler):
         for arr, tgt in zip(sources, targets):
             for slc, value in _blocks_in_order(arr):
@@ -52,6 +54,18 @@ def store_here(sources, targets, scheduler=None, batch: int | None = None) -> No
             values = dask.compute(*[blk for blk, _, _ in chunk], scheduler=scheduler)
             for (_, slc, tgt), value in zip(chunk, values):
                 tgt[slc] = value
+
+
+def _configured(scheduler):
+    """``scheduler``, or when None the one dask's configuration names (dask's own order:
+    the configured scheduler before a Client), None for a Client's."""
+    import dask
+    if scheduler is None:
+        scheduler = dask.config.get("scheduler", None)
+        if isinstance(scheduler, str) and scheduler.lower() in ("distributed",
+                                                                "dask.distributed"):
+            return None
+    return scheduler
 
 
 def _synchronous(scheduler) -> bool:
