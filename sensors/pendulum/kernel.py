@@ -279,84 +279,26 @@ def _end(e, a, kt0, r_es, c, ep_line, ep_r, ep_c, g, cam):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _split_at_epochs(g, a, fa, fb, nvec, cols, time, table, max_gap, rig, pos_trig,
-                     line_trig, line_epoch, k0, r_es, c, ep_line, ep_r, ep_c, ep_planes,
-                     rough_line, cam0, cam1, cam2, pos, out):
-    """The root inside line ``[a, a+1]`` whose times hold POS epochs (a kink of the
-    condition at each): the line's ends and the epochs' fractional lines cut it into
-    pieces on which the condition is smooth. The epochs' viewing planes
-    (:func:`epoch_frames`) find the piece with the sign change, :func:`_chord_solve`
-    solves there (one exact evaluation, as a line without an epoch; the secant needed
-    five or more where a line holds several, as on the survey: a 50 Hz POS, 16 lines a
-    second). NaN where the line holds no epoch, an epoch has no frame, or that solve is
-    rough (the caller solves exactly)."""
-    t1 = cols[a + 1, 0]
-    k1 = line_epoch[a] + 1              # the first epoch after line a's time
-    kt0 = k1 - k0
-    if not (k1 >= 1 and kt0 >= 0 and k1 + 1 < time.shape[0] and time[k1] < t1):
-        return math.nan
+def _epoch_piece(ep_planes, time, k1, kt0, t1, gx, gy, gz, fa, fb):
+    """The piece of a line (its ends at conditions ``fa``, ``fb``; the POS epochs ``k1 ..``
+    before ``t1`` inside it, rows ``kt0 ..`` of the epoch frames) on which the condition
+    of ground point ``(gx, gy, gz)`` changes sign: ``(left, right, f_left, f_right,
+    ok)``, the ends as :func:`_end` takes them; ok False where an epoch has no frame (one
+    return: an early one in the loop cost reference counting at every point)."""
     left, right, fl, fr = -1, -2, fa, fb
+    ok = k1 >= 1 and kt0 >= 0
     e = 0
-    while kt0 + e < ep_planes.shape[0] and k1 + e + 1 < time.shape[0] and time[k1 + e] < t1:
-        f = (ep_planes[kt0 + e, 0] * g[0] + ep_planes[kt0 + e, 1] * g[1]
-             + ep_planes[kt0 + e, 2] * g[2] + ep_planes[kt0 + e, 3])
-        if not math.isfinite(f):
-            return math.nan
-        if f == 0.0 or _sgn(f) != _sgn(fl):
+    while ok and kt0 + e < ep_planes.shape[0] and k1 + e + 1 < time.shape[0] and (
+            time[k1 + e] < t1):
+        f = (ep_planes[kt0 + e, 0] * gx + ep_planes[kt0 + e, 1] * gy
+             + ep_planes[kt0 + e, 2] * gz + ep_planes[kt0 + e, 3])
+        ok = math.isfinite(f)
+        if ok and (f == 0.0 or _sgn(f) != _sgn(fl)):
             right, fr = e, f
             break
         left, fl = e, f
         e += 1
-    xl = _end(left, a, kt0, r_es, c, ep_line, ep_r, ep_c, g, cam0)
-    xr = _end(right, a, kt0, r_es, c, ep_line, ep_r, ep_c, g, cam2)
-    if fr == 0.0:
-        for q in range(3):
-            out[q] = cam2[q]
-        return xr
-    if not (xr > xl and _sgn(fl) != _sgn(fr)):
-        return math.nan
-    return _chord_solve(g, xl, fl, cam0, xr, fr, cam2, nvec, cols, time, table, max_gap,
-                        rig, pos_trig, line_trig, line_epoch, k0, rough_line, cam1, pos,
-                        out)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _refine_one(g, a, fa, fb, nvec, cols, time, table, max_gap, rig, pos_trig, line_trig,
-                line_epoch, k0, r_es, c, ep_line, ep_r, ep_c, ep_planes, rough_line, cam0,
-                cam1, cam2, pos, out):
-    """Fractional line of point ``g`` crossing between lines ``a, a+1`` (condition ``fa``,
-    ``fb`` there), its camera vector into ``out``; NaN where the POS could not be
-    interpolated (the caller then takes the numpy path, which reports it)."""
-    # a POS epoch inside the line puts a kink in the condition: solve each side; where
-    # that split declines, one quadratic across the kink is not trusted (its roughness
-    # test can miss the kink): the secant below solves it exactly
-    k = line_epoch[a] + 1
-    line = math.nan
-    if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
-        line = _split_at_epochs(g, a, fa, fb, nvec, cols, time, table, max_gap, rig,
-                                pos_trig, line_trig, line_epoch, k0, r_es, c, ep_line,
-                                ep_r, ep_c, ep_planes, rough_line, cam0, cam1, cam2, pos,
-                                out)
-    else:
-        d = fa - fb
-        l1 = a + fa / d if d != 0.0 else math.nan
-        if not math.isfinite(l1):
-            l1 = a + 0.5
-        if not _camera_of(l1, g, cols, time, table, max_gap, rig, pos_trig, line_trig,
-                          line_epoch, k0, cam1, pos):
-            return math.nan
-        f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
-        line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
-        if rough:
-            line = math.nan
-        else:
-            _frame_vector(r_es, c, a, g, cam0)
-            _frame_vector(r_es, c, a + 1, g, cam2)
-            _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, out)
-    if math.isnan(line):     # rough (or the split's solve was): solve exactly
-        line = _secant(g, a, fa, fb, nvec, cols, time, table, max_gap, rig, pos_trig,
-                       line_trig, line_epoch, k0, 1e-9, 30, out, pos)
-    return line
+    return left, right, fl, fr, ok
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -364,7 +306,7 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, p
                     out):
     """``PendulumModel.ground_to_image`` of points ``(n, 3)`` into ``out`` ``(n, 2)``:
     the brackets between the lines' viewing planes (``planesolve.bracket_one`` over the
-    coarse ``grid``), :func:`_refine_one` (``geo``: line columns, POS times and table,
+    coarse ``grid``), the refinement (``geo``: line columns, POS times and table,
     max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`; ``frames``: the
     lines' R_ES and projection centres, then :func:`epoch_frames`), then the element
     (``pixel``: k0, focal length, pixel pitch, elements); NaN behind the camera, where no
@@ -373,8 +315,10 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, p
     cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
     pos, gi, cam = np.empty(8), np.empty(3), np.empty(3)
     k0, focal, pitch, n_elements = pixel
-    # the tuples unpacked once (per point, their reference counting cost more than the
-    # rotations: 0.68 -> 0.46 us a point seen on a survey tile)
+    # the tuples unpacked once, and the refinement written out in the loop: helpers
+    # taking the arrays (or the tuples) paid reference counting on every argument at
+    # every point, more than the arithmetic (a point seen on a survey tile: 0.68 us with
+    # the tuples unpacked per point, 0.27 us now, the same bits)
     cols, time, table, max_gap = geo[0], geo[1], geo[2], geo[3]
     rig = _rig(geo[4], geo[5], geo[6], geo[7])
     pos_trig, line_trig, line_epoch, e0 = trig
@@ -385,9 +329,54 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, p
         a, fa, fb, found = bracket_one(planes, grid, gi[0], gi[1], gi[2])
         if not found:
             continue
-        line = _refine_one(gi, a, fa, fb, nvec, cols, time, table, max_gap, rig, pos_trig,
-                           line_trig, line_epoch, e0, r_es, c, ep_line, ep_r, ep_c,
-                           ep_planes, rough_line, cam0, cam1, cam2, pos, cam)
+        # the refinement, written out here rather than in helpers taking the arrays (the
+        # reference counting of their arguments cost more than the arithmetic)
+        line = math.nan
+        t1 = cols[a + 1, 0]
+        k1 = line_epoch[a] + 1           # the first epoch after line a's time
+        if k1 + 1 < time.shape[0] and time[k1] < t1:
+            # POS epochs inside the line put a kink in the condition at each: the line's
+            # ends and the epochs' fractional lines cut it into pieces on which it is
+            # smooth; the epochs' viewing planes (:func:`epoch_frames`) find the piece with
+            # the sign change, :func:`_chord_solve` solves there (one exact evaluation, as
+            # a line without an epoch; the secant needed five or more where a line holds
+            # several, as on the survey: a 50 Hz POS, 16 lines a second). Where an epoch
+            # has no frame or that solve is rough, the secant below solves exactly.
+            kt0 = k1 - e0
+            left, right, fl, fr, ok = _epoch_piece(ep_planes, time, k1, kt0, t1, gi[0], gi[1],
+                                                   gi[2], fa, fb)
+            if ok:
+                xl = _end(left, a, kt0, r_es, c, ep_line, ep_r, ep_c, gi, cam0)
+                xr = _end(right, a, kt0, r_es, c, ep_line, ep_r, ep_c, gi, cam2)
+                if fr == 0.0:
+                    for q in range(3):
+                        cam[q] = cam2[q]
+                    line = xr
+                elif xr > xl and _sgn(fl) != _sgn(fr):
+                    line = _chord_solve(gi, xl, fl, cam0, xr, fr, cam2, nvec, cols, time,
+                                        table, max_gap, rig, pos_trig, line_trig,
+                                        line_epoch, e0, rough_line, cam1, pos, cam)
+        else:
+            # no epoch inside the line: one exact evaluation at the chord point, the
+            # inverse quadratic root (rough: the secant below)
+            d = fa - fb
+            l1 = a + fa / d if d != 0.0 else math.nan
+            if not math.isfinite(l1):
+                l1 = a + 0.5
+            if not _camera_of(l1, gi, cols, time, table, max_gap, rig, pos_trig, line_trig,
+                              line_epoch, e0, cam1, pos):
+                return False
+            f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
+            line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
+            if rough:
+                line = math.nan
+            else:
+                _frame_vector(r_es, c, a, gi, cam0)
+                _frame_vector(r_es, c, a + 1, gi, cam2)
+                _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, cam)
+        if math.isnan(line):     # rough (or the split's solve was): solve exactly
+            line = _secant(gi, a, fa, fb, nvec, cols, time, table, max_gap, rig, pos_trig,
+                           line_trig, line_epoch, e0, 1e-9, 30, cam, pos)
         if math.isnan(line):
             return False
         if not cam[2] < 0:                       # behind the camera
