@@ -3,7 +3,7 @@ computed another way.
 
 The survey's lines (50 Hz POS, a line every 61 ms) each hold 3-4 POS epochs, and the
 compiled ``ground_to_image`` cuts such a line at each epoch (a kink of the condition) and
-solves on the piece with the sign change (``kernel._split_at_epochs``, ``epoch_frames``).
+solves on the piece with the sign change (``kernel.ground_to_image``, ``epoch_frames``).
 Here the truth is spec/geometry.md's image-to-ground formula written out below in numpy
 (its own rotations, POS interpolation and pyproj's ECEF, no swathflow geometry): a ground
 point on the ray of a known ``(line, element)``. ``ground_to_image`` must give that

@@ -47,21 +47,26 @@ def _sin_cos(a, d, sa, ca):
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _epoch_sin_cos(table, pos, pos_trig, k, kt, c):
     """sin and cos of the interpolated POS angle ``pos[c]`` (degrees; columns 3-7 of the
-    table) from those at epoch ``k`` (row ``kt`` of ``pos_trig``, -1: not there)."""
+    table) from those at epoch ``k`` (row ``kt`` of ``pos_trig``, -1: not there). One
+    return: an early one cost reference counting of the arrays at every call."""
     a = table[k, c] * DEG
+    p = pos[c] * DEG
     if kt < 0:
-        return math.sin(pos[c] * DEG), math.cos(pos[c] * DEG)
-    return _sin_cos(a, pos[c] * DEG - a, pos_trig[kt, 2 * (c - 3)],
-                    pos_trig[kt, 2 * (c - 3) + 1])
+        sp, cp = math.sin(p), math.cos(p)
+    else:
+        sp, cp = _sin_cos(a, p - a, pos_trig[kt, 2 * (c - 3)], pos_trig[kt, 2 * (c - 3) + 1])
+    return sp, cp
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _camera_of(line, g, geo, trig, cam, pos):
+def _camera_of(line, g, cols, time, table, max_gap, rig, pos_trig, line_trig, line_epoch,
+               k0, cam, pos):
     """The camera-frame vector of ground point ``g`` seen from fractional ``line`` (the
-    POS interpolated linearly, its angles' sines from the epochs' by :func:`_sin_cos`).
-    False where the POS cannot be interpolated (outside the trajectory, in a gap)."""
-    cols, time, table, max_gap, r_bp_t, r_hs, u_gps, u_sen = geo
-    pos_trig, line_trig, line_epoch, k0 = trig
+    POS interpolated linearly, its angles' sines from the epochs' by :func:`_sin_cos`;
+    the arrays of ``geo`` and ``trig`` one by one, ``rig`` from :func:`_rig`: the
+    kernels unpack their tuples once per call, not once per point, whose reference
+    counting cost more than the rotations). False where the POS cannot be interpolated
+    (outside the trajectory, in a gap)."""
     n = cols.shape[0]
     line = min(max(line, 0.0), n - 1.0)
     i = min(int(line), n - 2)
@@ -86,20 +91,32 @@ def _camera_of(line, g, geo, trig, cam, pos):
     x, z = cp * x - sp * z, sp * x + cp * z
     sr, cr = _epoch_sin_cos(table, pos, pos_trig, k, kt, 5)
     y, z = cr * y + sr * z, -sr * y + cr * z
-    x, y, z = x - u_gps[0], y - u_gps[1], z - u_gps[2]
-    x, y, z = (x * r_bp_t[0, 0] + y * r_bp_t[1, 0] + z * r_bp_t[2, 0],
-               x * r_bp_t[0, 1] + y * r_bp_t[1, 1] + z * r_bp_t[2, 1],
-               x * r_bp_t[0, 2] + y * r_bp_t[1, 2] + z * r_bp_t[2, 2])
+    x, y, z = x - rig[6, 0], y - rig[6, 1], z - rig[6, 2]
+    x, y, z = (x * rig[0, 0] + y * rig[1, 0] + z * rig[2, 0],
+               x * rig[0, 1] + y * rig[1, 1] + z * rig[2, 1],
+               x * rig[0, 2] + y * rig[1, 2] + z * rig[2, 2])
     s = cols[i, 1] * (1 - w) + cols[i + 1, 1] * w
     q = cols[i, 2] * (1 - w) + cols[i + 1, 2] * w
     ss, cs = _sin_cos(cols[i, 1], s - cols[i, 1], line_trig[i, 0], line_trig[i, 1])
     y, z = cs * y + ss * z, -ss * y + cs * z
     sq, cq = _sin_cos(cols[i, 2], q - cols[i, 2], line_trig[i, 2], line_trig[i, 3])
     x, z = cq * x - sq * z, sq * x + cq * z
-    x, y, z = x - u_sen[0], y - u_sen[1], z - u_sen[2]
+    x, y, z = x - rig[7, 0], y - rig[7, 1], z - rig[7, 2]
     for a in range(3):
-        cam[a] = x * r_hs[0, a] + y * r_hs[1, a] + z * r_hs[2, a]
+        cam[a] = x * rig[3, a] + y * rig[4, a] + z * rig[5, a]
     return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _rig(r_bp_t, r_hs, u_gps, u_sen):
+    """``R_BP^T``, ``R_HS`` (rows 0-2, 3-5), ``u_gps``, ``u_sen`` (rows 6, 7) of ``geo``
+    in one ``(8, 3)`` array, as :func:`_camera_of` takes them."""
+    rig = np.empty((8, 3))
+    for a in range(3):
+        for b in range(3):
+            rig[a, b], rig[3 + a, b] = r_bp_t[a, b], r_hs[a, b]
+        rig[6, a], rig[7, a] = u_gps[a], u_sen[a]
+    return rig
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -152,8 +169,8 @@ def _lagrange(line, x0, l1, x2, cam0, cam1, cam2, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _chord_solve(g, x0, f0, cam0, x2, f2, cam2, nvec, geo, trig, rough_line, cam1, pos,
-                 out):
+def _chord_solve(g, x0, f0, cam0, x2, f2, cam2, nvec, cols, time, table, max_gap, rig,
+                 pos_trig, line_trig, line_epoch, k0, rough_line, cam1, pos, out):
     """The root inside ``[x0, x2]``, where the condition is smooth, from one exact
     evaluation at the chord point (the inverse quadratic, the camera vector by Lagrange
     through x0, the chord point, x2) into ``out``; NaN where that is rough or the POS
@@ -162,7 +179,8 @@ def _chord_solve(g, x0, f0, cam0, x2, f2, cam2, nvec, geo, trig, rough_line, cam
     l1 = x0 + f0 / d * (x2 - x0) if d != 0.0 else math.nan
     if not math.isfinite(l1):
         l1 = (x0 + x2) / 2
-    if not _camera_of(l1, g, geo, trig, cam1, pos):
+    if not _camera_of(l1, g, cols, time, table, max_gap, rig, pos_trig, line_trig,
+                      line_epoch, k0, cam1, pos):
         return math.nan
     f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
     line, rough = _quadratic_root(x0, x2, f0, f2, l1, f1, rough_line)
@@ -173,7 +191,8 @@ def _chord_solve(g, x0, f0, cam0, x2, f2, cam2, nvec, geo, trig, rough_line, cam
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _secant(g, j, fj, fj1, nvec, geo, trig, tol, max_iter, cam, pos):
+def _secant(g, j, fj, fj1, nvec, cols, time, table, max_gap, rig, pos_trig, line_trig,
+            line_epoch, k0, tol, max_iter, cam, pos):
     """Secant iterations on the exact condition inside ``[j, j+1]`` (as
     ``linesolve.secant_lines``); the line, with the exact camera vector left in ``cam``."""
     l0, f0 = float(j), fj
@@ -182,7 +201,8 @@ def _secant(g, j, fj, fj1, nvec, geo, trig, tol, max_iter, cam, pos):
     if not math.isfinite(l1):
         l1 = j + 0.5
     for _ in range(max_iter):
-        if not _camera_of(l1, g, geo, trig, cam, pos):
+        if not _camera_of(l1, g, cols, time, table, max_gap, rig, pos_trig, line_trig,
+                          line_epoch, k0, cam, pos):
             return math.nan
         f1 = cam[0] * nvec[0] + cam[1] * nvec[1] + cam[2] * nvec[2]
         step = f1 * (l1 - l0) / (f1 - f0)
@@ -191,7 +211,8 @@ def _secant(g, j, fj, fj1, nvec, geo, trig, tol, max_iter, cam, pos):
         l0, f0, l1 = l1, f1, l1 - step
         if not abs(step) > tol:
             break
-    if not _camera_of(l1, g, geo, trig, cam, pos):
+    if not _camera_of(l1, g, cols, time, table, max_gap, rig, pos_trig, line_trig,
+                      line_epoch, k0, cam, pos):
         return math.nan
     return l1
 
@@ -209,8 +230,10 @@ def epoch_frames(geo, trig, nvec):
     :func:`_camera_of` gives it: the chain is affine in ``g``; its columns from
     :func:`_camera_of` at points 1024 m apart along the axes, exact differences), and the
     viewing plane (as the lines' planes); NaN for the other epochs."""
-    cols, time = geo[0], geo[1]
-    k0, n = trig[3], trig[0].shape[0]
+    cols, time, table, max_gap = geo[0], geo[1], geo[2], geo[3]
+    pos_trig, line_trig, line_epoch, k0 = trig
+    n = pos_trig.shape[0]
+    rig = _rig(geo[4], geo[5], geo[6], geo[7])
     lines = np.full(n, np.nan)
     r = np.full((n, 3, 3), np.nan)
     c = np.full((n, 3), np.nan)
@@ -224,11 +247,13 @@ def epoch_frames(geo, trig, nvec):
             continue
         le = a + (time[k] - cols[a, 0]) / (cols[a + 1, 0] - cols[a, 0])
         x[:] = geo[2][k, :3]
-        if not _camera_of(le, x, geo, trig, cam0, pos):
+        if not _camera_of(le, x, cols, time, table, max_gap, rig, pos_trig, line_trig,
+                          line_epoch, k0, cam0, pos):
             continue
         for j in range(3):
             x[j] += 1024.0
-            _camera_of(le, x, geo, trig, cam, pos)
+            _camera_of(le, x, cols, time, table, max_gap, rig, pos_trig, line_trig,
+                       line_epoch, k0, cam, pos)
             x[j] -= 1024.0
             for q in range(3):
                 r[kt, j, q] = (cam[q] - cam0[q]) / 1024.0
@@ -244,11 +269,10 @@ def epoch_frames(geo, trig, nvec):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _end(e, a, kt0, frames, g, cam):
+def _end(e, a, kt0, r_es, c, ep_line, ep_r, ep_c, g, cam):
     """End ``e`` of the pieces of line ``[a, a+1]`` (-1: line a, -2: line a + 1, else
     row ``kt0 + e`` of the epoch frames): its fractional line, the camera vector of ``g``
     into ``cam``."""
-    r_es, c, ep_line, ep_r, ep_c = frames[0], frames[1], frames[2], frames[3], frames[4]
     if e < 0:
         j = a if e == -1 else a + 1
         _frame_vector(r_es, c, j, g, cam)
@@ -257,80 +281,27 @@ def _end(e, a, kt0, frames, g, cam):
     return ep_line[kt0 + e]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _split_at_epochs(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1, cam2,
-                     pos, out):
-    """The root inside line ``[a, a+1]`` whose times hold POS epochs (a kink of the
-    condition at each): the line's ends and the epochs' fractional lines cut it into
-    pieces on which the condition is smooth. The epochs' viewing planes
-    (:func:`epoch_frames`) find the piece with the sign change, :func:`_chord_solve`
-    solves there (one exact evaluation, as a line without an epoch; the secant needed
-    five or more where a line holds several, as on the survey: a 50 Hz POS, 16 lines a
-    second). NaN where the line holds no epoch, an epoch has no frame, or that solve is
-    rough (the caller solves exactly)."""
-    cols, time, ep_planes = geo[0], geo[1], frames[5]
-    t1 = cols[a + 1, 0]
-    k1 = trig[2][a] + 1                 # the first epoch after line a's time
-    kt0 = k1 - trig[3]
-    if not (k1 >= 1 and kt0 >= 0 and k1 + 1 < time.shape[0] and time[k1] < t1):
-        return math.nan
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _epoch_piece(ep_planes, time, k1, kt0, t1, gx, gy, gz, fa, fb):
+    """The piece of a line (its ends at conditions ``fa``, ``fb``; the POS epochs ``k1 ..``
+    before ``t1`` inside it, rows ``kt0 ..`` of the epoch frames) on which the condition
+    of ground point ``(gx, gy, gz)`` changes sign: ``(left, right, f_left, f_right,
+    ok)``, the ends as :func:`_end` takes them; ok False where an epoch has no frame (one
+    return: an early one in the loop cost reference counting at every point)."""
     left, right, fl, fr = -1, -2, fa, fb
+    ok = k1 >= 1 and kt0 >= 0
     e = 0
-    while kt0 + e < ep_planes.shape[0] and k1 + e + 1 < time.shape[0] and time[k1 + e] < t1:
-        f = (ep_planes[kt0 + e, 0] * g[0] + ep_planes[kt0 + e, 1] * g[1]
-             + ep_planes[kt0 + e, 2] * g[2] + ep_planes[kt0 + e, 3])
-        if not math.isfinite(f):
-            return math.nan
-        if f == 0.0 or _sgn(f) != _sgn(fl):
+    while ok and kt0 + e < ep_planes.shape[0] and k1 + e + 1 < time.shape[0] and (
+            time[k1 + e] < t1):
+        f = (ep_planes[kt0 + e, 0] * gx + ep_planes[kt0 + e, 1] * gy
+             + ep_planes[kt0 + e, 2] * gz + ep_planes[kt0 + e, 3])
+        ok = math.isfinite(f)
+        if ok and (f == 0.0 or _sgn(f) != _sgn(fl)):
             right, fr = e, f
             break
         left, fl = e, f
         e += 1
-    xl = _end(left, a, kt0, frames, g, cam0)
-    xr = _end(right, a, kt0, frames, g, cam2)
-    if fr == 0.0:
-        for q in range(3):
-            out[q] = cam2[q]
-        return xr
-    if not (xr > xl and _sgn(fl) != _sgn(fr)):
-        return math.nan
-    return _chord_solve(g, xl, fl, cam0, xr, fr, cam2, nvec, geo, trig, rough_line, cam1,
-                        pos, out)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _refine_one(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1, cam2, pos,
-                out):
-    """Fractional line of point ``g`` crossing between lines ``a, a+1`` (condition ``fa``,
-    ``fb`` there), its camera vector into ``out``; NaN where the POS could not be
-    interpolated (the caller then takes the numpy path, which reports it)."""
-    cols, time, line_epoch = geo[0], geo[1], trig[2]
-    # a POS epoch inside the line puts a kink in the condition: solve each side; where
-    # that split declines, one quadratic across the kink is not trusted (its roughness
-    # test can miss the kink): the secant below solves it exactly
-    k = line_epoch[a] + 1
-    line = math.nan
-    if k + 1 < time.shape[0] and time[k] < cols[a + 1, 0]:
-        line = _split_at_epochs(g, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0,
-                                cam1, cam2, pos, out)
-    else:
-        d = fa - fb
-        l1 = a + fa / d if d != 0.0 else math.nan
-        if not math.isfinite(l1):
-            l1 = a + 0.5
-        if not _camera_of(l1, g, geo, trig, cam1, pos):
-            return math.nan
-        f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
-        line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
-        if rough:
-            line = math.nan
-        else:
-            _frame_vector(frames[0], frames[1], a, g, cam0)
-            _frame_vector(frames[0], frames[1], a + 1, g, cam2)
-            _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, out)
-    if math.isnan(line):     # rough (or the split's solve was): solve exactly
-        line = _secant(g, a, fa, fb, nvec, geo, trig, 1e-9, 30, out, pos)
-    return line
+    return left, right, fl, fr, ok
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -338,7 +309,7 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, p
                     out):
     """``PendulumModel.ground_to_image`` of points ``(n, 3)`` into ``out`` ``(n, 2)``:
     the brackets between the lines' viewing planes (``planesolve.bracket_one`` over the
-    coarse ``grid``), :func:`_refine_one` (``geo``: line columns, POS times and table,
+    coarse ``grid``), the refinement (``geo``: line columns, POS times and table,
     max gap, R_BP^T, R_HS, u_gps, u_sen; ``trig``: :func:`trig_tables`; ``frames``: the
     lines' R_ES and projection centres, then :func:`epoch_frames`), then the element
     (``pixel``: k0, focal length, pixel pitch, elements); NaN behind the camera, where no
@@ -347,14 +318,68 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, p
     cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
     pos, gi, cam = np.empty(8), np.empty(3), np.empty(3)
     k0, focal, pitch, n_elements = pixel
+    # the tuples unpacked once, and the refinement written out in the loop: helpers
+    # taking the arrays (or the tuples) paid reference counting on every argument at
+    # every point, more than the arithmetic (a point seen on a survey tile: 0.68 us with
+    # the tuples unpacked per point, 0.25 us now, the same bits)
+    cols, time, table, max_gap = geo[0], geo[1], geo[2], geo[3]
+    rig = _rig(geo[4], geo[5], geo[6], geo[7])
+    pos_trig, line_trig, line_epoch, e0 = trig
+    r_es, c, ep_line, ep_r, ep_c, ep_planes = frames
     for i in range(points.shape[0]):
         gi[0], gi[1], gi[2] = points[i, 0], points[i, 1], points[i, 2]
         out[i, 0] = out[i, 1] = math.nan
         a, fa, fb, found = bracket_one(planes, grid, gi[0], gi[1], gi[2])
         if not found:
             continue
-        line = _refine_one(gi, a, fa, fb, nvec, geo, trig, frames, rough_line, cam0, cam1,
-                           cam2, pos, cam)
+        # the refinement, written out here rather than in helpers taking the arrays (the
+        # reference counting of their arguments cost more than the arithmetic)
+        line = math.nan
+        t1 = cols[a + 1, 0]
+        k1 = line_epoch[a] + 1           # the first epoch after line a's time
+        if k1 + 1 < time.shape[0] and time[k1] < t1:
+            # POS epochs inside the line put a kink in the condition at each: the line's
+            # ends and the epochs' fractional lines cut it into pieces on which it is
+            # smooth; the epochs' viewing planes (:func:`epoch_frames`) find the piece with
+            # the sign change, :func:`_chord_solve` solves there (one exact evaluation, as
+            # a line without an epoch; the secant needed five or more where a line holds
+            # several, as on the survey: a 50 Hz POS, 16 lines a second). Where an epoch
+            # has no frame or that solve is rough, the secant below solves exactly.
+            kt0 = k1 - e0
+            left, right, fl, fr, ok = _epoch_piece(ep_planes, time, k1, kt0, t1, gi[0], gi[1],
+                                                   gi[2], fa, fb)
+            if ok:
+                xl = _end(left, a, kt0, r_es, c, ep_line, ep_r, ep_c, gi, cam0)
+                xr = _end(right, a, kt0, r_es, c, ep_line, ep_r, ep_c, gi, cam2)
+                if fr == 0.0:
+                    for q in range(3):
+                        cam[q] = cam2[q]
+                    line = xr
+                elif xr > xl and _sgn(fl) != _sgn(fr):
+                    line = _chord_solve(gi, xl, fl, cam0, xr, fr, cam2, nvec, cols, time,
+                                        table, max_gap, rig, pos_trig, line_trig,
+                                        line_epoch, e0, rough_line, cam1, pos, cam)
+        else:
+            # no epoch inside the line: one exact evaluation at the chord point, the
+            # inverse quadratic root (rough: the secant below)
+            d = fa - fb
+            l1 = a + fa / d if d != 0.0 else math.nan
+            if not math.isfinite(l1):
+                l1 = a + 0.5
+            if not _camera_of(l1, gi, cols, time, table, max_gap, rig, pos_trig, line_trig,
+                              line_epoch, e0, cam1, pos):
+                return False
+            f1 = cam1[0] * nvec[0] + cam1[1] * nvec[1] + cam1[2] * nvec[2]
+            line, rough = _quadratic_root(float(a), a + 1.0, fa, fb, l1, f1, rough_line)
+            if rough:
+                line = math.nan
+            else:
+                _frame_vector(r_es, c, a, gi, cam0)
+                _frame_vector(r_es, c, a + 1, gi, cam2)
+                _lagrange(line, float(a), l1, a + 1.0, cam0, cam1, cam2, cam)
+        if math.isnan(line):     # rough (or the split's solve was): solve exactly
+            line = _secant(gi, a, fa, fb, nvec, cols, time, table, max_gap, rig, pos_trig,
+                           line_trig, line_epoch, e0, 1e-9, 30, cam, pos)
         if math.isnan(line):
             return False
         if not cam[2] < 0:                       # behind the camera
