@@ -86,14 +86,29 @@ def mmgd_costs(ref, ref_ok, mov, mov_ok, S, min_pixels, stride=1):
     n_s = 2 * S + 1
     cost = np.full((n_s, n_s), np.inf)
     buf = np.empty(h * w)
+    # the valid pixels of ref (every stride-th row and column), in row order, once: their
+    # values and their places in mov at shift (0, 0); each shift then reads mov at those
+    # places plus one offset, without a branch (the same differences in the same order)
+    w_m = mov.shape[1]
+    m_flat = mov.ravel()
+    ok_flat = mov_ok.ravel()
+    r_val = np.empty(h * w)
+    r_at = np.empty(h * w, np.int64)
+    n_ref = 0
+    for r in range(0, h, stride):
+        for c in range(0, w, stride):
+            if ref_ok[r, c]:
+                r_val[n_ref] = ref[r, c]
+                r_at[n_ref] = r * w_m + c
+                n_ref += 1
     for i in range(n_s):
         for j in range(n_s):
+            off = i * w_m + j
             n = 0
-            for r in range(0, h, stride):
-                for c in range(0, w, stride):
-                    if ref_ok[r, c] and mov_ok[r + i, c + j]:
-                        buf[n] = ref[r, c] - mov[r + i, c + j]
-                        n += 1
+            for q in range(n_ref):
+                at = r_at[q] + off
+                buf[n] = r_val[q] - m_flat[at]
+                n += 1 if ok_flat[at] else 0
             if n < min_pixels or n == 0:
                 continue
             med = _median(buf, n)
