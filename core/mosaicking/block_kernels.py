@@ -34,16 +34,38 @@ def _smooth_axis(a, wts, axis):
     n = h if axis == 0 else w
     line = np.empty(n + 2 * r)
     for k in range(w if axis == 0 else h):
-        for q in range(-r, n + r):
-            line[q + r] = a[_reflect(q, n), k] if axis == 0 else a[k, _reflect(q, n)]
-        for q in range(n):
-            s = line[q + r] * wts[r]
+        for q in range(-r, n + r):       # the fold (a division) only at the ends
+            p = q if 0 <= q < n else _reflect(q, n)
+            line[q + r] = a[p, k] if axis == 0 else a[k, p]
+        # four outputs at a time: four independent chains of additions (each output's
+        # terms still added in the same order, so the same values)
+        wc = wts[r]
+        q = 0
+        while q + 4 <= n:
+            s0 = line[q + r] * wc
+            s1 = line[q + r + 1] * wc
+            s2 = line[q + r + 2] * wc
+            s3 = line[q + r + 3] * wc
             for j in range(-r, 0):
-                s += (line[q + r + j] + line[q + r - j]) * wts[r + j]
+                wj = wts[r + j]
+                b, e = q + r + j, q + r - j
+                s0 += (line[b] + line[e]) * wj
+                s1 += (line[b + 1] + line[e + 1]) * wj
+                s2 += (line[b + 2] + line[e + 2]) * wj
+                s3 += (line[b + 3] + line[e + 3]) * wj
             if axis == 0:
-                out[q, k] = s
+                out[q, k], out[q + 1, k], out[q + 2, k], out[q + 3, k] = s0, s1, s2, s3
             else:
-                out[k, q] = s
+                out[k, q], out[k, q + 1], out[k, q + 2], out[k, q + 3] = s0, s1, s2, s3
+            q += 4
+        for t in range(q, n):
+            s = line[t + r] * wc
+            for j in range(-r, 0):
+                s += (line[t + r + j] + line[t + r - j]) * wts[r + j]
+            if axis == 0:
+                out[t, k] = s
+            else:
+                out[k, t] = s
     return out
 
 
