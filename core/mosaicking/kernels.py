@@ -85,23 +85,19 @@ def _b3(x):
 
 
 @njit(cache=True, nogil=True)
-def _row_bounds(filled):
-    """The min and max of ``filled`` over columns ``j - 1 .. j + 2`` of each row (edge
-    extended): :func:`sample_clip` takes its 4 x 4 bounds over 4 rows of these (the same
-    values as over the 16 pixels, at half the reads)."""
-    h, w = filled.shape
-    lo_r = np.empty((h, w))
-    hi_r = np.empty((h, w))
-    for a in range(h):
-        for j in range(w):
-            lo, hi = np.inf, -np.inf
-            for b in range(j - 1, j + 3):
-                x = filled[a, min(max(b, 0), w - 1)]
-                lo = min(lo, x)
-                hi = max(hi, x)
-            lo_r[a, j] = lo
-            hi_r[a, j] = hi
-    return lo_r, hi_r
+def _row_bounds(filled, a, lo_r, hi_r):
+    """The min and max of ``filled`` over columns ``j - 1 .. j + 2`` of row ``a`` (edge
+    extended) into ``lo_r``, ``hi_r``: :func:`sample_clip` takes its 4 x 4 bounds over 4 rows
+    of these (the same values as over the 16 pixels, at half the reads)."""
+    w = filled.shape[1]
+    for j in range(w):
+        lo, hi = np.inf, -np.inf
+        for b in range(j - 1, j + 3):
+            x = filled[a, min(max(b, 0), w - 1)]
+            lo = min(lo, x)
+            hi = max(hi, x)
+        lo_r[j] = lo
+        hi_r[j] = hi
 
 
 @njit(cache=True, nogil=True)
@@ -121,8 +117,15 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
     out = np.zeros((h, w), np.float32)
     valid = np.zeros((h, w), np.bool_)
     tmp = np.empty(w + 3)
-    lo_r, hi_r = _row_bounds(filled)
+    # the row bounds of the 4 rows around row i, in a ring of 4 rows (row a in a % 4)
+    # made as the rows come (not a whole image's worth of them: less memory traffic)
+    lo_r = np.empty((4, w))
+    hi_r = np.empty((4, w))
+    have = -1
     for i in range(h):
+        while have < min(i + 2, h - 1):
+            have += 1
+            _row_bounds(filled, have, lo_r[have % 4], hi_r[have % 4])
         empty = True
         for j in range(w):
             m = ok[i, j]
@@ -140,15 +143,16 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
             for k in range(4):
                 s += wr[k] * coef[pad + i + k - 1, pad + jj - 1]
             tmp[jj] = s
+        # the ring's slots of rows i - 1 .. i + 2 (edge-extended)
+        a0, a1 = max(i - 1, 0) % 4, i % 4
+        a2, a3 = min(i + 1, h - 1) % 4, min(i + 2, h - 1) % 4
         for j in range(w):
             if not valid[i, j]:
                 continue
             v = wc[0] * tmp[j] + wc[1] * tmp[j + 1] + wc[2] * tmp[j + 2] + wc[3] * tmp[j + 3]
-            lo, hi = np.inf, -np.inf
-            for a in range(i - 1, i + 3):
-                aa = min(max(a, 0), h - 1)
-                lo = min(lo, lo_r[aa, j])
-                hi = max(hi, hi_r[aa, j])
+            lo = min(min(min(min(np.inf, lo_r[a0, j]), lo_r[a1, j]), lo_r[a2, j]), lo_r[a3, j])
+            hi = max(max(max(max(-np.inf, hi_r[a0, j]), hi_r[a1, j]), hi_r[a2, j]),
+                     hi_r[a3, j])
             v = min(max(v, lo), hi)
             out[i, j] = v - radiometric
     return out, valid
