@@ -177,17 +177,20 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     leaf = np.empty((n_leaf, 4), np.int64)
     corners = np.empty((n_leaf, 4, 2))
     j = 0
-    for i in range(n):
-        if unit[i]:
+    for i in range(n):             # element by element: a row view (or a slice assigned)
+        if unit[i]:                # counts references, at every cell
             r, c = cells[i, 0], cells[i, 1]
-            leaf[j] = cells[i]
-            corners[j, 0], corners[j, 1] = v[r, c], v[r, c + 1]
-            corners[j, 2], corners[j, 3] = v[r + 1, c], v[r + 1, c + 1]
+            for q in range(4):
+                leaf[j, q] = cells[i, q]
+            for q in range(2):
+                corners[j, 0, q], corners[j, 1, q] = v[r, c, q], v[r, c + 1, q]
+                corners[j, 2, q], corners[j, 3, q] = v[r + 1, c, q], v[r + 1, c + 1, q]
             j += 1
     for i in range(k):
         if good[i]:
-            leaf[j] = rest[i]
-            corners[j] = pts[i, :4]
+            for q in range(4):
+                leaf[j, q] = rest[i, q]
+                corners[j, q, 0], corners[j, q, 1] = pts[i, q, 0], pts[i, q, 1]
             j += 1
     bad = ~good & ~all_nan
     near = np.zeros(k, np.bool_)
