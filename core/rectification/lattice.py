@@ -44,7 +44,7 @@ from numba import njit
 
 from swathflow.geometry.grid import tile_frame
 from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,
-                                           _off_image, _unknown, corner_bounds)
+                                           _off_image, _store, _take, _unknown, corner_bounds)
 from swathflow.rectification.paint import touching
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
@@ -127,8 +127,8 @@ class _Exact:
 
     def _evaluate(self, rr, cc):
         if rr.size:
-            self.values[rr, cc] = exact_raw(self.model, self.grid, self.terrain, rr, cc,
-                                            self.frame)
+            _store(self.values, rr, cc, exact_raw(self.model, self.grid, self.terrain, rr, cc,
+                                                  self.frame))
             self.count += rr.size
 
     def __call__(self, r, c):
@@ -137,7 +137,7 @@ class _Exact:
         r = np.ascontiguousarray(r, np.int64).ravel()
         c = np.ascontiguousarray(c, np.int64).ravel()
         self._evaluate(*_unknown(r, c, self.known))
-        return self.values[r, c]
+        return _take(self.values, r, c)
 
     def cells(self, cells, tests: bool = True):
         """Evaluate the corners (and, with ``tests``, the test points) of ``cells`` not
