@@ -41,16 +41,6 @@ def _store(values, r, c, x):
 
 
 @njit(cache=True, nogil=True)
-def _take(values, r, c):
-    """``values[r, c]`` ``(n, 2)``, as :func:`_store` (numpy's indexing, compiled)."""
-    out = np.empty((r.shape[0], 2))
-    for i in range(r.shape[0]):
-        out[i, 0] = values[r[i], c[i], 0]
-        out[i, 1] = values[r[i], c[i], 1]
-    return out
-
-
-@njit(cache=True, nogil=True)
 def _cell_unknown(cells, known, tests):
     """:func:`_unknown` of the corners of ``cells`` ``(n, 4)`` and, with ``tests``, of
     their test points (edge midpoints across a side of 2 or more, centre)."""

@@ -44,7 +44,7 @@ from numba import njit
 
 from swathflow.geometry.grid import tile_frame
 from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,
-                                           _off_image, _store, _take, _unknown, corner_bounds)
+                                           _off_image, _store, _unknown, corner_bounds)
 from swathflow.rectification.paint import touching
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
@@ -132,12 +132,11 @@ class _Exact:
             self.count += rr.size
 
     def __call__(self, r, c):
-        """The values at points ``r, c``, evaluating those not yet known (one model
-        call)."""
+        """Evaluate the points ``r, c`` not yet known (one model call); their values are
+        in :attr:`values`."""
         r = np.ascontiguousarray(r, np.int64).ravel()
         c = np.ascontiguousarray(c, np.int64).ravel()
         self._evaluate(*_unknown(r, c, self.known))
-        return _take(self.values, r, c)
 
     def cells(self, cells, tests: bool = True):
         """Evaluate the corners (and, with ``tests``, the test points) of ``cells`` not
