@@ -16,6 +16,8 @@ texture at the output pixel centres) over the whole footprint and per 128-px til
         --baseline /work/main/.venv/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
     .venv/bin/python benchmarks/bench_rectify.py --cube 100        # 100-band uint16 cube
     .venv/bin/python benchmarks/bench_rectify.py --igm             # image_to_ground on a DEM
+    .venv/bin/python benchmarks/bench_rectify.py --phases --lines 1400 --elements 512
+        # ours only, one thread: CPU ms a job of the lattice, the model, paint and gather
     .venv/bin/python benchmarks/bench_rectify.py --memory          # 2048 x 20000 swing, peak RSS
     options: --elements 1024 --lines 2800 --threads 2 --kernel bilinear --repeat 3
 """
@@ -200,6 +202,64 @@ def side_by_side(args, ratio=None):
     return rows
 
 
+def phases(args, ratio=None, jobs=20):
+    """Ours alone on the side-by-side grid, one thread: CPU ms a job (best of ``jobs``
+    jobs' totals per phase, timed by wrapping the phases' Python entry points) of the
+    lattice (its model calls apart), paint and gather, and per exact evaluation / pixel."""
+    import collections
+    import functools
+    import dask
+    from swathflow.rectification import lattice, tiles
+    terrain = ConstantHeight(5.0)
+    model = scene_model(n_lines=args.lines, n_elements=args.elements, swing=args.swing,
+                        pixel_pitch=args.pitch)
+    grid = _grid_for_ratio(model, terrain, ratio, args.gsd)
+    raw = render(model, terrain, grid.crs).astype(np.float32)
+    acc = collections.Counter()
+
+    def wrap(owner, name, label, keep):
+        f = getattr(owner, name)
+
+        @functools.wraps(f)
+        def timed(*a, **k):
+            c0 = time.process_time()
+            out = f(*a, **k)
+            acc[label] += time.process_time() - c0
+            if label == "lattice":
+                acc["evaluations"] += out.exact_evaluations
+            return out
+        keep.append((owner, name, f))
+        setattr(owner, name, timed)
+
+    keep: list = []
+    wrap(tiles, "leaves", "lattice", keep)
+    wrap(lattice, "exact_raw", "model (in lattice)", keep)
+    wrap(tiles, "paint_leaves", "paint", keep)
+    wrap(tiles, "resample_window", "gather", keep)
+    best: dict = {}
+    try:
+        with dask.config.set(scheduler="sync"):
+            for i in range(jobs + 1):
+                acc.clear()
+                c0 = time.process_time()
+                R.rectify(model, raw, grid, terrain, args.kernel, tile=args.tile).compute()
+                acc["job"] = time.process_time() - c0
+                if i and (not best or acc["job"] < best["job"]):
+                    best = dict(acc)
+    finally:
+        for owner, name, f in keep:
+            setattr(owner, name, f)
+    npx = grid.shape[0] * grid.shape[1]
+    n_ev = best.pop("evaluations")
+    print(f"\n{grid.shape[0]} x {grid.shape[1]} px, {npx / 1e6:.2f} Mpx, {n_ev} exact "
+          f"evaluations; best of {jobs} jobs, one thread: {npx / 1e6 / best['job']:.1f} "
+          f"Mpx/CPU-s")
+    best["lattice"] -= best["model (in lattice)"]
+    for k, v in best.items():
+        per, unit = (n_ev, "evaluation") if k.startswith("model") else (npx, "pixel")
+        print(f"  {k:20s} {1e3 * v:7.2f} ms  {1e9 * v / per:7.1f} ns a {unit}")
+
+
 def _table(rows, grid):
     base = rows[0]["seconds"]
     print()
@@ -286,6 +346,8 @@ def main():
     ap.add_argument("--no-peers", action="store_true", help="--command without GDAL")
     ap.add_argument("--cube", type=int, metavar="BANDS", help="a uint16 cube of BANDS bands")
     ap.add_argument("--igm", action="store_true", help="image_to_ground on a DEM, points/s")
+    ap.add_argument("--phases", action="store_true",
+                    help="ours alone, one thread: CPU ms a job of lattice, paint, gather")
     ap.add_argument("--ratios", default="5,1",
                     help="output/raw pixel-count ratios of the side-by-side grids "
                          "(default 5,1); empty: one grid at --gsd")
@@ -326,6 +388,9 @@ def main():
             X.main("cube", bands=args.cube, threads=nw)
     elif args.igm:
         X.main("igm")
+    elif args.phases:
+        for ratio in [float(r) for r in args.ratios.split(",") if r.strip()] or [None]:
+            phases(args, ratio)
     else:
         ratios = [float(r) for r in args.ratios.split(",") if r.strip()] or [None]
         for ratio in ratios:

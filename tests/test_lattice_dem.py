@@ -183,3 +183,25 @@ def test_partial_tile_evaluated_at_every_pixel(scene, shape):
     got = _paint_absolute(lv, nl, ne)
     assert (np.isfinite(got[..., 0]) == on).all()
     assert np.abs(lv.pixels[on] - ex[on]).max() < 1e-9
+
+
+def _random_cells(rng, H, W, k):
+    sr, sc = 2 ** rng.integers(0, 5, k), 2 ** rng.integers(0, 5, k)
+    return np.stack([rng.integers(0, H, k), rng.integers(0, W, k), sr, sc],
+                    axis=-1).astype(np.int64)
+
+
+def test_touching_cells_by_closed_rectangles():
+    """paint.touching against the definition: a cell touches when its closed rectangle and
+    a marked one's share a pixel of the tile (pixel sets painted with numpy)."""
+    from swathflow.rectification.paint import touching
+    rng = np.random.default_rng(5)
+    for H, W in ((33, 33), (65, 129), (20, 17)):
+        for _ in range(40):
+            a = _random_cells(rng, H, W, int(rng.integers(1, 30)))
+            b = _random_cells(rng, H, W, int(rng.integers(0, 12)))
+            mask = np.zeros((H, W), bool)
+            for r, c, sr, sc in b:
+                mask[r:r + sr + 1, c:c + sc + 1] = True
+            want = [mask[r:r + sr + 1, c:c + sc + 1].any() for r, c, sr, sc in a]
+            assert touching(a, b, H, W).tolist() == want

@@ -32,6 +32,15 @@ def _unknown(r, c, known):
 
 
 @njit(cache=True, nogil=True)
+def _store(values, r, c, x):
+    """``values[r, c] = x`` for points ``r, c`` and their values ``x`` ``(n, 2)`` (numpy's
+    indexed assignment costs ~20 us a call: a level's whole model call costs ~100)."""
+    for i in range(r.shape[0]):
+        values[r[i], c[i], 0] = x[i, 0]
+        values[r[i], c[i], 1] = x[i, 1]
+
+
+@njit(cache=True, nogil=True)
 def _cell_unknown(cells, known, tests):
     """:func:`_unknown` of the corners of ``cells`` ``(n, 4)`` and, with ``tests``, of
     their test points (edge midpoints across a side of 2 or more, centre)."""
@@ -42,8 +51,10 @@ def _cell_unknown(cells, known, tests):
     for i in range(n):
         r0, c0, sr, sc = cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3]
         hr, hc = sr // 2, sc // 2
-        r[k:k + 4] = (r0, r0, r0 + sr, r0 + sr)
-        c[k:k + 4] = (c0, c0 + sc, c0, c0 + sc)
+        # scalar stores: a tuple assigned to a slice made a view (and its reference
+        # counting) and an array of the tuple per cell
+        r[k], r[k + 1], r[k + 2], r[k + 3] = r0, r0, r0 + sr, r0 + sr
+        c[k], c[k + 1], c[k + 2], c[k + 3] = c0, c0 + sc, c0, c0 + sc
         k += 4
         if tests and sc >= 2:
             r[k], c[k], r[k + 1], c[k + 1] = r0, c0 + hc, r0 + sr, c0 + hc
@@ -58,12 +69,10 @@ def _cell_unknown(cells, known, tests):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _miss(v, r, c, a0, a1, pts, i, p):
-    """The interpolation's miss at point (r, c) of ``v`` (the larger of line and element;
-    inf where NaN) against the interpolated ``(a0, a1)``; ``pts[i, p]`` set to the exact
-    value."""
-    e0, e1 = v[r, c, 0], v[r, c, 1]
-    pts[i, p, 0], pts[i, p, 1] = e0, e1
+def _miss(e0, e1, a0, a1):
+    """The interpolation's miss at a point of exact value ``(e0, e1)`` against the
+    interpolated ``(a0, a1)``: the larger of line and element; inf where NaN. Scalars
+    only: an inlined helper taking arrays counts references to each at every call."""
     d0, d1 = abs(e0 - a0), abs(e1 - a1)
     if math.isnan(d0) or math.isnan(d1):
         return math.inf
@@ -77,32 +86,36 @@ def _cell_tests(cells, v):
     midpoints), across rows (left and right midpoints) and both (centre), NaN as inf, 0
     where a size is 1; the points' values ``(n, 9, 2)``: the corners (r, c), (r, c + sc),
     (r + sr, c), (r + sr, c + sc), then the test points (NaN where a test does not
-    exist)."""
+    exist). Written with scalars (no row views of ``pts``, no arrays passed to helpers):
+    numba counts references to every array view and argument at every cell."""
     n = cells.shape[0]
     err_c, err_r, err_m = np.zeros(n), np.zeros(n), np.zeros(n)
     pts = np.full((n, 9, 2), np.nan)
     for i in range(n):
         r, c, sr, sc = cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3]
         hr, hc = sr // 2, sc // 2
-        for q in range(2):
-            pts[i, 0, q], pts[i, 1, q] = v[r, c, q], v[r, c + sc, q]
-            pts[i, 2, q], pts[i, 3, q] = v[r + sr, c, q], v[r + sr, c + sc, q]
-        q00, q01, q10, q11 = pts[i, 0], pts[i, 1], pts[i, 2], pts[i, 3]
+        a0, a1 = v[r, c, 0], v[r, c, 1]                       # the corners
+        b0, b1 = v[r, c + sc, 0], v[r, c + sc, 1]
+        c0, c1 = v[r + sr, c, 0], v[r + sr, c, 1]
+        d0, d1 = v[r + sr, c + sc, 0], v[r + sr, c + sc, 1]
+        pts[i, 0, 0], pts[i, 0, 1], pts[i, 1, 0], pts[i, 1, 1] = a0, a1, b0, b1
+        pts[i, 2, 0], pts[i, 2, 1], pts[i, 3, 0], pts[i, 3, 1] = c0, c1, d0, d1
         if sc >= 2:
-            e1 = _miss(v, r, c + hc, (q00[0] + q01[0]) / 2, (q00[1] + q01[1]) / 2,
-                       pts, i, 4)
-            e2 = _miss(v, r + sr, c + hc, (q10[0] + q11[0]) / 2, (q10[1] + q11[1]) / 2,
-                       pts, i, 5)
-            err_c[i] = max(e1, e2)
+            t0, t1 = v[r, c + hc, 0], v[r, c + hc, 1]
+            u0, u1 = v[r + sr, c + hc, 0], v[r + sr, c + hc, 1]
+            pts[i, 4, 0], pts[i, 4, 1], pts[i, 5, 0], pts[i, 5, 1] = t0, t1, u0, u1
+            err_c[i] = max(_miss(t0, t1, (a0 + b0) / 2, (a1 + b1) / 2),
+                           _miss(u0, u1, (c0 + d0) / 2, (c1 + d1) / 2))
         if sr >= 2:
-            e1 = _miss(v, r + hr, c, (q00[0] + q10[0]) / 2, (q00[1] + q10[1]) / 2,
-                       pts, i, 6)
-            e2 = _miss(v, r + hr, c + sc, (q01[0] + q11[0]) / 2, (q01[1] + q11[1]) / 2,
-                       pts, i, 7)
-            err_r[i] = max(e1, e2)
+            t0, t1 = v[r + hr, c, 0], v[r + hr, c, 1]
+            u0, u1 = v[r + hr, c + sc, 0], v[r + hr, c + sc, 1]
+            pts[i, 6, 0], pts[i, 6, 1], pts[i, 7, 0], pts[i, 7, 1] = t0, t1, u0, u1
+            err_r[i] = max(_miss(t0, t1, (a0 + c0) / 2, (a1 + c1) / 2),
+                           _miss(u0, u1, (b0 + d0) / 2, (b1 + d1) / 2))
         if sr >= 2 and sc >= 2:
-            err_m[i] = _miss(v, r + hr, c + hc, (q00[0] + q01[0] + q10[0] + q11[0]) / 4,
-                             (q00[1] + q01[1] + q10[1] + q11[1]) / 4, pts, i, 8)
+            t0, t1 = v[r + hr, c + hc, 0], v[r + hr, c + hc, 1]
+            pts[i, 8, 0], pts[i, 8, 1] = t0, t1
+            err_m[i] = _miss(t0, t1, (a0 + b0 + c0 + d0) / 4, (a1 + b1 + c1 + d1) / 4)
     return err_c, err_r, err_m, pts
 
 

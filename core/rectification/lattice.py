@@ -44,7 +44,7 @@ from numba import njit
 
 from swathflow.geometry.grid import tile_frame
 from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,
-                                           _off_image, _unknown, corner_bounds)
+                                           _off_image, _store, _unknown, corner_bounds)
 from swathflow.rectification.paint import touching
 
 #: default bound on the interpolated raw coordinates' error (raw pixels, line and element)
@@ -127,17 +127,16 @@ class _Exact:
 
     def _evaluate(self, rr, cc):
         if rr.size:
-            self.values[rr, cc] = exact_raw(self.model, self.grid, self.terrain, rr, cc,
-                                            self.frame)
+            _store(self.values, rr, cc, exact_raw(self.model, self.grid, self.terrain, rr, cc,
+                                                  self.frame))
             self.count += rr.size
 
     def __call__(self, r, c):
-        """The values at points ``r, c``, evaluating those not yet known (one model
-        call)."""
+        """Evaluate the points ``r, c`` not yet known (one model call); their values are
+        in :attr:`values`."""
         r = np.ascontiguousarray(r, np.int64).ravel()
         c = np.ascontiguousarray(c, np.int64).ravel()
         self._evaluate(*_unknown(r, c, self.known))
-        return self.values[r, c]
 
     def cells(self, cells, tests: bool = True):
         """Evaluate the corners (and, with ``tests``, the test points) of ``cells`` not
@@ -177,17 +176,20 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     leaf = np.empty((n_leaf, 4), np.int64)
     corners = np.empty((n_leaf, 4, 2))
     j = 0
-    for i in range(n):
-        if unit[i]:
+    for i in range(n):             # element by element: a row view (or a slice assigned)
+        if unit[i]:                # counts references, at every cell
             r, c = cells[i, 0], cells[i, 1]
-            leaf[j] = cells[i]
-            corners[j, 0], corners[j, 1] = v[r, c], v[r, c + 1]
-            corners[j, 2], corners[j, 3] = v[r + 1, c], v[r + 1, c + 1]
+            for q in range(4):
+                leaf[j, q] = cells[i, q]
+            for q in range(2):
+                corners[j, 0, q], corners[j, 1, q] = v[r, c, q], v[r, c + 1, q]
+                corners[j, 2, q], corners[j, 3, q] = v[r + 1, c, q], v[r + 1, c + 1, q]
             j += 1
     for i in range(k):
         if good[i]:
-            leaf[j] = rest[i]
-            corners[j] = pts[i, :4]
+            for q in range(4):
+                leaf[j, q] = rest[i, q]
+                corners[j, q, 0], corners[j, q, 1] = pts[i, q, 0], pts[i, q, 1]
             j += 1
     bad = ~good & ~all_nan
     near = np.zeros(k, np.bool_)
