@@ -112,9 +112,13 @@ from swathflow.cluster import local_cluster
 def setup():      # left in a module of this process: a forked worker has it, a spawned not
     json.SET_UP = os.getpid()
 
+def child():      # run in each forked worker, before it joins the scheduler
+    json.CHILD = os.getpid()
+
 def cluster(stop=None):
-    with local_cluster(2, fork_setup=setup) as c, Client(c) as client:
+    with local_cluster(2, fork_setup=setup, worker_setup=child) as c, Client(c) as client:
         seen = client.run(lambda: getattr(sys.modules["json"], "SET_UP", None))
+        own = client.run(lambda: getattr(sys.modules["json"], "CHILD", None) == os.getpid())
         pids = list(client.run(os.getpid).values())
         total = client.submit(sum, range(10)).result()
         ports = sorted(s.getsockname()[1] for s in c.scheduler.http_server._sockets.values())
@@ -132,7 +136,8 @@ def cluster(stop=None):
                 left += [pid] if not f.read().split(") ", 1)[1].startswith("Z") else []
         except FileNotFoundError:
             pass
-    return {"seen": list(seen.values()), "total": total, "ports": ports,
+    return {"seen": list(seen.values()), "own": list(own.values()), "total": total,
+            "ports": ports,
             "codes": codes, "left": left}
 
 forked = cluster()
@@ -143,14 +148,15 @@ try:
     spawned = cluster()
 finally:
     stop.set()
-print("RESULT " + json.dumps({"parent": os.getpid(), "forked": forked, "spawned": spawned}))
+print("RESULT " + json.dumps({"parent": os.getpid(), "forked": forked, "spawned": spawned,
+                             "in_parent": getattr(json, "CHILD", None)}))
 """
 
 
 def test_local_workers_forked_from_a_one_thread_process(tmp_path):
     """The flow's local Dask workers are forked from its process while only its main thread
     runs (they share what ``fork_setup`` prepared, e.g. the checked mission, and import
-    nothing again), spawned by Dask's nannies otherwise; either way real workers that run
+    nothing again; each ran ``worker_setup`` itself), spawned by Dask's nannies otherwise; either way real workers that run
     tasks, whose processes are gone once the cluster is closed; and the scheduler's HTTP
     server serves nothing, and not on Dask's dashboard port 8787."""
     r = subprocess.run([sys.executable, "-c", _FORKED], capture_output=True, text=True,
@@ -159,6 +165,8 @@ def test_local_workers_forked_from_a_one_thread_process(tmp_path):
     doc = json.loads(r.stdout.split("RESULT ", 1)[1])
     forked, spawned = doc["forked"], doc["spawned"]
     assert forked["seen"] == [doc["parent"]] * 2, "workers not forked"
+    assert forked["own"] == [True, True], "worker_setup not run in each forked worker"
+    assert doc["in_parent"] is None, "worker_setup ran in the parent"
     assert spawned["seen"] == [None, None], "forked beside another thread"
     for run in (forked, spawned):
         assert run["total"] == 45
