@@ -70,11 +70,13 @@ def image_files(mission, iid) -> list:
     return [e.file, e.lines_file]
 
 
-def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str:
+def rectify_swing(mission, image_id: str, calibration: str, out_dir: str,
+                  facts: bool = True) -> str:
     """Orthorectify one swing of the loaded ``mission`` to ``OUT/rectified/<image>.tif``
     (COG) with the calibration: ``to_cog(rectify(...))`` of the Python API in the raw
     image's dtype, every band or those of ``[rectify] bands``; a finished output whose
-    inputs are unchanged is kept."""
+    inputs are unchanged is kept. ``facts``: its catalogue facts recorded at once
+    (:func:`catalog_facts`; else later, by :func:`record_facts`)."""
     from swathflow.rectification.api import rectify as rectified, to_cog
     from swathflow.rectification.mission import mission_bands
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
@@ -86,7 +88,7 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
     to_cog(rectified(mission, image_id, calibration, bands=mission_bands(mission, image_id),
                      dtype=None), out)
     seconds = round(time.perf_counter() - t0, 3)
-    mark_done(out, key, seconds=seconds, **catalog_facts(out))
+    mark_done(out, key, seconds=seconds, **(catalog_facts(out) if facts else {}))
     return str(out)
 
 
@@ -119,16 +121,38 @@ def recorded_facts(path) -> dict | None:
     return None
 
 
+def record_facts(paths) -> int:
+    """The catalogue facts (:func:`catalog_facts`) of every swing of ``paths`` whose
+    manifest does not hold them yet added to its manifest (rewritten atomically, its key
+    unchanged). The flow's workers run it while the mosaic is made, on a core the mosaic
+    leaves idle, for the swings they rectified without (``facts=False``). The number of
+    swings traced."""
+    import json
+
+    from swathflow.cache import manifest_path
+    from swathflow.io import write_text
+    done = 0
+    for path in paths:
+        if recorded_facts(path) is not None:
+            continue
+        with open(manifest_path(path), encoding="utf-8") as f:
+            doc = json.load(f)
+        doc.update(catalog_facts(path))
+        write_text(manifest_path(path), json.dumps(doc, indent=2, default=str))
+        done += 1
+    return done
+
+
 def rectify_batch(image_ids, mission_path: str, calibration: str,
-                  out_dir: str) -> list[str]:
+                  out_dir: str, facts: bool = True) -> list[str]:
     """Several swings, one after the other, in this process (a Dask worker: its tiles on
     its own thread, so no pixels or models cross processes); the mission loaded once
     (memoised, or handed over by :func:`remember`). The output paths in ``image_ids``
-    order."""
+    order. ``facts``: as :func:`rectify_swing`'s."""
     import dask
     m = load(mission_path)
     with dask.config.set(scheduler="sync"):
-        return [rectify_swing(m, iid, calibration, out_dir) for iid in image_ids]
+        return [rectify_swing(m, iid, calibration, out_dir, facts) for iid in image_ids]
 
 
 def warm(mission_path=None) -> None:
