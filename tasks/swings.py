@@ -93,10 +93,10 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str,
 
 
 def catalog_facts(path) -> dict:
-    """What the run's STAC catalogue says of the swing just written to ``path`` (its
-    footprint traced here, in the worker that wrote it, while the file is in the page
-    cache: the catalogue stage would otherwise open and trace every swing again, one after
-    the other, at the end of the run), with the file's stamp: ``{"stac": facts,
+    """What the run's STAC catalogue says of the swing written to ``path`` (its footprint
+    traced in a worker, while the file is in the page cache: the catalogue stage would
+    otherwise open and trace every swing again, one after the other, at the end of the
+    run), with the file's stamp: ``{"stac": facts,
     "stac_stamp": [size, mtime_ns]}`` for the swing's stage manifest
     (:func:`recorded_facts` reads it back)."""
     from swathflow.formats.stac import raster_facts
