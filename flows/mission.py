@@ -73,13 +73,9 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         rectified = gather_swings(futures, lambda done: prog.update("rectify", done, len(ids)))
         prog.finish("rectify", len(ids))
         del warm
-        # the swings' catalogue facts traced by one worker while this process makes the
-        # mosaic (on one core: the other would idle)
-        tracing = client.submit(swings.record_facts, rectified, pure=False)
         prog.start("mosaic")
         mos = stages.mosaic(rectified, out, mission, cal)
         prog.finish("mosaic")
-        _quietly(tracing.result)     # failed: the catalogue reads those swings itself
         prog.start("catalog")
         stac = stages.catalog(mission, rectified, mos, cal, out)
         prog.finish("catalog")
@@ -139,23 +135,20 @@ def hand_mission(client, mission: str, loaded) -> None:
 
 
 def submit_swings(client, mission: str, ids: list, calibration: str, out: str,
-                  loaded=None, facts: bool = False) -> list:
+                  loaded=None) -> list:
     """Every swing handed to the Dask workers, several per Dask task
     (:func:`swathflow.tasks.swings.rectify_batch`, :func:`swing_batches`: at most
     :data:`BATCH` swings, smaller and smaller towards the end so the workers finish
     together; a lost worker's task is run
     again by Dask on another, a failed one retried once, its finished swings kept).
     ``loaded``: the client's loaded Mission, handed to the workers first
-    (:func:`hand_mission`). ``facts``: each swing's catalogue facts traced as it is
-    written; by default not (the flow has them traced while it makes the mosaic,
-    :func:`swathflow.tasks.swings.record_facts`). The futures, in ``ids`` order
-    (:func:`gather_swings` waits for them)."""
+    (:func:`hand_mission`). The futures, in ``ids`` order (:func:`gather_swings` waits
+    for them)."""
     batches = swing_batches(list(ids), max(len(client.scheduler_info()["workers"]), 1))
     if loaded is not None:
         hand_mission(client, mission, loaded)
     return client.map(swings.rectify_batch, batches, mission_path=mission,
-                      calibration=calibration, out_dir=out, facts=facts, pure=False,
-                      retries=1)
+                      calibration=calibration, out_dir=out, pure=False, retries=1)
 
 
 def swing_batches(ids: list, n_workers: int) -> list[list]:

@@ -70,13 +70,11 @@ def image_files(mission, iid) -> list:
     return [e.file, e.lines_file]
 
 
-def rectify_swing(mission, image_id: str, calibration: str, out_dir: str,
-                  facts: bool = True) -> str:
+def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str:
     """Orthorectify one swing of the loaded ``mission`` to ``OUT/rectified/<image>.tif``
     (COG) with the calibration: ``to_cog(rectify(...))`` of the Python API in the raw
     image's dtype, every band or those of ``[rectify] bands``; a finished output whose
-    inputs are unchanged is kept. ``facts``: its catalogue facts recorded at once
-    (:func:`catalog_facts`; else later, by :func:`record_facts`)."""
+    inputs are unchanged is kept."""
     from swathflow.rectification.api import rectify as rectified, to_cog
     from swathflow.rectification.mission import mission_bands
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
@@ -88,15 +86,15 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str,
     to_cog(rectified(mission, image_id, calibration, bands=mission_bands(mission, image_id),
                      dtype=None), out)
     seconds = round(time.perf_counter() - t0, 3)
-    mark_done(out, key, seconds=seconds, **(catalog_facts(out) if facts else {}))
+    mark_done(out, key, seconds=seconds, **catalog_facts(out))
     return str(out)
 
 
 def catalog_facts(path) -> dict:
-    """What the run's STAC catalogue says of the swing written to ``path`` (its footprint
-    traced in a worker, while the file is in the page cache: the catalogue stage would
-    otherwise open and trace every swing again, one after the other, at the end of the
-    run), with the file's stamp: ``{"stac": facts,
+    """What the run's STAC catalogue says of the swing just written to ``path`` (its
+    footprint traced here, in the worker that wrote it, while the file is in the page
+    cache: the catalogue stage would otherwise open and trace every swing again, one after
+    the other, at the end of the run), with the file's stamp: ``{"stac": facts,
     "stac_stamp": [size, mtime_ns]}`` for the swing's stage manifest
     (:func:`recorded_facts` reads it back)."""
     from swathflow.formats.stac import raster_facts
@@ -121,38 +119,16 @@ def recorded_facts(path) -> dict | None:
     return None
 
 
-def record_facts(paths) -> int:
-    """The catalogue facts (:func:`catalog_facts`) of every swing of ``paths`` whose
-    manifest does not hold them yet added to its manifest (rewritten atomically, its key
-    unchanged). The flow's workers run it while the mosaic is made, on a core the mosaic
-    leaves idle, for the swings they rectified without (``facts=False``). The number of
-    swings traced."""
-    import json
-
-    from swathflow.cache import manifest_path
-    from swathflow.io import write_text
-    done = 0
-    for path in paths:
-        if recorded_facts(path) is not None:
-            continue
-        with open(manifest_path(path), encoding="utf-8") as f:
-            doc = json.load(f)
-        doc.update(catalog_facts(path))
-        write_text(manifest_path(path), json.dumps(doc, indent=2, default=str))
-        done += 1
-    return done
-
-
 def rectify_batch(image_ids, mission_path: str, calibration: str,
-                  out_dir: str, facts: bool = True) -> list[str]:
+                  out_dir: str) -> list[str]:
     """Several swings, one after the other, in this process (a Dask worker: its tiles on
     its own thread, so no pixels or models cross processes); the mission loaded once
     (memoised, or handed over by :func:`remember`). The output paths in ``image_ids``
-    order. ``facts``: as :func:`rectify_swing`'s."""
+    order."""
     import dask
     m = load(mission_path)
     with dask.config.set(scheduler="sync"):
-        return [rectify_swing(m, iid, calibration, out_dir, facts) for iid in image_ids]
+        return [rectify_swing(m, iid, calibration, out_dir) for iid in image_ids]
 
 
 def warm(mission_path=None) -> None:

@@ -204,28 +204,3 @@ def test_facts_recorded_with_a_swing_describe_it_until_it_changes(tmp_path, offl
     assert read == given
     _write_swing(path, _rotated(300, 200, 400, 100, -10))     # the swing rewritten
     assert recorded_facts(path) is None
-
-
-def test_facts_recorded_later_describe_the_swing_and_keep_its_key(tmp_path, offline):
-    """The flow's workers trace the swings' catalogue facts while the mosaic is made
-    (``record_facts``): added to each manifest that lacks them, the freshness key and the
-    rest of the manifest unchanged; the footprint is the truth footprint; swings already
-    holding their facts are left alone."""
-    import json
-
-    from swathflow.cache import is_fresh, manifest_path, mark_done
-    from swathflow.tasks.swings import record_facts, recorded_facts
-    (tmp_path / "r").mkdir()
-    corners = _rotated(300, 200, 520, 140, 25)
-    path = tmp_path / "r" / "L1.tif"
-    _write_swing(path, corners, tags={"image_id": "L1"})
-    mark_done(path, "key", seconds=1.5)
-    assert recorded_facts(path) is None
-    assert record_facts([str(path)]) == 1
-    facts = recorded_facts(path)
-    assert facts is not None and facts["tags"]["image_id"] == "L1"
-    assert _iou(shape(facts["geometry"]), _truth_lonlat(corners)) > 0.98
-    assert is_fresh(path, "key")
-    with open(manifest_path(path), encoding="utf-8") as f:
-        assert json.load(f)["seconds"] == 1.5
-    assert record_facts([str(path)]) == 0

@@ -99,8 +99,8 @@ def raster_facts(path) -> dict:
     """What a catalogue item says of a COG, read from the file (JSON-ready): its valid-data
     footprint (:func:`valid_footprint`) and tracing resolution, the projection fields, the
     raster bands, the band wavelengths (band tags), the band count and the product tags.
-    The flow's Dask workers record them in the swings' manifests while the mosaic is made
-    (:func:`swathflow.tasks.swings.record_facts`), so the catalogue need not read the
+    The flow's rectify task records them with each swing as it is written
+    (:func:`swathflow.tasks.swings.rectify_swing`), so the catalogue need not read the
     swings again."""
     import rasterio
     with rasterio.open(os.fspath(path)) as src:
