@@ -76,9 +76,9 @@ def local_cluster(n_workers: int | None = None, preload: tuple[str, ...] = (),
     with ``fork``, ``fork_setup()`` runs here and the workers are then forked from this
     process (:func:`forked_workers`): they start with its imports and memory (e.g. a
     loaded mission) instead of importing everything again (about 1.5 CPU-s each), and
-    ``preload`` is not run; each then runs ``worker_setup()`` (when given) before it joins
-    the scheduler, while this process starts the scheduler. Otherwise Dask's nannies spawn
-    them."""
+    ``preload`` is not run; each then runs ``worker_setup()`` (when given) on a thread
+    while it joins the scheduler (its first task may run meanwhile). Otherwise Dask's
+    nannies spawn them."""
     import dask
     from distributed import LocalCluster
     n = n_workers or max(1, min(os.cpu_count() or 1, 4))
@@ -140,7 +140,8 @@ class _Forked:
 def forked_workers(n: int, setup=None):
     """``n`` processes forked from this one (see :func:`can_fork`), each to become a
     single-threaded Dask worker once ``start(cluster)`` tells it the scheduler's address
-    (``setup()``, when given, run first in each: its failure is printed, the worker serves);
+    (``setup()``, when given, run in each on a thread beside the worker's start: its
+    failure is printed, the worker serves);
     on exit the ones still running (the scheduler's close ends them) are waited for, then
     ended. Python's objects are frozen across the fork (no collector passes copy their
     pages into the workers), as the rectify command does before it forks."""
@@ -200,9 +201,10 @@ def _reap(pids: list[int], timeout: float = 10.0) -> None:
 
 def _worker(fd: int, name: int, parent: int,
             setup=None) -> None:  # pragma: no cover - runs in a forked child
-    """A forked child: ``setup()``, then read the scheduler's address from ``fd``, serve
-    as a Dask worker (one thread) until the scheduler closes it, then end without the
-    interpreter's teardown (the parent's exit handlers are not the child's)."""
+    """A forked child: ``setup()`` started on a thread of its own, then the scheduler's
+    address read from ``fd``, served as a Dask worker (one thread) until the scheduler
+    closes it, then ended without the interpreter's teardown (the parent's exit handlers
+    are not the child's)."""
     import signal
     import sys
     code = 1
@@ -210,12 +212,9 @@ def _worker(fd: int, name: int, parent: int,
         signal.signal(signal.SIGTERM, signal.SIG_DFL)   # the parent's handler is not ours
         signal.signal(signal.SIGINT, signal.SIG_IGN)    # Ctrl-C: the parent closes us
         _end_with_parent(parent)
-        if setup is not None:
-            try:
-                setup()
-            except Exception:   # noqa: BLE001 - told on stderr; the worker serves anyway
-                import traceback
-                traceback.print_exc()
+        if setup is not None:   # beside the worker's start: the scheduler waits for none
+            import threading
+            threading.Thread(target=_setup, args=(setup,), daemon=True).start()
         address = b""
         while chunk := os.read(fd, 4096):
             address += chunk
@@ -242,6 +241,14 @@ def _worker(fd: int, name: int, parent: int,
             with contextlib.suppress(Exception):
                 stream.flush()
         os._exit(code)
+
+
+def _setup(setup) -> None:  # pragma: no cover - in a forked child
+    try:
+        setup()
+    except Exception:   # noqa: BLE001 - told on stderr; the worker serves anyway
+        import traceback
+        traceback.print_exc()
 
 
 def _end_with_parent(parent: int) -> None:  # pragma: no cover - in a forked child

@@ -112,13 +112,20 @@ from swathflow.cluster import local_cluster
 def setup():      # left in a module of this process: a forked worker has it, a spawned not
     json.SET_UP = os.getpid()
 
-def child():      # run in each forked worker, before it joins the scheduler
+def child():      # run in each forked worker, on a thread beside its start
     json.CHILD = os.getpid()
 
-def cluster(stop=None):
+def own_child():  # in a worker: child() ran there (waited for: it runs on a thread)
+    import time
+    mod, limit = sys.modules["json"], time.monotonic() + 60
+    while getattr(mod, "CHILD", None) is None and time.monotonic() < limit:
+        time.sleep(0.01)
+    return getattr(mod, "CHILD", None) == os.getpid()
+
+def cluster(forks=True):
     with local_cluster(2, fork_setup=setup, worker_setup=child) as c, Client(c) as client:
         seen = client.run(lambda: getattr(sys.modules["json"], "SET_UP", None))
-        own = client.run(lambda: getattr(sys.modules["json"], "CHILD", None) == os.getpid())
+        own = client.run(own_child) if forks else {}
         pids = list(client.run(os.getpid).values())
         total = client.submit(sum, range(10)).result()
         ports = sorted(s.getsockname()[1] for s in c.scheduler.http_server._sockets.values())
@@ -145,7 +152,7 @@ stop = threading.Event()
 t = threading.Thread(target=stop.wait)       # another thread runs: no fork
 t.start()
 try:
-    spawned = cluster()
+    spawned = cluster(forks=False)
 finally:
     stop.set()
 print("RESULT " + json.dumps({"parent": os.getpid(), "forked": forked, "spawned": spawned,
