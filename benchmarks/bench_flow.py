@@ -34,6 +34,8 @@ _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "check_run_inputs(sys.argv[1], sys.argv[3])\n"
         "print('CHECKED', time.time())\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
+        "import resource\nu = resource.getrusage(resource.RUSAGE_SELF)\n"
+        "print('OWN_CPU', u.ru_utime + u.ru_stime)\n"
         "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
 
 
@@ -96,6 +98,9 @@ def main(argv=None) -> int:
         if args.timeline:
             _print_timeline(n, timeline, float(text.split("T0", 1)[1].split()[0]), wall,
                             float(text.split("CHECKED", 1)[1].split()[0]))
+            own = float(text.split("OWN_CPU", 1)[1].split()[0])
+            print(f"  CPU-s: the run's process {own:.1f}, its children (the Dask workers "
+                  f"and Prefect's server) {cpu - own:.1f}")
         stages = json.loads(text.split("TIMINGS", 1)[1])
         r_wall, r_cpu, r_text = _timed([cli, "run", str(mission), "--out", str(out),
                                         "--calibration", cal])

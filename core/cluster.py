@@ -67,7 +67,7 @@ NO_HTTP = {"distributed.scheduler.http.routes": [], "distributed.worker.http.rou
 
 @contextlib.contextmanager
 def local_cluster(n_workers: int | None = None, preload: tuple[str, ...] = (),
-                  fork_setup=None):
+                  fork_setup=None, worker_setup=None):
     """A local Dask cluster sized to the machine (``n_workers`` single-threaded worker
     processes; default one per core, at most 4), closed on exit. ``preload``: modules
     whose ``dask_setup(worker)`` each worker runs as it starts (Dask's worker preload).
@@ -76,7 +76,9 @@ def local_cluster(n_workers: int | None = None, preload: tuple[str, ...] = (),
     with ``fork``, ``fork_setup()`` runs here and the workers are then forked from this
     process (:func:`forked_workers`): they start with its imports and memory (e.g. a
     loaded mission) instead of importing everything again (about 1.5 CPU-s each), and
-    ``preload`` is not run. Otherwise Dask's nannies spawn them."""
+    ``preload`` is not run; each then runs ``worker_setup()`` (when given) on a thread
+    while it joins the scheduler (its first task may run meanwhile). Otherwise Dask's
+    nannies spawn them."""
     import dask
     from distributed import LocalCluster
     n = n_workers or max(1, min(os.cpu_count() or 1, 4))
@@ -84,7 +86,7 @@ def local_cluster(n_workers: int | None = None, preload: tuple[str, ...] = (),
         forked = None
         if fork_setup is not None and can_fork():
             fork_setup()
-            forked = stack.enter_context(forked_workers(n))
+            forked = stack.enter_context(forked_workers(n, worker_setup))
         extra = {"preload": list(preload)} if preload and forked is None else {}
         with dask.config.set(NO_HTTP):
             local = stack.enter_context(LocalCluster(
@@ -135,9 +137,11 @@ class _Forked:
 
 
 @contextlib.contextmanager
-def forked_workers(n: int):
+def forked_workers(n: int, setup=None):
     """``n`` processes forked from this one (see :func:`can_fork`), each to become a
-    single-threaded Dask worker once ``start(cluster)`` tells it the scheduler's address;
+    single-threaded Dask worker once ``start(cluster)`` tells it the scheduler's address
+    (``setup()``, when given, run in each on a thread beside the worker's start: its
+    failure is printed, the worker serves);
     on exit the ones still running (the scheduler's close ends them) are waited for, then
     ended. Python's objects are frozen across the fork (no collector passes copy their
     pages into the workers), as the rectify command does before it forks."""
@@ -157,7 +161,7 @@ def forked_workers(n: int):
                 os.close(w)
                 for fd in pipes:
                     os.close(fd)
-                _worker(r, k, parent)
+                _worker(r, k, parent, setup)
             os.close(r)
             pids.append(pid)
             pipes.append(w)
@@ -195,10 +199,12 @@ def _reap(pids: list[int], timeout: float = 10.0) -> None:
             time.sleep(0.01)
 
 
-def _worker(fd: int, name: int, parent: int) -> None:  # pragma: no cover - runs in a forked child
-    """A forked child: read the scheduler's address from ``fd``, serve as a Dask worker
-    (one thread) until the scheduler closes it, then end without the interpreter's
-    teardown (the parent's exit handlers are not the child's)."""
+def _worker(fd: int, name: int, parent: int,
+            setup=None) -> None:  # pragma: no cover - runs in a forked child
+    """A forked child: ``setup()`` started on a thread of its own, then the scheduler's
+    address read from ``fd``, served as a Dask worker (one thread) until the scheduler
+    closes it, then ended without the interpreter's teardown (the parent's exit handlers
+    are not the child's)."""
     import signal
     import sys
     code = 1
@@ -206,6 +212,9 @@ def _worker(fd: int, name: int, parent: int) -> None:  # pragma: no cover - runs
         signal.signal(signal.SIGTERM, signal.SIG_DFL)   # the parent's handler is not ours
         signal.signal(signal.SIGINT, signal.SIG_IGN)    # Ctrl-C: the parent closes us
         _end_with_parent(parent)
+        if setup is not None:   # beside the worker's start: the scheduler waits for none
+            import threading
+            threading.Thread(target=_setup, args=(setup,), daemon=True).start()
         address = b""
         while chunk := os.read(fd, 4096):
             address += chunk
@@ -232,6 +241,14 @@ def _worker(fd: int, name: int, parent: int) -> None:  # pragma: no cover - runs
             with contextlib.suppress(Exception):
                 stream.flush()
         os._exit(code)
+
+
+def _setup(setup) -> None:  # pragma: no cover - in a forked child
+    try:
+        setup()
+    except Exception:   # noqa: BLE001 - told on stderr; the worker serves anyway
+        import traceback
+        traceback.print_exc()
 
 
 def _end_with_parent(parent: int) -> None:  # pragma: no cover - in a forked child

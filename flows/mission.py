@@ -9,6 +9,7 @@ DaskTaskRunner would start a Prefect server in every worker in local mode).
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import sys
@@ -323,10 +324,12 @@ def _started(mission, dask_address, cluster, workers):
         address = dask_address
         if not dask_address and cluster == "local":
             # the workers forked from this process while it runs one thread (the engine
-            # warmed here once; the checked mission inherited), else spawned by Dask
-            address = stack.enter_context(
-                local_cluster(workers, preload=(swings.__name__,),
-                              fork_setup=swings.warm)).scheduler_address
+            # imported here once; the checked mission inherited; each worker loads the
+            # kernels on the mission's first swing while this process starts the
+            # scheduler and the flow run), else spawned by Dask
+            address = stack.enter_context(local_cluster(
+                workers, preload=(swings.__name__,), fork_setup=swings.warm,
+                worker_setup=functools.partial(swings.warm, root))).scheduler_address
         loader = None if swings.loaded(root) else _beside(swings.load, root)
         url = _server_ready() if own_server else None
         if loader is not None:

@@ -131,9 +131,13 @@ def rectify_batch(image_ids, mission_path: str, calibration: str,
         return [rectify_swing(m, iid, calibration, out_dir) for iid in image_ids]
 
 
-def warm() -> None:
+def warm(mission_path=None) -> None:
     """Import the rectification engine and load its compiled kernels (from numba's
-    cache) in a worker while the client does the first stages."""
+    cache) in a worker while the client does the first stages. With ``mission_path``
+    (already loaded in this process, :func:`loaded`): also an 8 x 8 px window of its
+    first swing rectified as the flow's rectify task does
+    (:func:`swathflow.rectification.api.warm_up`), before the flow's workers are forked
+    from this process; a failure there is left to the rectify stage to meet and report."""
     import numpy as np
 
     import pystac.extensions.raster  # noqa: F401  (catalog_facts, after each swing)
@@ -146,6 +150,15 @@ def warm() -> None:
     from swathflow.rectification.paint import paint_pixels, paint_window
     paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
     paint_pixels(np.zeros((2, 2, 2)), 0, 0, 4, 4)
+    if mission_path is not None and loaded(mission_path):
+        from swathflow.rectification.api import warm_up
+        from swathflow.rectification.mission import mission_bands
+        m = load(mission_path)
+        try:
+            iid = next(iter(m.images))
+            warm_up(m, iid, None, dtype=None, bands=mission_bands(m, iid))
+        except Exception:  # noqa: BLE001 - the rectify stage meets it again and reports
+            pass
 
 
 def dask_setup(worker=None) -> None:

@@ -112,9 +112,20 @@ from swathflow.cluster import local_cluster
 def setup():      # left in a module of this process: a forked worker has it, a spawned not
     json.SET_UP = os.getpid()
 
-def cluster(stop=None):
-    with local_cluster(2, fork_setup=setup) as c, Client(c) as client:
+def child():      # run in each forked worker, on a thread beside its start
+    json.CHILD = os.getpid()
+
+def own_child():  # in a worker: child() ran there (waited for: it runs on a thread)
+    import time
+    mod, limit = sys.modules["json"], time.monotonic() + 60
+    while getattr(mod, "CHILD", None) is None and time.monotonic() < limit:
+        time.sleep(0.01)
+    return getattr(mod, "CHILD", None) == os.getpid()
+
+def cluster(forks=True):
+    with local_cluster(2, fork_setup=setup, worker_setup=child) as c, Client(c) as client:
         seen = client.run(lambda: getattr(sys.modules["json"], "SET_UP", None))
+        own = client.run(own_child) if forks else {}
         pids = list(client.run(os.getpid).values())
         total = client.submit(sum, range(10)).result()
         ports = sorted(s.getsockname()[1] for s in c.scheduler.http_server._sockets.values())
@@ -132,7 +143,8 @@ def cluster(stop=None):
                 left += [pid] if not f.read().split(") ", 1)[1].startswith("Z") else []
         except FileNotFoundError:
             pass
-    return {"seen": list(seen.values()), "total": total, "ports": ports,
+    return {"seen": list(seen.values()), "own": list(own.values()), "total": total,
+            "ports": ports,
             "codes": codes, "left": left}
 
 forked = cluster()
@@ -140,25 +152,29 @@ stop = threading.Event()
 t = threading.Thread(target=stop.wait)       # another thread runs: no fork
 t.start()
 try:
-    spawned = cluster()
+    spawned = cluster(forks=False)
 finally:
     stop.set()
-print("RESULT " + json.dumps({"parent": os.getpid(), "forked": forked, "spawned": spawned}))
+print("RESULT " + json.dumps({"parent": os.getpid(), "forked": forked, "spawned": spawned,
+                             "in_parent": getattr(json, "CHILD", None)}))
 """
 
 
 def test_local_workers_forked_from_a_one_thread_process(tmp_path):
     """The flow's local Dask workers are forked from its process while only its main thread
     runs (they share what ``fork_setup`` prepared, e.g. the checked mission, and import
-    nothing again), spawned by Dask's nannies otherwise; either way real workers that run
-    tasks, whose processes are gone once the cluster is closed; and the scheduler's HTTP
-    server serves nothing, and not on Dask's dashboard port 8787."""
+    nothing again; each ran ``worker_setup`` itself), spawned by Dask's nannies otherwise;
+    either way real workers that run tasks, whose processes are gone once the cluster is
+    closed; and the scheduler's HTTP server serves nothing, and not on Dask's dashboard
+    port 8787."""
     r = subprocess.run([sys.executable, "-c", _FORKED], capture_output=True, text=True,
                        timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     doc = json.loads(r.stdout.split("RESULT ", 1)[1])
     forked, spawned = doc["forked"], doc["spawned"]
     assert forked["seen"] == [doc["parent"]] * 2, "workers not forked"
+    assert forked["own"] == [True, True], "worker_setup not run in each forked worker"
+    assert doc["in_parent"] is None, "worker_setup ran in the parent"
     assert spawned["seen"] == [None, None], "forked beside another thread"
     for run in (forked, spawned):
         assert run["total"] == 45

@@ -194,6 +194,32 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     return out
 
 
+def warm_up(mission, image_id: str | None = None, calibration=None, *,
+            kernel: str = "bilinear", tile: int = 512, tol: float | None = None,
+            bands=None, dtype: str | None = None, mask_band: bool = False) -> None:
+    """Import the engine and load the compiled kernels (numba's on-disk cache) that
+    rectifying ``image_id`` of ``mission`` (default its first image) calls, by rectifying
+    an 8 x 8 px window in the middle of its footprint grid and discarding it. A process
+    that forks workers calls it first, so that each worker starts with them loaded (a
+    survey swing's first rectification in a forked worker: 0.45 -> 0.16 CPU-s; arguments
+    as :func:`rectify`'s exact method)."""
+    from dask.local import get_sync
+
+    import rioxarray  # noqa: F401  (the .rio accessor of every rectified array)
+    from swathflow.rectification.lattice import TOLERANCE_PX
+    from swathflow.rectification.rawimage import open_raw_image
+    from swathflow.rectification.tiles import output_plan, rectify_blocks
+    m = mission if isinstance(mission, Mission) else load_mission(mission)
+    iid = image_id if image_id is not None else next(iter(m.images))
+    m, model, terrain, grid, _ = _swing(m, iid, calibration, None, None)
+    src = open_raw_image(m.images[iid].file, bands=bands)
+    _, _, use_mask = output_plan(src, dtype, mask_band)
+    r, c = grid.height // 2, grid.width // 2
+    win = grid.window(slice(max(r - 4, 0), r + 4), slice(max(c - 4, 0), c + 4))
+    rectify_blocks(model, src, win, terrain, kernel, TOLERANCE_PX if tol is None else tol,
+                   tile, dtype=dtype, mask_plane=use_mask).compute(scheduler=get_sync)
+
+
 def _swing(mission, image_id: str, calibration, gsd, crs):
     """The loaded mission, the swing's sensor model with the calibration, the opened
     terrain, the footprint grid and the calibration's tag."""

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from swathflow.errors import FormatError
 from swathflow.ingest.mission import load_mission
 from swathflow.io import write_text
-from swathflow.rectification.api import geolocation, rectify, to_cog
+from swathflow.rectification.api import geolocation, rectify, to_cog, warm_up
 from swathflow.rectification.lattice import TOLERANCE_PX
 from swathflow.rectification.rawimage import open_raw_image
 from swathflow.rectification.writing import CODECS
@@ -198,20 +198,10 @@ def _worker_signals() -> None:
 
 def _warm(job) -> None:
     """Import the engine and load every compiled kernel the jobs call (numba's on-disk
-    cache) once, before the workers fork (each would otherwise load them again): the first
-    job's swing set-up, and an 8 x 8 px window in the middle of its grid rectified."""
-    import rioxarray  # noqa: F401  (the .rio accessor of every job's array)
-    from dask.local import get_sync
-
-    from swathflow.rectification.api import _swing
-    from swathflow.rectification.tiles import output_plan, rectify_blocks
+    cache) once, before the workers fork (each would otherwise load them again):
+    :func:`~swathflow.rectification.api.warm_up` on the first job's swing."""
     mission, iid, calibration, _, _, o = job
     if o["method"] != "exact":
         return
-    m, model, terrain, grid, _ = _swing(mission, iid, calibration, None, None)
-    src = open_raw_image(m.images[iid].file, bands=o["bands"])
-    _, _, use_mask = output_plan(src, o["dtype"], o["mask_band"])
-    r, c = grid.height // 2, grid.width // 2
-    win = grid.window(slice(max(r - 4, 0), r + 4), slice(max(c - 4, 0), c + 4))
-    rectify_blocks(model, src, win, terrain, o["kernel"], o["tol"], o["tile"],
-                   dtype=o["dtype"], mask_plane=use_mask).compute(scheduler=get_sync)
+    warm_up(mission, iid, calibration, kernel=o["kernel"], tile=o["tile"], tol=o["tol"],
+            bands=o["bands"], dtype=o["dtype"], mask_band=o["mask_band"])
