@@ -297,3 +297,37 @@ def test_tiles_of_nodata_are_written_as_gdal_writes_them(tmp_path, dtype, nodata
             with rasterio.open(path, overview_level=k) as ov:
                 left = ov.read()[:, :, :700 // f].astype(float)      # nodata only
                 assert (np.isnan(left) if math.isnan(nodata) else left == nodata).all()
+
+
+@pytest.mark.parametrize("dtype,nodata", [(np.uint16, 0), (np.float32, float("nan"))])
+def test_nodata_tiles_compressed_once_a_process(tmp_path, monkeypatch, dtype, nodata):
+    """A second output of the same type, nodata and codec takes the compressed nodata
+    tiles made for the first (none made again: NaN nodata included) and is the same file;
+    another codec gets its own tiles, and reads back the same pixels."""
+    from swathflow.rectification import writing
+
+    class Made(dict):
+        def __setitem__(self, key, value):
+            added.append(key)
+            super().__setitem__(key, value)
+
+    added: list = []
+    monkeypatch.setattr(writing, "_EMPTY_TILES", Made())
+    data = _cube(1, dtype)[0]
+    data[:, :700] = nodata
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+
+    def write(name, compress="deflate"):
+        write_cogs([{"path": tmp_path / name, "array": data, "grid": grid,
+                     "nodata": nodata}], blocksize=256, compress=compress)
+        return (tmp_path / name).read_bytes()
+
+    first = write("a.tif")
+    n = len(added)
+    assert n >= 2                               # full-resolution and overview shapes
+    assert write("b.tif") == first
+    assert len(added) == n                      # every nodata tile taken from the first
+    write("c.tif", "zstd")
+    assert len(added) >= 2 * n                  # zstd's own
+    with rasterio.open(tmp_path / "c.tif") as src:
+        assert np.array_equal(src.read(1), data, equal_nan=True)
