@@ -170,3 +170,44 @@ def test_mapped_window_pages_are_released_after_resampling(tmp_path):
     r3 = _rss_file_mb()
     assert ok.all() and r3 - r2 < 4, (r2, r3)
     assert v[3, 10, 7] == np.floor(3 * 7 + 10.5 + 2 * 14.5 + 0.5)      # round half up
+
+
+@pytest.mark.parametrize("dtype,out_nodata", [(np.uint16, 0), (np.int16, -32768),
+                                              (np.uint8, 0)])
+def test_single_band_integer_one_pass_equals_row_form(dtype, out_nodata, monkeypatch):
+    """One integer band without nodata (a single-band swing) goes through
+    :func:`gather_int_one`, one pass a pixel: the same values as the row form of
+    :func:`gather_bands` (taps off the image's edges clamped, NaN coordinates, a value
+    landing on the nodata value moved up), and within 0.5 DN of the closed form."""
+    from swathflow.rectification import gather as G
+    cube, _ = _cube("bsq", dtype)
+    raw = np.ascontiguousarray(cube[2:3])
+    raw[0, 5:8, 4:9] = out_nodata + 1 if dtype != np.int16 else -32767
+    raw[0, 6, 6] = out_nodata                   # data equal to the output's nodata
+    co = _coords(40, 57)
+    co[:, 1, :5] = [[-0.5, -0.2, NL - 0.5, NL - 0.7, 3.0], [NE - 0.5, -0.5, 0.0, NE - 1, -0.4]]
+    co[:, 2, :4] = [[6.0, 6.2, 6.0, 5.9], [6.0, 6.1, 5.8, 6.3]]      # onto the nodata value
+    called = []
+    one = G.gather_int_one
+
+    def spy(*a):
+        called.append(1)
+        return one(*a)
+
+    monkeypatch.setattr(G, "gather_int_one", spy)
+    v, ok = K.resample_window(raw, co, "bilinear", None, dtype, out_nodata)
+    assert called
+    info = np.iinfo(dtype)
+    out = np.empty((1, 40, 57), dtype)
+    valid = np.empty((40, 57), np.uint8)
+    flat, (sb, sl, se) = G.storage_view(raw)
+    G.gather_bands(flat, sb, sl, se, 1, NL, NE, co, False, False, False, 0.0, out,
+                   float(out_nodata), float(info.min), float(info.max), True, False, True,
+                   valid, False)
+    assert np.array_equal(v, out) and np.array_equal(ok, valid.view(bool))
+    nan = np.isnan(co[0])
+    assert (ok == ~nan).all() and (v[0, nan] == out_nodata).all()
+    assert not (v[0, ~nan] == out_nodata).any()
+    assert (v[0, 2, :4] == out_nodata + 1).all()
+    truth = _truth_bilinear(raw, co)
+    assert np.abs(v[:, ~nan] - truth[:, ~nan]).max() <= 1.0 + 1e-6
