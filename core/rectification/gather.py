@@ -383,80 +383,6 @@ def _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, o
             out[b, r, c] = _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _tap_v(v, wgt):
-    """:func:`_tap` of a loaded value (``check`` on, no nodata value)."""
-    if wgt == 0.0:
-        return 0.0
-    if v != v:
-        return np.nan
-    return wgt * v
-
-
-@njit(cache=True, nogil=True)
-def gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid):
-    """:func:`gather_bands` for one band, bilinear, float output, without a nodata value
-    (NaN the only nodata of a float raw type), in one pass per pixel, no row buffers
-    (12-15 % less time than the row form; the same arithmetic, so the same values). A NaN
-    sum is redone with each tap tested (:func:`_tap`): nodata where a tap of non-zero
-    weight is NaN. (For integer output the row form measured as fast or faster.)"""
-    _, h, w = coords.shape
-    dl = sl if nl > 1 else 0
-    de = se if ne > 1 else 0
-    o = out[0]
-    for r in range(h):
-        for c in range(w):
-            li = coords[0, r, c]
-            ei = coords[1, r, c]
-            if math.isnan(li) or math.isnan(ei):
-                valid[r, c] = 0
-                o[r, c] = out_nodata
-                continue
-            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se, False)
-            v0 = flat[k]
-            v1 = flat[k + de]
-            v2 = flat[k + dl]
-            v3 = flat[k + dl + de]
-            acc = w0 * v0 + w1 * v1 + w2 * v2 + w3 * v3
-            if acc != acc:
-                acc = _tap_v(v0, w0) + _tap_v(v1, w1) + _tap_v(v2, w2) + _tap_v(v3, w3)
-                if acc != acc:
-                    valid[r, c] = 0
-                    o[r, c] = out_nodata
-                    continue
-            valid[r, c] = 255
-            o[r, c] = acc
-    return out
-
-
-@njit(cache=True, nogil=True)
-def gather_int_one(flat, sl, se, nl, ne, coords, out, out_nodata, nd_cmp, valid):
-    """:func:`gather_int` for one band (the single-band swings'): bilinear, integer raw
-    data without a nodata value into an integer type at least as wide, in one pass per
-    pixel, no row buffers of taps (on the demo's uint16 swings at 0.05 m 4.9 against 6.4
-    ns a pixel for :func:`gather_bands`' row form; the same arithmetic, so the same
-    values). Pixels without a coordinate get ``out_nodata``; a value landing on
-    ``nd_cmp`` moves up by one (NaN: no nodata value to avoid)."""
-    _, h, w = coords.shape
-    dl = sl if nl > 1 else 0
-    de = se if ne > 1 else 0
-    o = out[0]
-    for r in range(h):
-        for c in range(w):
-            li = coords[0, r, c]
-            ei = coords[1, r, c]
-            if math.isnan(li) or math.isnan(ei):
-                valid[r, c] = 0
-                o[r, c] = out_nodata
-                continue
-            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se, False)
-            acc = (w0 * flat[k] + w1 * flat[k + de] + w2 * flat[k + dl]
-                   + w3 * flat[k + dl + de])
-            valid[r, c] = 255
-            o[r, c] = _step(math.floor(acc + 0.5), nd_cmp)
-    return out
-
-
 def storage_view(raw: np.ndarray):
     """``(flat buffer, (sb, sl, se) element strides)`` of a ``(bands, lines, elements)``
     array with positive strides that are multiples of its item size (a window of a
@@ -514,10 +440,12 @@ def _gather(flat, strides, shape, coords, nearest, check, clamp, has_nodata, nod
             gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, cmp, valid)
             return
         if nb == 1:
-            gather_int_one(flat, sl, se, nl, ne, coords, out, out_nodata, cmp, valid)
+            from swathflow.rectification import gather1
+            gather1.gather_int_one(flat, sl, se, nl, ne, coords, out, out_nodata, cmp, valid)
             return
     if nb == 1 and not (nearest or has_nodata or is_int):
-        gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid)
+        from swathflow.rectification import gather1
+        gather1.gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid)
         return
     gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodata,
                      nodata, out, out_nodata, lo, hi, is_int, clamp, avoid, valid,

@@ -400,35 +400,28 @@ def _opened(part):
     return contextlib.nullcontext(part)
 
 
-#: the compressed nodata tiles made so far (:func:`_empty_tiles`), by (dtype, nodata,
-#: codec options, block size, rows, cols): a few dozen shapes of a few hundred bytes
+#: compressed nodata tiles by (dtype, nodata, codec, block, rows, cols): :func:`_empty_tiles`
 _EMPTY_TILES: dict = {}
 
 
 def _empty_tiles(profile: dict, blocksize: int):
-    """``empty(rows, cols)``: the compressed bytes of a tile of nodata (0 without a nodata
-    value) with ``rows`` x ``cols`` pixels inside the image (fewer at the right and bottom
-    edges), as GDAL writes it with the output's codec and predictor (each shape compressed
-    once in a process, :data:`_EMPTY_TILES`: the demo's eight swings at 0.05 m asked for
-    156 of them, 0.7 ms each, in 20 shapes a swing). The streamed ``.part`` and the
-    overview levels are sparse (``SPARSE_OK``): GDAL skips the tiles holding nothing but
-    nodata (1.6 ms each for uint16 deflate; a quarter of the demo's tiles at 0.05 m) and
-    the COG layout writes these bytes in their place: the same file as without
-    ``SPARSE_OK``."""
+    """``empty(rows, cols)``: the compressed bytes of a nodata tile (0 without a nodata
+    value) of ``rows`` x ``cols`` pixels inside the image (fewer at the right and bottom
+    edges), as GDAL writes it with the output's codec and predictor, made once a process
+    (:data:`_EMPTY_TILES`). The ``.part`` and the overview levels are sparse
+    (``SPARSE_OK``: GDAL skips nodata tiles, a quarter of the demo's at 0.05 m) and the COG
+    layout writes these bytes in their place: the same file as without ``SPARSE_OK``."""
     import io
 
     from rasterio.errors import NotGeoreferencedWarning
     from rasterio.io import MemoryFile
     from swathflow.rectification.tifflayout import read_first_ifd
-    dt = np.dtype(profile["dtype"])
-    nodata = profile.get("nodata")
+    dt, nodata = np.dtype(profile["dtype"]), profile.get("nodata")
     opts = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
-    key = (dt.str, repr(nodata), tuple(sorted((k, str(v)) for k, v in opts.items())),
-           blocksize)                                         # repr: NaN equals itself
-    made = _EMPTY_TILES
+    key = (dt.str, repr(nodata), repr(sorted(opts.items())), blocksize)  # repr: NaN == NaN
 
     def empty(rows: int, cols: int) -> bytes:
-        if key + (rows, cols) not in made:
+        if key + (rows, cols) not in _EMPTY_TILES:
             with MemoryFile() as mem, warnings.catch_warnings():
                 warnings.simplefilter("ignore", NotGeoreferencedWarning)
                 with mem.open(driver="GTiff", width=cols, height=rows, count=1, dtype=dt.name,
@@ -438,8 +431,8 @@ def _empty_tiles(profile: dict, blocksize: int):
                 f = io.BytesIO(mem.read())
             ifd = read_first_ifd(f)
             f.seek(int(ifd.offsets[0]))
-            made[key + (rows, cols)] = f.read(int(ifd.counts[0]))
-        return made[key + (rows, cols)]
+            _EMPTY_TILES[key + (rows, cols)] = f.read(int(ifd.counts[0]))
+        return _EMPTY_TILES[key + (rows, cols)]
     return empty
 
 
