@@ -236,3 +236,42 @@ class _Filled:
     def tile(self, j: int, off: int, count: int) -> bytes:
         t = self.tiles.get(j)
         return t if t is not None else _read(self.f, off, count)
+
+
+#: compressed nodata tiles by (dtype, nodata, codec, block, rows, cols): :func:`nodata_tiles`
+_NODATA_TILES: dict = {}
+
+
+def nodata_tiles(dtype, nodata, codec: dict, blocksize: int):
+    """``empty(rows, cols)``: the compressed bytes of a tile of ``nodata`` (0 when None) of
+    ``rows`` x ``cols`` pixels inside the image (fewer at the right and bottom edges), as
+    GDAL's GTiff driver writes it with ``codec`` (its creation options: compression, level,
+    predictor), for :func:`write_cog_layout` to put in place of the tiles a sparse GeoTIFF
+    left out. Each is made once a process (:data:`_NODATA_TILES`; a GeoTIFF in memory, 3-5
+    ms). GDAL pads edge tiles with zeros: with a fill of zero bytes every shape's tile is
+    the whole block's, made once (the demo's 8 swings at 0.05 m made 32 before: 0.15 CPU-s)."""
+    import io
+    import warnings
+
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.io import MemoryFile
+    dt = np.dtype(dtype)
+    fill = np.full(1, 0 if nodata is None else nodata, dt)
+    zero = not fill.view(np.uint8).any()
+    key = (dt.str, repr(nodata), repr(sorted(codec.items())), blocksize)  # repr: NaN == NaN
+
+    def empty(rows: int, cols: int) -> bytes:
+        rows, cols = (blocksize, blocksize) if zero else (rows, cols)
+        if key + (rows, cols) not in _NODATA_TILES:
+            with MemoryFile() as mem, warnings.catch_warnings():
+                warnings.simplefilter("ignore", NotGeoreferencedWarning)
+                with mem.open(driver="GTiff", width=cols, height=rows, count=1, dtype=dt.name,
+                              nodata=nodata, tiled=True, blockxsize=blocksize,
+                              blockysize=blocksize, **codec) as dst:
+                    dst.write(np.full((1, rows, cols), fill[0], dt))
+                f = io.BytesIO(mem.read())
+            ifd = read_first_ifd(f)
+            f.seek(int(ifd.offsets[0]))
+            _NODATA_TILES[key + (rows, cols)] = f.read(int(ifd.counts[0]))
+        return _NODATA_TILES[key + (rows, cols)]
+    return empty

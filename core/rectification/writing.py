@@ -373,7 +373,7 @@ def _layout_cog(part, final: str, target: str, level1: _Level1 | None, profile: 
     the next levels reduced from it, each in a GeoTIFF in memory), or else built from the
     ``.part`` by :func:`build_overviews` into scratch files beside ``target``. Then
     :func:`.tifflayout.write_cog_layout` copies every level's compressed tiles."""
-    from swathflow.rectification.tifflayout import read_first_ifd, write_cog_layout
+    from swathflow.rectification.tifflayout import nodata_tiles, read_first_ifd, write_cog_layout
     rows, cols = profile["height"], profile["width"]
     n_levels = len(overview_factors(rows, cols, blocksize))
     compression = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
@@ -389,7 +389,9 @@ def _layout_cog(part, final: str, target: str, level1: _Level1 | None, profile: 
         with _opened(part) as src, open(final, "wb") as out:
             levels = [(read_first_ifd(src), src)] + [(read_first_ifd(f), f) for f in files]
             left_out = any((i.counts == 0).any() for i, _ in levels)
-            write_cog_layout(out, levels, _empty_tiles(profile, blocksize) if left_out else None)
+            empty = nodata_tiles(profile["dtype"], profile.get("nodata"), compression,
+                                 blocksize) if left_out else None
+            write_cog_layout(out, levels, empty)
 
 
 def _opened(part):
@@ -398,42 +400,6 @@ def _opened(part):
         return open(part, "rb")
     part.seek(0)
     return contextlib.nullcontext(part)
-
-
-#: compressed nodata tiles by (dtype, nodata, codec, block, rows, cols): :func:`_empty_tiles`
-_EMPTY_TILES: dict = {}
-
-
-def _empty_tiles(profile: dict, blocksize: int):
-    """``empty(rows, cols)``: the compressed bytes of a nodata tile (0 without a nodata
-    value) of ``rows`` x ``cols`` pixels inside the image (fewer at the right and bottom
-    edges), as GDAL writes it with the output's codec and predictor, made once a process
-    (:data:`_EMPTY_TILES`). The ``.part`` and the overview levels are sparse
-    (``SPARSE_OK``: GDAL skips nodata tiles, a quarter of the demo's at 0.05 m) and the COG
-    layout writes these bytes in their place: the same file as without ``SPARSE_OK``."""
-    import io
-
-    from rasterio.errors import NotGeoreferencedWarning
-    from rasterio.io import MemoryFile
-    from swathflow.rectification.tifflayout import read_first_ifd
-    dt, nodata = np.dtype(profile["dtype"]), profile.get("nodata")
-    opts = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
-    key = (dt.str, repr(nodata), repr(sorted(opts.items())), blocksize)  # repr: NaN == NaN
-
-    def empty(rows: int, cols: int) -> bytes:
-        if key + (rows, cols) not in _EMPTY_TILES:
-            with MemoryFile() as mem, warnings.catch_warnings():
-                warnings.simplefilter("ignore", NotGeoreferencedWarning)
-                with mem.open(driver="GTiff", width=cols, height=rows, count=1, dtype=dt.name,
-                              nodata=nodata, tiled=True, blockxsize=blocksize,
-                              blockysize=blocksize, **opts) as dst:
-                    dst.write(np.full((1, rows, cols), 0 if nodata is None else nodata, dt))
-                f = io.BytesIO(mem.read())
-            ifd = read_first_ifd(f)
-            f.seek(int(ifd.offsets[0]))
-            _EMPTY_TILES[key + (rows, cols)] = f.read(int(ifd.counts[0]))
-        return _EMPTY_TILES[key + (rows, cols)]
-    return empty
 
 
 def _cache_env():
