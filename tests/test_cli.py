@@ -35,7 +35,7 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
     code = ("import sys\nfrom swathflow.flows.cli import main\n"
             f"rc = main(['rectify', {str(tiny_mission)!r}, '--out', {str(out)!r}, '-q'])\n"
             "print(rc, sorted(m for m in sys.modules if m.split('.')[0] == 'distributed'\n"
-            "                 or m.startswith(('scipy.fft', 'scipy.special'))))\n")
+            "                 or m.startswith(('scipy.fft', 'scipy.special', 'scipy.linalg'))))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.stdout.strip() == "0 []", r.stdout + r.stderr
     assert "Traceback" not in r.stderr, r.stderr
@@ -45,18 +45,22 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
     assert len(ids) >= 2 and all((out / f"{i}.tif").exists() for i in ids)
 
 
-def test_rectify_imports_dask_array_without_scipy_fftpack():
+def test_rectify_loads_dask_array_and_numba_without_scipy_fft_and_linalg():
     """The rectify command loads dask.array without scipy.fftpack (and scipy.fft,
-    scipy.special behind it: 0.08-0.1 CPU-s of its serial start); scipy.fftpack and
-    dask.array's FFTs still work afterwards."""
+    scipy.special behind it) and numba's array target without scipy.linalg (0.2 CPU-s
+    of its serial start together); both still work afterwards: dask.array's FFTs and
+    a compiled np.dot (numba imports scipy's BLAS when it compiles one)."""
     code = ("import sys\nfrom swathflow.flows.cli import commands\n"
-            "commands._dask_array_without_fftpack()\n"
-            "print('dask.array' in sys.modules, 'scipy.fft' in sys.modules)\n"
-            "import numpy as np, scipy.fftpack, dask.array as da\n"
+            "commands._lean_imports()\n"
+            "print(*(m in sys.modules for m in ('dask.array', 'numba.np.arraymath',\n"
+            "                                   'scipy.fft', 'scipy.linalg')))\n"
+            "import numba, numpy as np, scipy.fftpack, dask.array as da\n"
             "x = np.arange(8.0)\n"
-            "print(np.allclose(da.fft.fft(da.from_array(x)).compute(), scipy.fftpack.fft(x)))\n")
+            "print(np.allclose(da.fft.fft(da.from_array(x)).compute(), scipy.fftpack.fft(x)),\n"
+            "      numba.njit(lambda a: np.dot(a, a))(x) == 140.0)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert r.stdout.split() == ["True", "False", "True"], r.stdout + r.stderr
+    assert r.stdout.split() == ["True", "True", "False", "False", "True", "True"], \
+        r.stdout + r.stderr
 
 
 def _image_ids(mission) -> list[str]:

@@ -119,7 +119,7 @@ def rectify(args) -> int:
     """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image,
     each ``swathflow.to_cog(swathflow.rectify(...))`` (through ``rectify_mission``)."""
     _one_blas_thread()
-    _dask_array_without_fftpack()
+    _lean_imports()
     from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
     if not args.calibration:
@@ -146,21 +146,33 @@ def _one_blas_thread() -> None:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-def _dask_array_without_fftpack() -> None:
-    """Import ``dask.array`` (the engine's arrays) without ``scipy.fftpack``, which its
-    ``fft`` module imports only to warn about ``fft_wrap(scipy.fftpack...)``: that pulls
-    in ``scipy.fft`` and ``scipy.special`` (53 modules, 0.08-0.1 CPU-s on the command's
-    serial start, before its workers fork), and no rectification uses an FFT. Only this
-    command's process is concerned (the Python API imports dask as usual); scipy.fftpack
-    stays importable afterwards."""
-    if "dask.array" in sys.modules or "scipy.fftpack" in sys.modules:
-        return
-    sys.modules["scipy.fftpack"] = None      # an import of it fails while dask.array loads
-    try:
-        import dask.array  # noqa: F401
-    finally:
-        if sys.modules.get("scipy.fftpack", 0) is None:
-            del sys.modules["scipy.fftpack"]
+def _lean_imports() -> None:
+    """Load ``dask.array`` and numba's array target without the scipy parts they import
+    for features no rectification uses (on the command's serial start, before its workers
+    fork; each import is paid once):
+
+    - ``dask.array.fft`` imports ``scipy.fftpack`` only to warn about
+      ``fft_wrap(scipy.fftpack...)``: with it ``scipy.fft`` and ``scipy.special``
+      (53 modules, 0.08-0.1 CPU-s);
+    - ``numba.np.arraymath`` imports ``scipy.linalg`` (0.1-0.15 CPU-s) to decide whether
+      ``np.correlate``/``np.convolve`` in compiled code call BLAS or a plain loop (no
+      kernel here uses them); numba's ``np.dot`` and ``np.linalg`` import scipy's BLAS
+      themselves when a kernel using them is compiled.
+
+    Only this command's process is concerned (the Python API imports as usual); both
+    scipy modules stay importable afterwards."""
+    def without(name: str, module: str) -> None:
+        if module in sys.modules or name in sys.modules:
+            return
+        sys.modules[name] = None          # an import of it fails while ``module`` loads
+        try:
+            import_module(module)
+        finally:
+            if sys.modules.get(name, 0) is None:
+                del sys.modules[name]
+    from importlib import import_module
+    without("scipy.fftpack", "dask.array")
+    without("scipy.linalg", "numba.np.arraymath")
 
 
 def mosaic(args) -> int:
