@@ -34,7 +34,8 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
     out = tmp_path / "out"
     code = ("import sys\nfrom swathflow.flows.cli import main\n"
             f"rc = main(['rectify', {str(tiny_mission)!r}, '--out', {str(out)!r}, '-q'])\n"
-            "print(rc, sorted(m for m in sys.modules if m.split('.')[0] == 'distributed'))\n")
+            "print(rc, sorted(m for m in sys.modules if m.split('.')[0] == 'distributed'\n"
+            "                 or m.startswith(('scipy.fft', 'scipy.special', 'scipy.linalg'))))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.stdout.strip() == "0 []", r.stdout + r.stderr
     assert "Traceback" not in r.stderr, r.stderr
@@ -42,6 +43,48 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
            (tiny_mission / "mission.toml").read_text().splitlines()
            if line.replace(" ", "").startswith("id=")]
     assert len(ids) >= 2 and all((out / f"{i}.tif").exists() for i in ids)
+
+
+def test_rectify_loads_dask_array_and_numba_without_scipy_fft_and_linalg():
+    """The rectify command loads dask.array without scipy.fftpack (and scipy.fft,
+    scipy.special behind it) and numba's array target without scipy.linalg (0.2 CPU-s
+    of its serial start together); both still work afterwards: dask.array's FFTs and
+    a compiled np.dot (numba imports scipy's BLAS when it compiles one)."""
+    code = ("import sys\nfrom swathflow.flows.cli import commands\n"
+            "commands._lean_imports()\n"
+            "print(*(m in sys.modules for m in ('dask.array', 'numba.np.arraymath',\n"
+            "                                   'scipy.fft', 'scipy.linalg')))\n"
+            "import numba, numpy as np, scipy.fftpack, dask.array as da\n"
+            "x = np.arange(8.0)\n"
+            "print(np.allclose(da.fft.fft(da.from_array(x)).compute(), scipy.fftpack.fft(x)),\n"
+            "      numba.njit(lambda a: np.dot(a, a))(x) == 140.0)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.stdout.split() == ["True", "True", "False", "False", "True", "True"], \
+        r.stdout + r.stderr
+
+
+def test_import_without_falls_back_to_the_usual_import():
+    """A module that cannot do without the module held back is imported the usual way."""
+    code = ("import sys\nfrom swathflow.flows.cli import commands\n"
+            "commands._import_without('xml.dom', 'xml.dom.minidom')\n"
+            "import xml.dom.minidom\n"
+            "print(sys.modules['xml.dom'] is not None, xml.dom.minidom.parseString('<a/>')"
+            ".documentElement.tagName)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.stdout.split() == ["True", "a"], r.stdout + r.stderr
+
+
+def test_rectify_imports_its_engine_without_collector_passes():
+    """The rectify command's imports (1,500 modules) run without the collector's passes
+    (265 of them, 0.1-0.2 CPU-s on its serial start), and their objects are frozen after;
+    the collector is on again after."""
+    code = ("import gc, sys\nfrom swathflow.flows.cli import commands\n"
+            "passes = []\ngc.callbacks.append(lambda phase, info: passes.append(phase))\n"
+            "with commands._imports_uncollected():\n"
+            "    import xarray\n"
+            "print(len(passes), gc.isenabled(), gc.get_freeze_count() > 10000)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.stdout.split() == ["0", "True", "True"], r.stdout + r.stderr
 
 
 def _image_ids(mission) -> list[str]:
