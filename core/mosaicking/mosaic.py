@@ -116,7 +116,7 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     t0 = time.perf_counter()
     loading = load_kernels_async(matching=match)
     try:
-        layout = scan_inputs(paths, strips)
+        layout = scan_inputs(paths, strips, handles)
         if handles is not None:
             handles.keep_if_fits(layout.swings)
             handles.prefetch(layout.swings, workers)
