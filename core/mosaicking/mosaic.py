@@ -188,7 +188,7 @@ def load_kernels(matching: bool = False) -> None:
         if matching:
             from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
         z = np.zeros((1, 1), np.float32)
-        with _blas_without_scipy_linalg():
+        with _blas_without_scipy_linalg() if not _FROZEN else contextlib.nullcontext():
             kernels.normalise(z, z)         # numba's first call: its typing and targets
         if not _FROZEN:
             _FROZEN.append(True)
@@ -205,13 +205,14 @@ _FROZEN: list = []     # load_kernels froze the start-up objects (once per proce
 def _blas_without_scipy_linalg():
     """numba's first call probes for BLAS with ``import scipy.linalg.cython_blas``, which
     runs the whole ``scipy.linalg`` package (0.24-0.27 CPU-s at load 4: array-API shims,
-    docstring parsing, ``numpy.f2py``), about half of numba's start; the mosaic never uses
+    docstring parsing, ``numpy.f2py``), about half of numba's start; the blend never uses
     ``scipy.linalg``. Inside this context that module is the extension file alone, loaded
     by the standard loader under its own name (numba's BLAS wrappers get their function
     pointers from it as from the package's). It leaves ``sys.modules`` after the block,
     so a later ``import scipy.linalg`` runs the package as usual and binds the same
     module object (an extension is initialised once per process). Nothing is done when
-    ``scipy.linalg`` is loaded already or the file is not found."""
+    ``scipy.linalg`` is loaded already or the file is not found; :func:`load_kernels`
+    uses it on its first call in a process only."""
     import sys
     name = "scipy.linalg.cython_blas"
     added = False
