@@ -322,3 +322,36 @@ def test_report_arrows_stay_in_the_map():
         r = np.array([o["residual"][1], o["residual"][0]])
         assert np.linalg.norm(d) > 0
         assert np.dot(d, r) / np.linalg.norm(d) / np.linalg.norm(r) > 0.999
+
+
+def test_scan_hands_its_datasets_to_the_decoding(scene, monkeypatch):
+    """With a swing store keeping whole swings, each file is opened once (the scan's
+    dataset decodes it and is closed); the decoded swings equal a fresh read; a store too
+    small to keep them closes the scan's datasets at once."""
+    opened = []
+    real = rasterio.open
+
+    def counting(path, *a, **k):
+        ds = real(path, *a, **k)
+        opened.append(ds)
+        return ds
+    monkeypatch.setattr(rasterio, "open", counting)
+    h = M.swing_store()
+    try:
+        lay, *_ = M.plan_mosaic(scene["paths"], match=False, handles=h)
+        assert len(opened) == len(scene["paths"])
+        assert all(ds.closed for ds in opened) and not h._opened
+        for sw in lay.swings:
+            data, ok = h.whole(sw)
+            with real(sw.path) as ds:
+                assert np.array_equal(data, ds.read(1))
+    finally:
+        h.close()
+    opened.clear()
+    for small in (M.swing_store(keep_mb=0), M._Handles(keep_bytes=1000)):
+        try:
+            M.plan_mosaic(scene["paths"], match=False, handles=small)
+            assert small.keep_bytes == 0
+            assert all(ds.closed for ds in opened) and not small._opened
+        finally:
+            small.close()

@@ -244,3 +244,45 @@ def test_median_is_numpys_with_ties_and_equal_values(n):
         a = x.copy()
         assert _median(a, n) == np.median(x)
         assert np.array_equal(np.sort(a), np.sort(x))
+
+
+def _fresh(code: str) -> str:
+    """The stdout of ``code`` run in a fresh interpreter."""
+    import subprocess
+    import sys
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True).stdout
+
+
+def test_kernels_start_without_scipy_linalg_and_blas_still_works():
+    """load_kernels probes numba's BLAS without running the scipy.linalg package and leaves
+    no trace in sys.modules: a later import of scipy.linalg binds the same extension, and
+    compiled code using BLAS (np.dot) still compiles and runs."""
+    out = _fresh(
+        "import sys\n"
+        "from swathflow.mosaicking.mosaic import load_kernels\n"
+        "load_kernels()\n"
+        "print('linalg' if 'scipy.linalg' in sys.modules else 'no-linalg')\n"
+        "print('blas' if 'scipy.linalg.cython_blas' in sys.modules else 'no-blas')\n"
+        "import numba, numpy as np, scipy.linalg\n"
+        "print(scipy.linalg.cython_blas.__name__)\n"
+        "f = numba.njit(lambda a: np.dot(a, a))\n"
+        "a = np.arange(9.0).reshape(3, 3)\n"
+        "print(bool(np.allclose(f(a), a @ a)))\n")
+    assert out.split() == ["no-linalg", "no-blas", "scipy.linalg.cython_blas", "True"]
+
+
+def test_blend_modules_do_not_import_the_matching():
+    """The mosaic module imports the matching's modules on first use only; they stay
+    reachable through it."""
+    out = _fresh(
+        "import sys\n"
+        "from swathflow.mosaicking import mosaic as M\n"
+        "print(sorted(m for m in ('overlaps', 'matching', 'network', 'seams')\n"
+        "             if 'swathflow.mosaicking.' + m in sys.modules))\n"
+        "from swathflow.mosaicking.mosaic import plan, Network\n"
+        "print(M.seam_lines.__module__, plan.__module__, Network.__module__)\n")
+    lines = out.splitlines()
+    assert lines[0] == "[]"
+    assert lines[1].split() == ["swathflow.mosaicking.seams", "swathflow.mosaicking.overlaps",
+                                "swathflow.mosaicking.network"]

@@ -24,9 +24,11 @@ Radiometric offset ``b``: ``image = truth + b``; the mosaic subtracts ``b``.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,19 +36,31 @@ from swathflow.io import write_text
 from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, Layout, Swing,
                                          _Handles, find_inputs, mission_strips, read_window,
                                          scan_inputs)
-from swathflow.mosaicking.network import Network, solve_network
 from swathflow.mosaicking.output import (mosaic_array, overview, quicklook, render_tile,
                                           stretch, swing_cache, write_mosaic)
-from swathflow.mosaicking.overlaps import (_active_client, find_overlaps,
-                                           match_all, match_pair, plan)
-from swathflow.mosaicking.seams import seam_lines, seam_visibility
 
-__all__ = ["Swing", "Layout", "scan_inputs", "find_overlaps", "match_pair", "solve_network",
-           "render_tile", "write_mosaic", "mosaic", "mission_strips", "find_inputs",
-           "quicklook", "seam_lines", "seam_visibility", "TAG_IMAGE", "TAG_STRIP",
-           "TAG_DIRECTION", "Network", "read_window", "swing_cache", "plan", "_active_client",
-           "network_report", "match_all", "plan_mosaic", "finish_mosaic",
-           "mosaic_array", "swing_store", "load_kernels", "load_kernels_async"]
+if TYPE_CHECKING:
+    from swathflow.mosaicking.network import Network
+
+# the matching's modules (overlaps, matching, network, seams) are imported on first use:
+# a blend without matching does not load them
+_LAZY = {"find_overlaps": "overlaps", "match_pair": "overlaps", "match_all": "overlaps",
+         "plan": "overlaps", "_active_client": "overlaps", "Network": "network",
+         "solve_network": "network", "seam_lines": "seams", "seam_visibility": "seams"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        from importlib import import_module
+        return getattr(import_module(f"swathflow.mosaicking.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["Swing", "Layout", "scan_inputs", "render_tile", "write_mosaic", "mosaic",
+           "mission_strips", "find_inputs", "quicklook", "TAG_IMAGE", "TAG_STRIP",
+           "TAG_DIRECTION", "read_window", "swing_cache", "network_report", "plan_mosaic",
+           "finish_mosaic", "mosaic_array", "swing_store", "load_kernels",
+           "load_kernels_async", *_LAZY]
 
 
 def mosaic(paths, out, per_image: bool = False, anchors=(), feather: int = 64,
@@ -102,7 +116,7 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     t0 = time.perf_counter()
     loading = load_kernels_async(matching=match)
     try:
-        layout = scan_inputs(paths, strips)
+        layout = scan_inputs(paths, strips, handles)
         if handles is not None:
             handles.keep_if_fits(layout.swings)
             handles.prefetch(layout.swings, workers)
@@ -112,6 +126,7 @@ def plan_mosaic(paths, per_image: bool = False, anchors=(), feather: int = 64,
     rep = _header(layout, per_image, mode, feather)
     off, rad = np.zeros((n_sw, 2)), np.zeros(n_sw)
     if match:
+        from swathflow.mosaicking.overlaps import plan
         net, pairs, matches, keys = plan(layout, per_image, anchors, max_shift, block,
                                          min_texture, workers, log, control, handles)
         rep.update(network_report(layout, net, pairs, matches, control))
@@ -173,7 +188,8 @@ def load_kernels(matching: bool = False) -> None:
         if matching:
             from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
         z = np.zeros((1, 1), np.float32)
-        kernels.normalise(z, z)             # numba's first call: its typing and targets
+        with _blas_without_scipy_linalg() if not _FROZEN else contextlib.nullcontext():
+            kernels.normalise(z, z)         # numba's first call: its typing and targets
         if not _FROZEN:
             _FROZEN.append(True)
             gc.freeze()
@@ -183,6 +199,43 @@ def load_kernels(matching: bool = False) -> None:
 
 
 _FROZEN: list = []     # load_kernels froze the start-up objects (once per process)
+
+
+@contextlib.contextmanager
+def _blas_without_scipy_linalg():
+    """numba's first call probes for BLAS with ``import scipy.linalg.cython_blas``, which
+    runs the whole ``scipy.linalg`` package (0.24-0.27 CPU-s at load 4: array-API shims,
+    docstring parsing, ``numpy.f2py``), about half of numba's start; the blend never uses
+    ``scipy.linalg``. Inside this context that module is the extension file alone, loaded
+    by the standard loader under its own name (numba's BLAS wrappers get their function
+    pointers from it as from the package's). It leaves ``sys.modules`` after the block,
+    so a later ``import scipy.linalg`` runs the package as usual and binds the same
+    module object (an extension is initialised once per process). Nothing is done when
+    ``scipy.linalg`` is loaded already or the file is not found; :func:`load_kernels`
+    uses it on its first call in a process only."""
+    import sys
+    name = "scipy.linalg.cython_blas"
+    added = False
+    if "scipy.linalg" not in sys.modules and name not in sys.modules:
+        try:
+            import importlib.machinery
+            import importlib.util
+
+            import scipy
+            spec = importlib.machinery.PathFinder.find_spec(
+                name, [os.path.join(p, "linalg") for p in scipy.__path__])
+            if spec is not None and spec.loader is not None:
+                module = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(module)
+                sys.modules[name] = module
+                added = True
+        except ImportError:
+            pass
+    try:
+        yield
+    finally:
+        if added:
+            sys.modules.pop(name, None)
 
 
 def load_kernels_async(matching: bool = False):
