@@ -292,27 +292,22 @@ def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: flo
 def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-4,
             planar: bool = True):
     """:func:`gradient_refine` and ``ref`` shifted by the final ``d`` (cubic spline, as
-    :func:`_shift`). The Gauss-Newton loop is compiled
-    (swathflow.mosaicking.match_kernels.gauss_newton; no GIL held), and so is the
-    B-spline prefilter (swathflow.mosaicking.kernels.prefilter, scipy's to 1e-15), once
-    per block."""
+    :func:`_shift`). The Gauss-Newton loop is compiled, the mask's pixels gathered there
+    too (swathflow.mosaicking.match_kernels.polish; no GIL held), and so is the B-spline
+    prefilter (swathflow.mosaicking.kernels.prefilter, scipy's to 1e-15), once per
+    block."""
     from swathflow.mosaicking.kernels import prefilter
-    from swathflow.mosaicking.match_kernels import gauss_newton
+    from swathflow.mosaicking.match_kernels import polish
     ref = np.asarray(ref, float)
-    mov = np.asarray(mov, float)
-    mask = np.asarray(mask, bool)
-    rows, cols = np.nonzero(mask)
-    y = mov[rows, cols]
-    rr = (rows - rows.mean()) / max(mask.shape[0], 1) if rows.size else rows * 0.0
-    cc = (cols - cols.mean()) / max(mask.shape[1], 1) if cols.size else cols * 0.0
-    rad = np.column_stack([np.ones(y.size)] + ([rr, cc] if planar else []))
+    mov = np.ascontiguousarray(mov, float)
+    mask = np.ascontiguousarray(mask, bool)
     h, w = ref.shape
     pad = 12
     while True:
         coef = prefilter(np.ascontiguousarray(ref), pad)
-        st, d, g, o, cov, rms, shifted = gauss_newton(coef, pad, h, w, rows, cols, y, rad,
-                                                      np.array(d0, float), int(iterations),
-                                                      float(tol))
+        st, d, g, o, cov, rms, shifted = polish(coef, pad, mov, mask, bool(planar),
+                                                np.array(d0, float), int(iterations),
+                                                float(tol))
         if st != 2 or pad > 64:
             break
         need = float(np.max(np.abs(d)))       # the shift left the padding: pad it again,
