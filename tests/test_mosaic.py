@@ -271,7 +271,7 @@ def test_network_dense_equals_sparse():
     scipy numbers them) and the same solution as the sparse path of large ones."""
     from swathflow.mosaicking.network import _components, _solve_lsq
     rng = np.random.default_rng(3)
-    for trial in range(20):
+    for _trial in range(20):
         n = int(rng.integers(2, 30))
         m = int(rng.integers(0, 2 * n))
         edges = [tuple(int(v) for v in rng.integers(0, n, 2)) for _ in range(m)]
