@@ -169,7 +169,7 @@ class Canvas:
         img = Image.alpha_composite(img.convert("RGBA"), over).convert("RGB")
         if k > 1:
             img = img.resize((self.width, self.height), Image.LANCZOS)
-        img.save(path, format="PNG", compress_level=3)
+        img.save(path, format="PNG", compress_level=1)      # 7 of 35 ms less than 3, 6 % larger
 
 
 def _dashed(draw, a, b, fill, width, step):

@@ -77,10 +77,11 @@ def write_text(path, text: str) -> None:
             f.write(text)
 
 
-def png_bytes(img, level: int = 3) -> bytes:
+def png_bytes(img, level: int | None = None) -> bytes:
     """PNG file bytes (Pillow) of an 8-bit image: ``(rows, cols)`` grey, or
-    ``(2, rows, cols)`` grey + alpha. zlib ``level`` 3 is four times faster than the
-    default 6 and about 1 % larger on the mosaics' previews."""
+    ``(2, rows, cols)`` grey + alpha. ``level`` None: zlib's run-length strategy (the
+    mosaic's 1024-px quicklook in 28 against 54 ms at level 3, 4 % larger; level 3 was
+    four times faster than the default 6 and about 1 % larger); else that zlib level."""
     import io
 
     import numpy as np
@@ -89,5 +90,8 @@ def png_bytes(img, level: int = 3) -> bytes:
     im = (Image.fromarray(np.ascontiguousarray(a), "L") if a.ndim == 2 else
           Image.fromarray(np.ascontiguousarray(np.moveaxis(a, 0, -1)), "LA"))
     buf = io.BytesIO()
-    im.save(buf, "PNG", compress_level=level)
+    if level is None:
+        im.save(buf, "PNG", compress_level=3, compress_type=3)     # 3: Z_RLE
+    else:
+        im.save(buf, "PNG", compress_level=level)
     return buf.getvalue()

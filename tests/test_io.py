@@ -27,3 +27,21 @@ def test_written_files_get_the_umask_mode(tmp_path):
     mode = stat.S_IMODE((tmp_path / "a.txt").stat().st_mode)
     assert mode == stat.S_IMODE((tmp_path / "b.txt").stat().st_mode)
     assert mode & 0o044, "others cannot read the output"
+
+
+@pytest.mark.parametrize("level", [None, 1, 6])
+def test_png_bytes_lossless_at_every_setting(level):
+    """The fast run-length default and the zlib levels give the same pixels back."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    from swathflow.io import png_bytes
+    rng = np.random.default_rng(1)
+    grey = rng.integers(0, 256, (2, 37, 53), dtype=np.uint8)
+    grey[1, :5] = 0
+    back = np.asarray(Image.open(io.BytesIO(png_bytes(grey, level))))
+    assert np.array_equal(np.moveaxis(back, -1, 0), grey)
+    flat = grey[0]
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(png_bytes(flat, level)))), flat)

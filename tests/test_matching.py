@@ -141,3 +141,14 @@ def test_mmgd_cost_map_is_the_definition():
         assert np.array_equal(np.isfinite(got), np.isfinite(want)), trial
         f = np.isfinite(want)
         assert np.allclose(got[f], want[f], rtol=1e-12, atol=1e-12), trial
+
+
+def test_median_is_numpys():
+    """The matching's median: np.median's value, odd and even sizes, ties, one value."""
+    from swathflow.mosaicking.matching import median
+    rng = np.random.default_rng(6)
+    for n in (1, 2, 3, 4, 7, 48, 49, 1000, 1001):
+        for a in (rng.normal(size=n), rng.integers(0, 3, n).astype(float)):
+            assert median(a) == np.median(a), (n, a)
+    two = rng.normal(size=(5, 4))
+    assert median(two) == np.median(two)

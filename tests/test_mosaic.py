@@ -266,6 +266,31 @@ def test_network_anchor_free_and_outlier():
     assert free.free_groups == [[0, 1, 2, 3]]
 
 
+def test_network_dense_equals_sparse():
+    """Small networks are solved densely without scipy; the same components (numbered as
+    scipy numbers them) and the same solution as the sparse path of large ones."""
+    from swathflow.mosaicking.network import _components, _solve_lsq
+    rng = np.random.default_rng(3)
+    for _trial in range(20):
+        n = int(rng.integers(2, 30))
+        m = int(rng.integers(0, 2 * n))
+        edges = [tuple(int(v) for v in rng.integers(0, n, 2)) for _ in range(m)]
+        ncomp, labels = _components(n, edges)
+        ncomp_s, labels_s = _components(n, edges, max_dense=0)
+        assert ncomp == ncomp_s and np.array_equal(labels, labels_s), (edges, labels, labels_s)
+        if not edges:
+            continue
+        values, weights = rng.normal(0, 3, m), rng.uniform(1, 100, m)
+        anchored = sorted(set(int(v) for v in rng.integers(0, n, int(rng.integers(0, 3)))))
+        k = int(rng.integers(0, 3))
+        tied = (list(rng.integers(0, n, k)), list(rng.normal(0, 2, k)),
+                list(rng.uniform(1, 10, k))) if k else ()
+        x, sx = _solve_lsq(n, edges, values, weights, anchored, labels, tied)
+        xs, sxs = _solve_lsq(n, edges, values, weights, anchored, labels, tied, max_dense=0)
+        assert np.allclose(x, xs, rtol=0, atol=1e-9), (x, xs)
+        assert np.isfinite(sx).all() and np.isnan(sxs).all()
+
+
 def test_real_orthophoto_strips(tmp_path):
     path = "/work/shared/data/real/autzen/autzen.jpg"
     if not os.path.exists(path):

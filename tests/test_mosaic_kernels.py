@@ -199,9 +199,10 @@ def test_noise_texture_is_the_scipy_recipe():
 
 @pytest.mark.parametrize("shape", [(36, 128), (24, 44)])
 def test_upsampled_dft_is_the_matrix_dft(shape):
-    """The upsampled DFT (its size-only factor made once) equals the direct matrix DFT of
-    Guizar-Sicairos et al. at the requested offsets."""
-    from swathflow.mosaicking.matching import _upsampled_dft
+    """The upsampled DFT's magnitude (its size-only factors made once, two matrix
+    products) equals that of the direct matrix DFT of Guizar-Sicairos et al. at the
+    requested offsets."""
+    from swathflow.mosaicking.matching import _upsampled_abs
     rng = np.random.default_rng(2)
     data = rng.normal(size=shape) + 1j * rng.normal(size=shape)
     off = np.array([15.0, 15.0]) - np.array([0.35, -0.2]) * 20
@@ -209,8 +210,20 @@ def test_upsampled_dft_is_the_matrix_dft(shape):
     for n, o in list(zip(data.shape, off))[::-1]:
         kern = (np.arange(30) - o)[:, None] * np.fft.fftfreq(n, 20)
         want = np.tensordot(np.exp(-2j * np.pi * kern), want, axes=(1, -1))
-    got = _upsampled_dft(data, (30, 30), 20, off)
-    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+    got = _upsampled_abs(data, (30, 30), 20, off)
+    assert np.abs(got - np.abs(want)).max() < 1e-12 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("shape", [(36, 128), (24, 44), (17, 9), (128, 45)])
+def test_mirror_completes_the_real_spectrum(shape):
+    """The half spectrum of a real signal (rfft2) and its mirrored conjugates give the
+    whole spectrum (fft2), odd and even sides."""
+    from swathflow.mosaicking.matching import _mirror
+    a = np.random.default_rng(4).normal(size=shape)
+    half = np.fft.rfft2(a)
+    r, c = _mirror(shape)
+    whole = np.concatenate([half, half[r, c].conj()], axis=1)
+    assert np.abs(whole - np.fft.fft2(a)).max() < 1e-12 * np.abs(half).max()
 
 
 @pytest.mark.parametrize("min_valid", [1.0, 0.5])

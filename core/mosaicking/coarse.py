@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from swathflow.mosaicking.matching import mmgd_search
+from swathflow.mosaicking.matching import median, mmgd_search
 
 __all__ = ["decimate", "coarse_shift", "block_texture", "pick_blocks", "match_overlap"]
 
@@ -57,7 +57,8 @@ def coarse_shift(ref, ref_ok, mov, mov_ok, max_shift: int, factor: int = 3,
     if s is None:
         return None, float("nan")
     finite = cost[np.isfinite(cost)]
-    contrast = float((np.median(finite) - finite.min()) / max(np.median(finite), 1e-12))
+    med = median(finite)
+    contrast = float((med - finite.min()) / max(med, 1e-12))
     if contrast < min_contrast:
         return None, contrast
     # sub-cell vertex of the cost minimum (parabola through its neighbours), to full px
@@ -107,7 +108,7 @@ def pick_blocks(windows, scores, max_blocks: int, min_relative: float = 0.1):
     scores = np.asarray(scores, float)
     if not len(windows):
         return []
-    med = float(np.median(scores))
+    med = median(scores)
     keep = [k for k, s in enumerate(scores) if s > 0 and s >= min_relative * med]
     if len(keep) > max_blocks:
         pick = np.unique(np.round(np.linspace(0, len(keep) - 1, max_blocks)).astype(int))

@@ -10,7 +10,7 @@ from numba import njit
 
 from swathflow.mosaicking.kernels import _b3  # the cubic B-spline, written once
 
-__all__ = ["mmgd_costs", "shift_block", "gauss_newton"]
+__all__ = ["mmgd_costs", "shift_block", "gauss_newton", "polish"]
 
 
 @njit(cache=True, nogil=True)
@@ -326,6 +326,39 @@ def gauss_newton(coef, pad, h, w, rows, cols, y, rad, d_start, iterations, tol):
         ss += (y[q] - model) ** 2
     rms = np.sqrt(ss / max(m - k, 1))
     return 0, d, g, o, cov, rms, rw
+
+
+@njit(cache=True, nogil=True)
+def polish(coef, pad, mov, mask, planar, d_start, iterations, tol):
+    """:func:`gauss_newton` over the pixels of ``mask`` (row order): ``y = mov`` there,
+    the radiometric columns 1 and, with ``planar``, the rows and columns about their mean
+    over the block's height and width (the values numpy gives: integer sums are exact)."""
+    h, w = mask.shape
+    m = 0
+    sr = sc = 0
+    for r in range(h):
+        for c in range(w):
+            if mask[r, c]:
+                m += 1
+                sr += r
+                sc += c
+    rows = np.empty(m, np.int64)
+    cols = np.empty(m, np.int64)
+    y = np.empty(m)
+    rad = np.empty((m, 3 if planar else 1))
+    mr = sr / m if m else 0.0
+    mc = sc / m if m else 0.0
+    q = 0
+    for r in range(h):
+        for c in range(w):
+            if mask[r, c]:
+                rows[q], cols[q], y[q] = r, c, mov[r, c]
+                rad[q, 0] = 1.0
+                if planar:
+                    rad[q, 1] = (r - mr) / max(h, 1)
+                    rad[q, 2] = (c - mc) / max(w, 1)
+                q += 1
+    return gauss_newton(coef, pad, h, w, rows, cols, y, rad, d_start, iterations, tol)
 
 
 @njit(cache=True, nogil=True)

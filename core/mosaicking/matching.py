@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["BlockMatch", "OverlapMatch", "mmgd_search", "phase_correlation",
+__all__ = ["BlockMatch", "OverlapMatch", "mmgd_search", "phase_correlation", "median",
            "gradient_refine", "texture_measure", "match_block", "combine_blocks"]
 
 
@@ -103,24 +103,49 @@ def _mean_abs_from_median(d):
     return np.abs(d - med[:, None]).mean(axis=1)
 
 
+def median(a) -> float:
+    """``np.median`` of the values of ``a`` (none NaN), the same value without its
+    overheads (a quarter of the cost on the few values of a cost surface or a block
+    list): the middle one of a partition, or the mean of the two middle ones."""
+    a = np.ravel(a)
+    k = a.size // 2
+    if a.size % 2:
+        return float(np.partition(a, k)[k])
+    p = np.partition(a, (k - 1, k))
+    return float((p[k - 1] + p[k]) / 2)
+
+
 # --- phase correlation ------------------------------------------------------------------------
-def _upsampled_dft(data, size, factor, offsets):
-    """Matrix-multiply DFT of ``data`` upsampled by ``factor`` on a ``size`` region
-    starting at ``offsets`` (Guizar-Sicairos et al. 2008)."""
-    for n_items, ups, off in list(zip(data.shape, size, offsets))[::-1]:
-        # exp(-2 pi i (k - off) f) = exp(-2 pi i k f) exp(2 pi i off f): the first factor
-        # depends on the sizes alone (made once), the second is one row of phases
-        f = np.fft.fftfreq(n_items, factor)
-        kernel = _dft_rows(ups, n_items, factor) * np.exp(2j * np.pi * off * f)
-        data = np.tensordot(kernel, data, axes=(1, -1))
-    return data
+def _upsampled_abs(data, size, factor, offsets):
+    """``|DFT|`` of ``data`` upsampled by ``factor`` on a ``size`` region starting at
+    ``offsets`` (Guizar-Sicairos et al. 2008): two matrix products, ``rows @ data @
+    cols.T``, each factor the size-only part (made once) times one row of phases."""
+    (kr, fr), (kc, fc) = (_dft_rows(ups, n, factor) for ups, n in zip(size, data.shape))
+    rows = kr * np.exp(2j * np.pi * offsets[0] * fr)
+    cols = kc * np.exp(2j * np.pi * offsets[1] * fc)
+    return np.abs(rows @ data @ cols.T)
 
 
 @functools.lru_cache(maxsize=64)
 def _dft_rows(ups: int, n_items: int, factor: int):
-    k = np.exp(-2j * np.pi * np.arange(ups)[:, None] * np.fft.fftfreq(n_items, factor))
+    f = np.fft.fftfreq(n_items, factor)
+    k = np.exp(-2j * np.pi * np.arange(ups)[:, None] * f)
     k.flags.writeable = False
-    return k
+    f.flags.writeable = False
+    return k, f
+
+
+@functools.lru_cache(maxsize=64)
+def _mirror(shape):
+    """Index arrays of the Hermitian half a real signal's rfft2 leaves out: the full
+    spectrum's columns ``w // 2 + 1 ..`` are the conjugates of the half's values at
+    ``((-r) % h, w - c)``."""
+    h, w = shape
+    r = ((-np.arange(h)) % h)[:, None]
+    c = (w - np.arange(w // 2 + 1, w))[None, :]
+    r.flags.writeable = False
+    c.flags.writeable = False
+    return r, c
 
 
 def _taper(mask, edge: float = 6.0):
@@ -181,24 +206,35 @@ def phase_correlation(ref, mov, mask=None, upsample: int = 20, min_side: int = 1
         if rect is not None and min(ref[rect].shape) >= min_side:
             ref, mov, mask = ref[rect], mov[rect], np.ones(ref[rect].shape, bool)
     tap = _taper(mask)
-    a = np.where(mask, ref - ref[mask].mean(), 0.0) * tap
-    b = np.where(mask, mov - mov[mask].mean(), 0.0) * tap
-    fa, fb = np.fft.fft2(a), np.fft.fft2(b)
+    if mask.all():
+        a = (ref - ref.ravel().mean()) * tap
+        b = (mov - mov.ravel().mean()) * tap
+    else:
+        a = np.where(mask, ref - ref[mask].mean(), 0.0) * tap
+        b = np.where(mask, mov - mov[mask].mean(), 0.0) * tap
+    # real signals: half spectra (rfft2), the cross-power spectrum's inverse real
+    shape = a.shape
+    fa, fb = np.fft.rfft2(a), np.fft.rfft2(b)
     prod = fb * fa.conj()
     mag = np.abs(prod)
     prod /= np.maximum(mag, 1e-12 * mag.max() + 1e-300)
-    cc = np.fft.ifft2(prod)
-    acc = np.abs(cc)
-    peak_idx = np.unravel_index(np.argmax(acc), cc.shape)
-    shape = np.array(cc.shape)
+    acc = np.abs(np.fft.irfft2(prod, s=shape))
+    peak_idx = np.unravel_index(np.argmax(acc), shape)
+    size_ = np.array(shape)
     d = np.array(peak_idx, float)
-    d[d > shape // 2] -= shape[d > shape // 2]
+    d[d > size_ // 2] -= size_[d > size_ // 2]
     if upsample > 1:
         d = np.round(d * upsample) / upsample
         size = int(np.ceil(upsample * 1.5))
         centre = np.fix(size / 2.0)
-        up = _upsampled_dft(prod.conj(), (size, size), upsample, centre - d * upsample).conj()
-        idx = np.array(np.unravel_index(np.argmax(np.abs(up)), up.shape), float)
+        # the conjugate of the whole spectrum, its left-out half from the rfft2's
+        half = prod.shape[1]
+        r, c = _mirror(shape)
+        conj = np.empty(shape, complex)
+        conj[:, :half] = prod.conj()
+        conj[:, half:] = prod[r, c]
+        up = _upsampled_abs(conj, (size, size), upsample, centre - d * upsample)
+        idx = np.array(np.unravel_index(np.argmax(up), up.shape), float)
         d = d + (idx - centre) / upsample
     peak = float(acc.max())
     return (float(d[0]), float(d[1])), peak
@@ -256,27 +292,22 @@ def gradient_refine(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: flo
 def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-4,
             planar: bool = True):
     """:func:`gradient_refine` and ``ref`` shifted by the final ``d`` (cubic spline, as
-    :func:`_shift`). The Gauss-Newton loop is compiled
-    (swathflow.mosaicking.match_kernels.gauss_newton; no GIL held), and so is the
-    B-spline prefilter (swathflow.mosaicking.kernels.prefilter, scipy's to 1e-15), once
-    per block."""
+    :func:`_shift`). The Gauss-Newton loop is compiled, the mask's pixels gathered there
+    too (swathflow.mosaicking.match_kernels.polish; no GIL held), and so is the B-spline
+    prefilter (swathflow.mosaicking.kernels.prefilter, scipy's to 1e-15), once per
+    block."""
     from swathflow.mosaicking.kernels import prefilter
-    from swathflow.mosaicking.match_kernels import gauss_newton
+    from swathflow.mosaicking.match_kernels import polish
     ref = np.asarray(ref, float)
-    mov = np.asarray(mov, float)
-    mask = np.asarray(mask, bool)
-    rows, cols = np.nonzero(mask)
-    y = mov[rows, cols]
-    rr = (rows - rows.mean()) / max(mask.shape[0], 1) if rows.size else rows * 0.0
-    cc = (cols - cols.mean()) / max(mask.shape[1], 1) if cols.size else cols * 0.0
-    rad = np.column_stack([np.ones(y.size)] + ([rr, cc] if planar else []))
+    mov = np.ascontiguousarray(mov, float)
+    mask = np.ascontiguousarray(mask, bool)
     h, w = ref.shape
     pad = 12
     while True:
         coef = prefilter(np.ascontiguousarray(ref), pad)
-        st, d, g, o, cov, rms, shifted = gauss_newton(coef, pad, h, w, rows, cols, y, rad,
-                                                      np.array(d0, float), int(iterations),
-                                                      float(tol))
+        st, d, g, o, cov, rms, shifted = polish(coef, pad, mov, mask, bool(planar),
+                                                np.array(d0, float), int(iterations),
+                                                float(tol))
         if st != 2 or pad > 64:
             break
         need = float(np.max(np.abs(d)))       # the shift left the padding: pad it again,
@@ -322,7 +353,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     if s is None:
         return BlockMatch(False, "too_small")
     finite = cost[np.isfinite(cost)]
-    med = np.median(finite)
+    med = median(finite)
     contrast = (med - finite.min()) / max(med, 1e-12)
     if contrast < min_contrast:
         # a flat cost surface: nothing in the overlap pins the shift down
@@ -358,7 +389,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     if not np.all(np.isfinite(dres)) or np.max(np.abs(dres)) > 2.0 or not (0.2 < g < 5.0):
         return BlockMatch(False, "diverged", **common)
     # radiometric offset at the mean level of the block (gain ~ 1 for offset-only data)
-    rad = float(np.median(m[inner] - aligned[inner]))
+    rad = median(m[inner] - aligned[inner])
     return BlockMatch(True, "", offset=(s[0] + float(dres[0]), s[1] + float(dres[1])),
                       sigma=sig, radiometric=rad, gain=g, **common)
 
@@ -400,8 +431,9 @@ def combine_blocks(blocks: list[BlockMatch], min_blocks: int = 1, min_inlier_fra
         res.status = _failed_status(blocks)
         return res
     d = np.array([b.offset for b in good])
-    med = np.median(d, axis=0)
-    mad = 1.4826 * np.median(np.abs(d - med), axis=0)
+    med = np.array([median(d[:, 0]), median(d[:, 1])])
+    dev = np.abs(d - med)
+    mad = 1.4826 * np.array([median(dev[:, 0]), median(dev[:, 1])])
     lim = np.maximum(3.0 * mad, tolerance)
     inl = np.all(np.abs(d - med) <= lim, axis=1)
     res.n_inliers = int(inl.sum())
@@ -420,7 +452,7 @@ def combine_blocks(blocks: list[BlockMatch], min_blocks: int = 1, min_inlier_fra
     res.ok = True
     res.status = "ok"
     res.sigma = (float(sigma[0]), float(sigma[1]))
-    res.radiometric = float(np.median(rad))
+    res.radiometric = median(rad)
     res.radiometric_sigma = float(1.2533 * rad.std() / np.sqrt(n)) if n > 1 else np.nan
     res.quality = float(n / len(good) * np.exp(-np.hypot(*sigma) / 0.1) *
                         min(1.0, np.mean([b.peak for b in np.array(good)[inl]]) * 5))

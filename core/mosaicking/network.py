@@ -23,63 +23,83 @@ class Network:
     free_groups: list                    # components without an anchor (mean fixed to 0)
 
 
-def _components(n, edges):
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+def _components(n, edges, max_dense: int = 1500):
+    """``(count, labels)`` of the connected components, numbered in the order of their
+    first node (as scipy.sparse.csgraph.connected_components numbers them). Up to
+    ``max_dense`` nodes by union-find here (scipy's import is most of a small network's
+    cost), above by scipy."""
     if not edges:
         return n, np.arange(n)
-    e = np.array(edges)
-    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    return connected_components(g, directed=False)
+    if n > max_dense:
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        e = np.array(edges)
+        g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+        return connected_components(g, directed=False)
+    parent = list(range(n))
+
+    def root(k):
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for i, j in edges:
+        a, b = root(int(i)), root(int(j))
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    first: dict = {}
+    labels = np.array([first.setdefault(root(k), len(first)) for k in range(n)])
+    return len(first), labels
 
 
 def _solve_lsq(n, edges, values, weights, anchored, labels, tied=(), max_dense: int = 1500):
     """Weighted LSQ of ``x_j - x_i = value`` per edge, plus absolute observations
     ``tied``: ``(nodes, values, weights)`` saying ``x_k = value``. Anchored nodes are held
     at 0; every component with neither an anchor nor an absolute observation has its mean
-    held at 0 (sparse normal equations). Returns ``(x, sigma_x)``; ``sigma_x`` is NaN above
-    ``max_dense`` nodes."""
-    from scipy import sparse
-    from scipy.sparse.linalg import spsolve
+    held at 0. The normal equations are summed from their terms: dense and inverted up to
+    ``max_dense`` nodes (no scipy import), sparse and solved above. Returns
+    ``(x, sigma_x)``; ``sigma_x`` is NaN above ``max_dense`` nodes."""
     e = np.asarray(edges, int).reshape(-1, 2)
-    m = len(e)
-    rows = [np.repeat(np.arange(m), 2)]
-    cols = [e[:, ::-1].ravel()]
-    vals = [np.tile([1.0, -1.0], m)]
-    rhs = [np.asarray(values, float)]
-    w = [np.asarray(weights, float)]
-    r = m
+    values = np.asarray(values, float)
+    weights = np.asarray(weights, float)
     wmed = float(np.median(weights)) if len(weights) else 1.0
     t_nodes, t_vals, t_w = (np.asarray(v) for v in tied) if len(tied) else ([], [], [])
     fixed = set(int(a) for a in anchored)
     held = {labels[k] for k in fixed} | {labels[int(k)] for k in t_nodes}
+    # the normal equations' terms (row, col, value) and right-hand side, summed below:
+    # an edge row has +1 at j and -1 at i
+    i, j = e[:, 0], e[:, 1]
+    nr = [i, j, i, j]
+    nc = [i, j, j, i]
+    nv = [weights, weights, -weights, -weights]
+    b = np.zeros(n)
+    np.add.at(b, j, weights * values)
+    np.add.at(b, i, -weights * values)
     for comp in np.unique(labels):
         if comp in held:
             continue
         members = np.nonzero(labels == comp)[0]
-        rows.append(np.full(len(members), r))
-        cols.append(members)
-        vals.append(np.full(len(members), 1.0 / len(members)))
-        rhs.append([0.0])
-        w.append([wmed])
-        r += 1
+        c = 1.0 / len(members)
+        nr.append(np.repeat(members, len(members)))
+        nc.append(np.tile(members, len(members)))
+        nv.append(np.full(len(members) ** 2, wmed * c * c))
     extra = [(k, 0.0, 1e12) for k in sorted(fixed)] + list(zip(t_nodes, t_vals, t_w))
     for k, v, wk in extra:
-        rows.append([r])
-        cols.append([int(k)])
-        vals.append([1.0])
-        rhs.append([float(v)])
-        w.append([float(wk)])
-        r += 1
-    w = np.concatenate([np.asarray(x, float) for x in w])
-    rhs = np.concatenate([np.asarray(x, float) for x in rhs])
-    a = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(r, n))
-    nmat = (a.T @ sparse.diags(w) @ a).tocsc()
-    b = a.T @ (w * rhs)
+        nr.append([int(k)])
+        nc.append([int(k)])
+        nv.append([float(wk)])
+        b[int(k)] += float(wk) * float(v)
+    nr, nc = np.concatenate(nr).astype(int), np.concatenate(nc).astype(int)
+    nv = np.concatenate([np.asarray(x, float) for x in nv])
     if n <= max_dense:
-        cov = np.linalg.inv(nmat.toarray())
+        nmat = np.zeros((n, n))
+        np.add.at(nmat, (nr, nc), nv)
+        cov = np.linalg.inv(nmat)
         return cov @ b, np.sqrt(np.maximum(np.diag(cov), 0.0))
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+    nmat = sparse.coo_matrix((nv, (nr, nc)), shape=(n, n)).tocsc()
     return spsolve(nmat, b), np.full(n, np.nan)
 
 
