@@ -65,8 +65,8 @@ def test_rectify_loads_dask_array_and_numba_without_scipy_fft_and_linalg():
 
 def test_import_without_falls_back_to_the_usual_import():
     """A module that cannot do without the module held back is imported the usual way."""
-    code = ("import sys\nfrom swathflow.flows.cli import commands\n"
-            "commands._import_without('xml.dom', 'xml.dom.minidom')\n"
+    code = ("import sys\nfrom swathflow.startup import import_without\n"
+            "import_without('xml.dom', 'xml.dom.minidom')\n"
             "import xml.dom.minidom\n"
             "print(sys.modules['xml.dom'] is not None, xml.dom.minidom.parseString('<a/>')"
             ".documentElement.tagName)\n")
@@ -78,9 +78,9 @@ def test_rectify_imports_its_engine_without_collector_passes():
     """The rectify command's imports (1,500 modules) run without the collector's passes
     (265 of them, 0.1-0.2 CPU-s on its serial start), and their objects are frozen after;
     the collector is on again after."""
-    code = ("import gc, sys\nfrom swathflow.flows.cli import commands\n"
+    code = ("import gc, sys\nfrom swathflow.startup import uncollected\n"
             "passes = []\ngc.callbacks.append(lambda phase, info: passes.append(phase))\n"
-            "with commands._imports_uncollected():\n"
+            "with uncollected():\n"
             "    import xarray\n"
             "print(len(passes), gc.isenabled(), gc.get_freeze_count() > 10000)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

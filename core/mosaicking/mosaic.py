@@ -24,7 +24,6 @@ Radiometric offset ``b``: ``image = truth + b``; the mosaic subtracts ``b``.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import time
@@ -169,73 +168,26 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
 
 def load_kernels(matching: bool = False) -> None:
     """Load the mosaic's compiled kernels (numba's start and its cache: the blend's, and
-    with ``matching`` the matching's) with the collector off: numba makes some 100 000
-    objects as it starts, all of which live to the end, and the collector's passes over
-    them while they are made cost 0.15-0.2 CPU-s (48-swing benchmark, load 13). The
-    collector's state is restored after.
-
-    The first time in a process, the objects then alive (numba's and the imported modules',
-    which live to the end) are moved out of the collector's reach (``gc.freeze``): every
-    later full collection, and the interpreter's last ones at exit, no longer walk them
-    (the 48-swing mosaic's exit cost 0.20-0.23 CPU-s, now about 0.03). Frozen objects are
-    still freed by reference counting; only a reference cycle alive at that moment would
-    be kept, once."""
-    import gc
-    on = gc.isenabled()
-    gc.disable()
-    try:
+    with ``matching`` the matching's) without the collector's passes (numba makes some
+    100 000 objects as it starts, all of which live to the end: 0.15-0.2 CPU-s of passes
+    on the 48-swing benchmark) and without the ``scipy.linalg`` package that numba's BLAS
+    probe would run (:mod:`swathflow.startup`). The first time in a process the objects
+    then alive are frozen: the 48-swing mosaic's exit cost 0.20-0.23 CPU-s, now about
+    0.03."""
+    from swathflow.startup import lean_numba_arrays, uncollected
+    first = not _FROZEN
+    with uncollected(freeze=first):
         from swathflow.mosaicking import kernels
         if matching:
             from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
+        lean_numba_arrays()
         z = np.zeros((1, 1), np.float32)
-        with _blas_without_scipy_linalg() if not _FROZEN else contextlib.nullcontext():
-            kernels.normalise(z, z)         # numba's first call: its typing and targets
-        if not _FROZEN:
+        kernels.normalise(z, z)             # numba's first call: its typing and targets
+        if first:
             _FROZEN.append(True)
-            gc.freeze()
-    finally:
-        if on:
-            gc.enable()
 
 
 _FROZEN: list = []     # load_kernels froze the start-up objects (once per process)
-
-
-@contextlib.contextmanager
-def _blas_without_scipy_linalg():
-    """numba's first call probes for BLAS with ``import scipy.linalg.cython_blas``, which
-    runs the whole ``scipy.linalg`` package (0.24-0.27 CPU-s at load 4: array-API shims,
-    docstring parsing, ``numpy.f2py``), about half of numba's start; the blend never uses
-    ``scipy.linalg``. Inside this context that module is the extension file alone, loaded
-    by the standard loader under its own name (numba's BLAS wrappers get their function
-    pointers from it as from the package's). It leaves ``sys.modules`` after the block,
-    so a later ``import scipy.linalg`` runs the package as usual and binds the same
-    module object (an extension is initialised once per process). Nothing is done when
-    ``scipy.linalg`` is loaded already or the file is not found; :func:`load_kernels`
-    uses it on its first call in a process only."""
-    import sys
-    name = "scipy.linalg.cython_blas"
-    added = False
-    if "scipy.linalg" not in sys.modules and name not in sys.modules:
-        try:
-            import importlib.machinery
-            import importlib.util
-
-            import scipy
-            spec = importlib.machinery.PathFinder.find_spec(
-                name, [os.path.join(p, "linalg") for p in scipy.__path__])
-            if spec is not None and spec.loader is not None:
-                module = importlib.util.module_from_spec(spec)
-                spec.loader.exec_module(module)
-                sys.modules[name] = module
-                added = True
-        except ImportError:
-            pass
-    try:
-        yield
-    finally:
-        if added:
-            sys.modules.pop(name, None)
 
 
 def load_kernels_async(matching: bool = False):

@@ -119,7 +119,8 @@ def rectify(args) -> int:
     """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image,
     each ``swathflow.to_cog(swathflow.rectify(...))`` (through ``rectify_mission``)."""
     _one_blas_thread()
-    with _imports_uncollected():
+    from swathflow.startup import uncollected
+    with uncollected():
         _lean_imports()
         from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
@@ -147,58 +148,14 @@ def _one_blas_thread() -> None:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-@contextlib.contextmanager
-def _imports_uncollected():
-    """No collector passes while a command imports its engine (pandas, xarray, numba,
-    dask.array: about 1,500 modules; 265 passes, 0.1 CPU-s, for the rectify command, on
-    its serial start), and those modules' objects frozen after (out of the later passes:
-    they live to the end, as :func:`~swathflow.flows.cli.main.main` treats the start-up's
-    own). The collector's state is restored after."""
-    import gc
-    on = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        gc.freeze()
-        if on:
-            gc.enable()
-
-
 def _lean_imports() -> None:
     """Load ``dask.array`` and numba's array target without the scipy parts they import
-    for features no rectification uses (on the command's serial start, before its workers
-    fork; each import is paid once):
-
-    - ``dask.array.fft`` imports ``scipy.fftpack`` only to warn about
-      ``fft_wrap(scipy.fftpack...)``: with it ``scipy.fft`` and ``scipy.special``
-      (53 modules, 0.08-0.1 CPU-s);
-    - ``numba.np.arraymath`` imports ``scipy.linalg`` (0.1-0.15 CPU-s) to decide whether
-      ``np.correlate``/``np.convolve`` in compiled code call BLAS or a plain loop (no
-      kernel here uses them); numba's ``np.dot`` and ``np.linalg`` import scipy's BLAS
-      themselves when a kernel using them is compiled.
-
-    Only this command's process is concerned (the Python API imports as usual); both
-    scipy modules stay importable afterwards."""
-    _import_without("scipy.fftpack", "dask.array")
-    _import_without("scipy.linalg", "numba.np.arraymath")
-
-
-def _import_without(name: str, module: str) -> None:
-    """Import ``module`` while an import of ``name`` fails (ImportError), when neither is
-    loaded yet; if ``module`` cannot do without it after all, the usual way."""
-    from importlib import import_module
-    if module in sys.modules or name in sys.modules:
-        return
-    sys.modules[name] = None              # an import of it fails while ``module`` loads
-    try:
-        import_module(module)
-    except ImportError:
-        pass
-    finally:
-        if sys.modules.get(name, 0) is None:
-            del sys.modules[name]
-    import_module(module)
+    for features no rectification uses (``scipy.fftpack``, the ``scipy.linalg`` package:
+    0.2 CPU-s together on the command's serial start, before its workers fork; see
+    :mod:`swathflow.startup`). Only this command's process is concerned."""
+    from swathflow.startup import import_without, lean_numba_arrays
+    import_without("scipy.fftpack", "dask.array")
+    lean_numba_arrays()
 
 
 def mosaic(args) -> int:

@@ -1,0 +1,103 @@
+"""A process's start: imports without the parts a command does not use, and without the
+garbage collector's passes over the objects that live to the end.
+
+One place for the tricks that the rectify command (its serial start, before its workers
+fork) and the mosaic (numba's first load) use on their start-up; the Python API imports
+as usual.
+"""
+from __future__ import annotations
+
+import contextlib
+import gc
+import os
+import sys
+from importlib import import_module
+
+__all__ = ["uncollected", "import_without", "blas_probe_alone", "lean_numba_arrays"]
+
+
+@contextlib.contextmanager
+def uncollected(freeze: bool = True):
+    """No collector passes inside the block (an engine's imports and numba's start make
+    some 100 000 objects that all live to the end: the passes over them while they are
+    made cost 0.1-0.2 CPU-s), and with ``freeze`` the objects then alive moved out of the
+    collector's reach after it (``gc.freeze``: later full collections and the
+    interpreter's last ones at exit no longer walk them; they are still freed by reference
+    counting). Freeze once a process: a reference cycle alive at that moment is kept. The
+    collector's state is restored after."""
+    on = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if freeze:
+            gc.freeze()
+        if on:
+            gc.enable()
+
+
+def import_without(name: str, module: str) -> None:
+    """Import ``module`` while an import of ``name`` fails (ImportError), when neither is
+    loaded yet; if ``module`` cannot do without it after all, the usual way. ``name``
+    stays importable afterwards.
+
+    Used for ``dask.array``, whose ``fft`` module imports ``scipy.fftpack`` only to warn
+    about ``fft_wrap(scipy.fftpack...)``: with it ``scipy.fft`` and ``scipy.special``
+    (53 modules, 0.08-0.1 CPU-s)."""
+    if module in sys.modules or name in sys.modules:
+        return
+    sys.modules[name] = None              # an import of it fails while ``module`` loads
+    try:
+        import_module(module)
+    except ImportError:
+        pass
+    finally:
+        if sys.modules.get(name, 0) is None:
+            del sys.modules[name]
+    import_module(module)
+
+
+@contextlib.contextmanager
+def blas_probe_alone():
+    """numba probes for BLAS with ``import scipy.linalg.cython_blas`` when its array target
+    loads (``numba.np.arraymath``, on a process's first compiled call), which runs the whole
+    ``scipy.linalg`` package (0.1-0.27 CPU-s: array-API shims, docstring parsing,
+    ``numpy.f2py``): about half of numba's start, for kernels that never use
+    ``scipy.linalg``. Inside this block that module is the extension file alone, loaded by
+    the standard loader under its own name (numba's BLAS wrappers get their function
+    pointers from it as from the package's). It leaves ``sys.modules`` after the block, so
+    a later ``import scipy.linalg`` runs the package as usual and binds the same module
+    object (an extension is initialised once per process). Nothing is done when
+    ``scipy.linalg`` is loaded already or the file is not found."""
+    name = "scipy.linalg.cython_blas"
+    added = False
+    if "scipy.linalg" not in sys.modules and name not in sys.modules:
+        try:
+            import importlib.machinery
+            import importlib.util
+
+            import scipy
+            spec = importlib.machinery.PathFinder.find_spec(
+                name, [os.path.join(p, "linalg") for p in scipy.__path__])
+            if spec is not None and spec.loader is not None:
+                module = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(module)
+                sys.modules[name] = module
+                added = True
+        except ImportError:
+            pass
+    try:
+        yield
+    finally:
+        if added:
+            sys.modules.pop(name, None)
+
+
+def lean_numba_arrays() -> None:
+    """Load numba's array target (``numba.np.arraymath``) with its BLAS probe satisfied by
+    :func:`blas_probe_alone`, so that neither it nor a later first compiled call runs the
+    ``scipy.linalg`` package."""
+    if "numba.np.arraymath" in sys.modules:
+        return
+    with blas_probe_alone():
+        import_module("numba.np.arraymath")
