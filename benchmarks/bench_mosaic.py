@@ -185,11 +185,12 @@ def _measured(argv, env=None):
     return wall, cpu, rss, out
 
 
-def mosaic_subprocess(paths, out, **opts):
+def mosaic_subprocess(paths, out, env=None, **opts):
     """swathflow mosaic in a fresh interpreter: (wall s, peak RSS MB, report) where the
-    report also holds ``cpu`` (s, whole process) and ``seconds`` (in-process)."""
+    report also holds ``cpu`` (s, whole process) and ``seconds`` (in-process). ``env``:
+    the child's environment (default this process's)."""
     arg = json.dumps(dict(paths=paths, out=out, **opts))
-    sec, cpu, rss, stdout = _measured([sys.executable, "-c", _CHILD, arg])
+    sec, cpu, rss, stdout = _measured([sys.executable, "-c", _CHILD, arg], env)
     rep = json.loads(stdout.strip().splitlines()[-1])
     rep["cpu"] = cpu
     rep["idle"] = LAST_IDLE[0]
@@ -281,11 +282,12 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
                                 "--anchor", "0", "-q"], env)
         rows.append(("swathflow mosaic (CLI: match+network+feather, COG+PNG)", w, c, None, r,
                      LAST_IDLE[0]))
-    w, r, rep = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"))
+    # the same environment as the peers' (GDAL_NUM_THREADS=2)
+    w, r, rep = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"), env)
     err = offset_errors(rep, g["shifts"]).max()
     rows.append(("swathflow mosaic() one process, threads (same work)", w, rep["cpu"],
                  rep["seconds"], r, rep["idle"]))
-    w, r, rb = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), match=False,
+    w, r, rb = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), env, match=False,
                                  png=False)
     rows.append(("swathflow blend only (feather, COG)", w, rb["cpu"], rb["seconds"], r,
                  rb["idle"]))
