@@ -188,14 +188,19 @@ def _map_heights(crs: str, terrain, x, y):
     """Ellipsoidal heights at map points of ``crs`` straight from the map coordinates (a
     constant height, or a DEM in the same CRS), None where that needs longitude and
     latitude (another terrain, a DEM in another CRS, a CRS not on WGS 84)."""
-    from swathflow.geometry.terrain import DEM, ConstantHeight
-    if not _wgs84_projected(crs):
+    from swathflow.geometry.terrain import ConstantHeight
+    if not _heights_from_map(crs, terrain):
         return None
     if type(terrain) is ConstantHeight:
         return np.full(np.broadcast_shapes(x.shape, y.shape), float(terrain.h))
-    if type(terrain) is DEM and _same_crs(crs, terrain.crs_wkt):
-        return terrain.height_xy(x, y)
-    return None
+    return terrain.height_xy(x, y)
+
+
+def _heights_from_map(crs: str, terrain) -> bool:
+    """Whether :func:`_map_heights` gives heights (not None) in ``crs`` on ``terrain``."""
+    from swathflow.geometry.terrain import DEM, ConstantHeight
+    return _wgs84_projected(crs) and (type(terrain) is ConstantHeight or (
+        type(terrain) is DEM and _same_crs(crs, terrain.crs_wkt)))
 
 
 #: degree in rows and in columns of the polynomials of :class:`TileFrame` (5 x 5
@@ -294,7 +299,7 @@ def tile_frame(grid: "Grid", terrain, H: int, W: int) -> "TileFrame | None":
     """A :class:`TileFrame` of the window ``H`` x ``W`` from the grid's origin, or None
     where the heights need longitude and latitude (:func:`_map_heights`: then
     :meth:`Grid.to_ecef`)."""
-    if _map_heights(grid.crs, terrain, np.zeros(1), np.zeros(1)) is None or H < 2 or W < 2:
+    if H < 2 or W < 2 or not _heights_from_map(grid.crs, terrain):
         return None
     return TileFrame(grid, terrain, H, W)
 

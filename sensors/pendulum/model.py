@@ -411,6 +411,8 @@ class PendulumModel(SensorModel):
         ground = np.asarray(ground, float)
         shape = ground.shape[:-1]
         g = ground.reshape(-1, 3)
+        if 0 < g.shape[0] <= CHUNK:      # one chunk (the lattice's calls): no copy
+            return self._ground_to_image(g, clip).reshape(shape + (2,))
         out = np.full((g.shape[0], 2), np.nan)
         # in chunks: the temporaries stay in the CPU cache
         for s in range(0, g.shape[0], CHUNK):
@@ -422,21 +424,30 @@ class PendulumModel(SensorModel):
         refinement as the numpy path, one point at a time."""
         out = np.empty((g.shape[0], 2))
         g = np.ascontiguousarray(g, dtype=float)
-        sh = self._shared
-        if "coarse_grid" not in sh:
-            sh["coarse_grid"] = coarse_grid(self.n_lines)
-        geo = self._geo()
-        nvec = np.array([0.0, self._f, self._y0])
-        trig = self._trig(geo)
-        if getattr(self, "_epoch_frames", None) is None:
-            self._epoch_frames = kernel.epoch_frames(geo, trig, nvec)
-        frames = self._line_frames() + self._epoch_frames
-        pixel = (self._k0, self._f, self._pp, float(self.n_elements))
-        if self.n_lines >= 2 and kernel.ground_to_image(
-                g, self._planes, sh["coarse_grid"], nvec, geo, trig, frames, ROUGH_LINE,
-                pixel, bool(clip), out):
+        args = self._kernel_args()
+        if self.n_lines >= 2 and kernel.ground_to_image(g, *args, bool(clip), out):
             return out
         return self._ground_to_image_numpy(g, clip)   # the POS has a gap there: it reports
+
+    def _kernel_args(self) -> tuple:
+        """The arguments of ``kernel.ground_to_image`` between the points and ``clip``
+        (planes, coarse grid, nvec, geometry, sine tables, frames, ``ROUGH_LINE``,
+        pixel): made on first use, once per model (the lattice calls it ~8 times a
+        tile)."""
+        if getattr(self, "_g2i_args", None) is None:
+            sh = self._shared
+            if "coarse_grid" not in sh:
+                sh["coarse_grid"] = coarse_grid(self.n_lines)
+            geo = self._geo()
+            nvec = np.array([0.0, self._f, self._y0])
+            trig = self._trig(geo)
+            if getattr(self, "_epoch_frames", None) is None:
+                self._epoch_frames = kernel.epoch_frames(geo, trig, nvec)
+            frames = self._line_frames() + self._epoch_frames
+            pixel = (self._k0, self._f, self._pp, float(self.n_elements))
+            self._g2i_args = (self._planes, sh["coarse_grid"], nvec, geo, trig, frames,
+                              ROUGH_LINE, pixel)
+        return self._g2i_args
 
     def _trig(self, geo) -> tuple:
         """The kernels' sine tables (``kernel.trig_tables``), made once per swing."""
