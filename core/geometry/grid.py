@@ -220,8 +220,9 @@ class TileFrame:
         self.grid, self.terrain = grid, terrain
         d = FRAME_DEGREE
         (rn, self.b_rows), (cn, self.b_cols) = _nodes_basis(H), _nodes_basis(W)
-        x, y = grid.xy(rn[:, None, None], cn[None, :, None])
-        x, y, h = np.broadcast_arrays(x, y, np.array([0.0, 1000.0]))
+        x, y, h = np.empty((3, rn.size, cn.size, 2))    # filled by broadcasting (cheaper
+        x[...], y[...] = grid.xy(rn[:, None, None], cn[None, :, None])   # than views)
+        h[...] = (0.0, 1000.0)
         p = np.stack(_to_ecef(grid.crs).transform(x, y, h), axis=-1)    # one call
         p0, p1 = p[:, :, 0], p[:, :, 1]
         self.origin = p0[d // 2, d // 2].copy()    # the polynomials carry offsets from it

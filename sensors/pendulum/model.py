@@ -424,16 +424,17 @@ class PendulumModel(SensorModel):
         refinement as the numpy path, one point at a time."""
         out = np.empty((g.shape[0], 2))
         g = np.ascontiguousarray(g, dtype=float)
-        args = self._kernel_args()
-        if self.n_lines >= 2 and kernel.ground_to_image(g, *args, bool(clip), out):
+        (planes, coarse, nvec, geo, trig, frames), pixel = self._kernel_args()
+        if self.n_lines >= 2 and kernel.ground_to_image(
+                g, planes, coarse, nvec, geo, trig, frames, ROUGH_LINE, pixel, bool(clip),
+                out):
             return out
         return self._ground_to_image_numpy(g, clip)   # the POS has a gap there: it reports
 
     def _kernel_args(self) -> tuple:
-        """The arguments of ``kernel.ground_to_image`` between the points and ``clip``
-        (planes, coarse grid, nvec, geometry, sine tables, frames, ``ROUGH_LINE``,
-        pixel): made on first use, once per model (the lattice calls it ~8 times a
-        tile)."""
+        """The arguments of ``kernel.ground_to_image`` that belong to the model ((planes,
+        coarse grid, nvec, geometry, sine tables, frames), pixel): made on first use,
+        once per model (the lattice calls it ~8 times a tile)."""
         if getattr(self, "_g2i_args", None) is None:
             sh = self._shared
             if "coarse_grid" not in sh:
@@ -445,8 +446,8 @@ class PendulumModel(SensorModel):
                 self._epoch_frames = kernel.epoch_frames(geo, trig, nvec)
             frames = self._line_frames() + self._epoch_frames
             pixel = (self._k0, self._f, self._pp, float(self.n_elements))
-            self._g2i_args = (self._planes, sh["coarse_grid"], nvec, geo, trig, frames,
-                              ROUGH_LINE, pixel)
+            self._g2i_args = ((self._planes, sh["coarse_grid"], nvec, geo, trig, frames),
+                              pixel)
         return self._g2i_args
 
     def _trig(self, geo) -> tuple:
