@@ -233,7 +233,7 @@ def phases(args, ratio=None, jobs=20):
 
     keep: list = []
     wrap(tiles, "leaves", "lattice", keep)
-    wrap(lattice, "exact_raw", "model (in lattice)", keep)
+    wrap(lattice, "_exact_raw", "model (in lattice)", keep)
     wrap(tiles, "paint_leaves", "paint", keep)
     wrap(tiles, "resample_window", "gather", keep)
     best: dict = {}

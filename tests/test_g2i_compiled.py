@@ -97,3 +97,31 @@ def test_compiled_exact_solve_matches_brute_force(case, monkeypatch):
         # both stop when a secant step is below 1e-9 line
         assert np.nanmax(np.abs(got - ref)) < 1e-8
     assert np.abs(m.ground_to_image(g) - img).max() < 1e-5
+
+
+def test_one_chunk_and_many_chunks_agree_to_the_bit(model, monkeypatch):
+    """A call of one chunk goes straight to the kernel; several chunks are stitched: the
+    same values either way (per point), and NaN where the points are NaN."""
+    img, g, g_off, off = _points(model, n=250)
+    g_off[::7] = np.nan
+    whole = model.ground_to_image(g_off, clip=False)
+    monkeypatch.setattr(pendulum_model, "CHUNK", 64)
+    parts = model.ground_to_image(g_off, clip=False)
+    assert whole.tobytes() == parts.tobytes()
+    assert np.isnan(whole[::7]).all()
+    assert model.ground_to_image(g_off[:0]).shape == (0, 2)
+    assert model.ground_to_image(g_off[:12].reshape(3, 4, 3)).shape == (3, 4, 2)
+
+
+def test_kernel_arguments_belong_to_their_model(model):
+    """The kernel's arguments are made once per model: a copy with other parameters
+    (made after the first has been used) gets its own."""
+    img, g, g_off, off = _points(model, n=50)
+    before = model.ground_to_image(g)
+    moved = model.with_parameters(opk_sen=[0.03, -0.47, 0.5])
+    fresh = PendulumModel.build(model.sensor, model.lines, model.trajectory,
+                                moved.parameters, direction=model.direction)
+    got = moved.ground_to_image(g)
+    assert got.tobytes() == fresh.ground_to_image(g).tobytes()
+    assert np.nanmax(np.abs(got - before)) > 0.01          # the copy moved the points
+    assert model.ground_to_image(g).tobytes() == before.tobytes()

@@ -54,3 +54,29 @@ def test_no_frame_where_heights_need_longitude_and_latitude(dem):
     assert tile_frame(grid, dem, 65, 65) is None
     assert tile_frame(Grid(CRS, Affine(1.0, 0, X0, 0, -1.0, Y0), (64, 64)),
                       ConstantHeight(0.0), 65, 65) is not None
+
+
+def test_heights_from_map_says_when_map_heights_gives_heights(dem):
+    from swathflow.geometry.grid import _heights_from_map, _map_heights
+    x, y = np.array([X0 + 10.0]), np.array([Y0 - 10.0])
+    for crs in (CRS, "EPSG:3857", "EPSG:4326", "EPSG:32632"):
+        for terrain in (ConstantHeight(5.0), dem):
+            assert _heights_from_map(crs, terrain) == (
+                _map_heights(crs, terrain, x, y) is not None), (crs, terrain)
+    assert _heights_from_map(CRS, dem) and not _heights_from_map("EPSG:3857", dem)
+
+
+def test_frame_nodes_are_pyprojs_values_at_the_chebyshev_nodes(dem):
+    """The nodes the frame interpolates are pyproj's own values (the frame is made at every
+    tile: its inputs are built without broadcast views, to the same numbers)."""
+    from swathflow.geometry.grid import _nodes_basis, _to_ecef
+    grid = Grid(CRS, Affine(0.05, 0, X0, 0, -0.05, Y0), (512, 512))
+    frame = tile_frame(grid, dem, 513, 545)
+    rn, cn = _nodes_basis(513)[0], _nodes_basis(545)[0]
+    x, y = grid.xy(rn[:, None, None], cn[None, :, None])
+    x, y, h = np.broadcast_arrays(x, y, np.array([0.0, 1000.0]))
+    p = np.stack(_to_ecef(CRS).transform(x, y, h), axis=-1)
+    p0, p1 = p[:, :, 0], p[:, :, 1]
+    assert frame.origin.tobytes() == p0[2, 2].tobytes()
+    ref = np.concatenate([p0 - p0[2, 2], (p1 - p0) / 1000.0], axis=-1)
+    assert frame.nodes.tobytes() == np.ascontiguousarray(ref).tobytes()

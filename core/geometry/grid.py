@@ -188,14 +188,19 @@ def _map_heights(crs: str, terrain, x, y):
     """Ellipsoidal heights at map points of ``crs`` straight from the map coordinates (a
     constant height, or a DEM in the same CRS), None where that needs longitude and
     latitude (another terrain, a DEM in another CRS, a CRS not on WGS 84)."""
-    from swathflow.geometry.terrain import DEM, ConstantHeight
-    if not _wgs84_projected(crs):
+    from swathflow.geometry.terrain import ConstantHeight
+    if not _heights_from_map(crs, terrain):
         return None
     if type(terrain) is ConstantHeight:
         return np.full(np.broadcast_shapes(x.shape, y.shape), float(terrain.h))
-    if type(terrain) is DEM and _same_crs(crs, terrain.crs_wkt):
-        return terrain.height_xy(x, y)
-    return None
+    return terrain.height_xy(x, y)
+
+
+def _heights_from_map(crs: str, terrain) -> bool:
+    """Whether :func:`_map_heights` gives heights (not None) in ``crs`` on ``terrain``."""
+    from swathflow.geometry.terrain import DEM, ConstantHeight
+    return _wgs84_projected(crs) and (type(terrain) is ConstantHeight or (
+        type(terrain) is DEM and _same_crs(crs, terrain.crs_wkt)))
 
 
 #: degree in rows and in columns of the polynomials of :class:`TileFrame` (5 x 5
@@ -215,8 +220,9 @@ class TileFrame:
         self.grid, self.terrain = grid, terrain
         d = FRAME_DEGREE
         (rn, self.b_rows), (cn, self.b_cols) = _nodes_basis(H), _nodes_basis(W)
-        x, y = grid.xy(rn[:, None, None], cn[None, :, None])
-        x, y, h = np.broadcast_arrays(x, y, np.array([0.0, 1000.0]))
+        x, y, h = np.empty((3, rn.size, cn.size, 2))    # filled by broadcasting (cheaper
+        x[...], y[...] = grid.xy(rn[:, None, None], cn[None, :, None])   # than views)
+        h[...] = (0.0, 1000.0)
         p = np.stack(_to_ecef(grid.crs).transform(x, y, h), axis=-1)    # one call
         p0, p1 = p[:, :, 0], p[:, :, 1]
         self.origin = p0[d // 2, d // 2].copy()    # the polynomials carry offsets from it
@@ -294,7 +300,7 @@ def tile_frame(grid: "Grid", terrain, H: int, W: int) -> "TileFrame | None":
     """A :class:`TileFrame` of the window ``H`` x ``W`` from the grid's origin, or None
     where the heights need longitude and latitude (:func:`_map_heights`: then
     :meth:`Grid.to_ecef`)."""
-    if _map_heights(grid.crs, terrain, np.zeros(1), np.zeros(1)) is None or H < 2 or W < 2:
+    if H < 2 or W < 2 or not _heights_from_map(grid.crs, terrain):
         return None
     return TileFrame(grid, terrain, H, W)
 

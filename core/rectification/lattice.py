@@ -68,11 +68,16 @@ def exact_raw(model, grid, terrain, rows, cols, frame=None) -> np.ndarray:
     it (integer rows and columns inside its window)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        if frame is not None:
-            g = frame.ecef(rows, cols)
-        else:
-            g = grid.to_ecef(*grid.xy(rows, cols), terrain)
-        return model.ground_to_image(g, clip=False)
+        return _exact_raw(model, grid, terrain, rows, cols, frame)
+
+
+def _exact_raw(model, grid, terrain, rows, cols, frame):
+    """:func:`exact_raw` without its warnings filter (the caller holds one)."""
+    if frame is not None:
+        g = frame.ecef(rows, cols)
+    else:
+        g = grid.to_ecef(*grid.xy(rows, cols), terrain)
+    return model.ground_to_image(g, clip=False)
 
 
 @dataclass(frozen=True)
@@ -127,8 +132,8 @@ class _Exact:
 
     def _evaluate(self, rr, cc):
         if rr.size:
-            _store(self.values, rr, cc, exact_raw(self.model, self.grid, self.terrain, rr, cc,
-                                                  self.frame))
+            _store(self.values, rr, cc, _exact_raw(self.model, self.grid, self.terrain, rr,
+                                                   cc, self.frame))
             self.count += rr.size
 
     def __call__(self, r, c):
@@ -311,6 +316,13 @@ def leaves(model, grid, terrain, tol: float = TOLERANCE_PX, step: int = 32,
     ``dense`` True evaluates the exact model at every pixel of the tile instead
     (:attr:`Leaves.pixels`), False always refines, None (default) chooses per tile by
     :func:`_dense_cheaper`."""
+    with warnings.catch_warnings():              # one filter a tile, not one a model call
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return _leaves(model, grid, terrain, tol, step, smooth, raw_shape, dense)
+
+
+def _leaves(model, grid, terrain, tol, step, smooth, raw_shape, dense) -> Leaves:
+    """:func:`leaves` inside its warnings filter."""
     h, w = grid.shape
     step = 1 << max(int(math.log2(max(step, 1))), 0)
     half = tol * TEST_SHARE                      # a share of the bound at the test points

@@ -409,34 +409,34 @@ class PendulumModel(SensorModel):
 
     def ground_to_image(self, ground, clip: bool = True) -> np.ndarray:
         ground = np.asarray(ground, float)
-        shape = ground.shape[:-1]
-        g = ground.reshape(-1, 3)
+        shape, g = ground.shape[:-1], ground.reshape(-1, 3)
+        if 0 < g.shape[0] <= CHUNK:      # one chunk (the lattice's calls): no copy
+            return self._ground_to_image(g, clip).reshape(shape + (2,))
         out = np.full((g.shape[0], 2), np.nan)
-        # in chunks: the temporaries stay in the CPU cache
-        for s in range(0, g.shape[0], CHUNK):
+        for s in range(0, g.shape[0], CHUNK):    # the temporaries stay in the CPU cache
             out[s:s + CHUNK] = self._ground_to_image(g[s:s + CHUNK], clip)
         return out.reshape(shape + (2,))
 
     def _ground_to_image(self, g, clip: bool) -> np.ndarray:
-        """Compiled path (numba, ``kernel.ground_to_image``): the same brackets and
-        refinement as the numpy path, one point at a time."""
-        out = np.empty((g.shape[0], 2))
+        """Compiled path (``kernel.ground_to_image``): the numpy path, point by point."""
+        out, clip = np.empty((g.shape[0], 2)), bool(clip)
         g = np.ascontiguousarray(g, dtype=float)
-        sh = self._shared
-        if "coarse_grid" not in sh:
-            sh["coarse_grid"] = coarse_grid(self.n_lines)
-        geo = self._geo()
-        nvec = np.array([0.0, self._f, self._y0])
-        trig = self._trig(geo)
-        if getattr(self, "_epoch_frames", None) is None:
-            self._epoch_frames = kernel.epoch_frames(geo, trig, nvec)
-        frames = self._line_frames() + self._epoch_frames
-        pixel = (self._k0, self._f, self._pp, float(self.n_elements))
-        if self.n_lines >= 2 and kernel.ground_to_image(
-                g, self._planes, sh["coarse_grid"], nvec, geo, trig, frames, ROUGH_LINE,
-                pixel, bool(clip), out):
+        args, pixel = self._kernel_args()
+        if self.n_lines >= 2 and kernel.ground_to_image(g, *args, ROUGH_LINE, pixel, clip,
+                                                        out):
             return out
         return self._ground_to_image_numpy(g, clip)   # the POS has a gap there: it reports
+
+    def _kernel_args(self) -> tuple:
+        """The model's arguments of ``kernel.ground_to_image``, made once (~8 calls a tile)."""
+        if getattr(self, "_g2i_args", None) is None:
+            coarse = self._shared.setdefault("coarse_grid", coarse_grid(self.n_lines))
+            geo, nvec = self._geo(), np.array([0.0, self._f, self._y0])
+            trig = self._trig(geo)
+            frames = self._line_frames() + kernel.epoch_frames(geo, trig, nvec)
+            self._g2i_args = ((self._planes, coarse, nvec, geo, trig, frames),
+                              (self._k0, self._f, self._pp, float(self.n_elements)))
+        return self._g2i_args
 
     def _trig(self, geo) -> tuple:
         """The kernels' sine tables (``kernel.trig_tables``), made once per swing."""
