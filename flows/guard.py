@@ -21,6 +21,17 @@ class Terminated(BaseException):
     removed, the ephemeral Prefect server and Dask cluster shut down on the way out)."""
 
 
+def signalled(exc: BaseException) -> BaseException | None:
+    """The :class:`Terminated` or :class:`KeyboardInterrupt` behind ``exc`` (None: none).
+    A signal handler can raise inside Python code that compiled code called (numba's
+    dispatcher unpickling a function's globals, a ctypes callback): that code then
+    reports a ``SystemError`` whose cause is the signal's exception."""
+    for e in _chain(exc):
+        if isinstance(e, (Terminated, KeyboardInterrupt)):
+            return e
+    return None
+
+
 @contextlib.contextmanager
 def on_sigterm():
     def handler(signum, frame):

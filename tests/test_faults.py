@@ -250,6 +250,28 @@ def test_sigterm_exits_143_with_a_message(tmp_path):
     assert "terminated" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("kind, code, word", [("sigterm", 143, "terminated"),
+                                              ("ctrl-c", 130, "interrupted")])
+def test_a_signal_raised_inside_compiled_code_still_ends_the_run_as_signalled(
+        tmp_path, monkeypatch, capsys, kind, code, word):
+    """A signal handler that raises inside Python code called by compiled code (numba's
+    dispatcher unpickling a function) reaches the command as a SystemError whose cause is
+    the signal's exception (CI of stop 26): still the signal's exit code and one line."""
+    from swathflow.flows.cli import commands
+    from swathflow.flows.guard import Terminated
+
+    def simulate(args):
+        try:
+            raise Terminated() if kind == "sigterm" else KeyboardInterrupt()
+        except BaseException as exc:
+            raise SystemError("CPUDispatcher(<function hits>) returned a result with an "
+                              "exception set") from exc
+    monkeypatch.setattr(commands, "simulate", simulate)
+    assert main(["simulate", str(tmp_path / "d"), "--preset", "demo"]) == code
+    err = capsys.readouterr().err
+    assert word in err and "Traceback" not in err and "SystemError" not in err
+
+
 # ------------------------------------------------------------------------------------------
 # tracebacks
 

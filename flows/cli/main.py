@@ -337,6 +337,7 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
         explain_os_error,
         on_sigterm,
         output_lock,
+        signalled,
     )
     _show_warnings(args.command)
     if program:          # the start-up's objects (modules) live to the end: out of the
@@ -350,23 +351,32 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
     except SwathflowError as exc:
         print(f"swathflow {args.command}: error: {exc}", file=sys.stderr)
         code = 2
-    except Terminated:
-        print(f"swathflow {args.command}: terminated (SIGTERM); finished outputs are kept, "
-              f"re-run to complete", file=sys.stderr)
-        code = 143
-    except KeyboardInterrupt:
-        print(f"swathflow {args.command}: interrupted; finished outputs are kept, "
-              f"re-run to complete", file=sys.stderr)
-        code = 130
+    except (Terminated, KeyboardInterrupt) as exc:
+        code = _signalled(args.command, exc)
     except Exception as exc:
-        msg = explain_os_error(exc, getattr(args, "out", None))
-        if msg is None:
-            raise
-        print(f"swathflow {args.command}: error: {msg}", file=sys.stderr)
-        code = 2
+        if signalled(exc) is not None:       # raised inside compiled code's Python call
+            code = _signalled(args.command, signalled(exc))
+        else:
+            msg = explain_os_error(exc, getattr(args, "out", None))
+            if msg is None:
+                raise
+            print(f"swathflow {args.command}: error: {msg}", file=sys.stderr)
+            code = 2
     if program and args.command in QUICK_EXIT:
         _CODE[0] = code
     return code
+
+
+def _signalled(command: str, exc: BaseException) -> int:
+    """The message and exit code of a run ended by SIGTERM (143) or Ctrl-C (130)."""
+    from swathflow.flows.guard import Terminated
+    if isinstance(exc, Terminated):
+        print(f"swathflow {command}: terminated (SIGTERM); finished outputs are kept, "
+              f"re-run to complete", file=sys.stderr)
+        return 143
+    print(f"swathflow {command}: interrupted; finished outputs are kept, "
+          f"re-run to complete", file=sys.stderr)
+    return 130
 
 
 def _show_warnings(command: str) -> None:
