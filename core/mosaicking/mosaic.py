@@ -35,8 +35,8 @@ from swathflow.io import write_text
 from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, Layout, Swing,
                                          _Handles, find_inputs, mission_strips, read_window,
                                          scan_inputs)
-from swathflow.mosaicking.output import (mosaic_array, overview, quicklook, render_tile,
-                                          stretch, swing_cache, write_mosaic)
+from swathflow.mosaicking.output import (level_overview, mosaic_array, overview, quicklook,
+                                          render_tile, stretch, swing_cache, write_mosaic)
 
 if TYPE_CHECKING:
     from swathflow.mosaicking.network import Network
@@ -155,10 +155,26 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
     load_kernels()
     layout, off, rad, rep = planned
     rep = dict(rep)
-    with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
-        rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers, cog=cog,
-                                handles=handles))
-    _products(out, rep, png, report, layout)
+    early = []          # the products made from the first overview level, on a thread
+
+    def products_now(level, nodata):
+        data = level_overview(level, nodata, layout.shape) if cog else None
+        if data is not None and (png or (report and "overlaps" in rep)):
+            early.append(_submit(_products, out, dict(rep), png, report, layout, data))
+
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=int(cache_mb)):
+            rep.update(write_mosaic(layout, out, off, rad, feather, mode, tile, workers,
+                                    cog=cog, handles=handles, on_level1=products_now))
+    except BaseException:
+        for f in early:
+            f.exception()       # waited for; the mosaic's error is the one raised
+        raise
+    made = [f.result() for f in early]
+    if made:
+        rep["seconds_quicklook"] = made[0]["seconds_quicklook"]
+    else:
+        _products(out, rep, png, report, layout)
     rep["seconds"] = round(time.perf_counter() - t0, 3)
     rep["mpx_per_s"] = round(layout.shape[0] * layout.shape[1] / 1e6 / rep["seconds"], 3)
     if report:
@@ -195,10 +211,15 @@ def load_kernels_async(matching: bool = False):
     (``result()`` waits for it and raises what it raised). :func:`plan_mosaic` reads the
     swings' headers and decodes the swings (GDAL releases the GIL) meanwhile: numba's
     start is the largest fixed cost of a mosaic (about 0.4 CPU-s, 48-swing benchmark)."""
+    return _submit(load_kernels, matching, name="swathflow-kernels")
+
+
+def _submit(fn, *args, name: str = "swathflow-products"):
+    """``fn(*args)`` on a thread of its own, started now: its future."""
     from concurrent.futures import ThreadPoolExecutor
-    ex = ThreadPoolExecutor(1, thread_name_prefix="swathflow-kernels")
+    ex = ThreadPoolExecutor(1, thread_name_prefix=name)
     try:
-        return ex.submit(load_kernels, matching)
+        return ex.submit(fn, *args)
     finally:
         ex.shutdown(wait=False)
 
@@ -250,11 +271,13 @@ def _log_matching(log, rep) -> None:
         log(f"  skipped {s['ref']} / {s['mov']}: {s['status']}")
 
 
-def _products(out, rep, png, report, layout) -> None:
+def _products(out, rep, png, report, layout, data=None) -> dict:
     """The quicklook PNG, the seams/residuals picture and the HTML report, from one read
-    of the mosaic's overviews. The report picture is drawn and encoded on a second thread
-    while this one encodes the quicklook and writes the HTML (Pillow's encoder and
-    resampling release the GIL)."""
+    of the mosaic's overviews (or ``data``, that read's result: :func:`finish_mosaic`
+    makes them from the first overview level while the COG is laid out). The report
+    picture is drawn and encoded on a second thread while this one encodes the quicklook
+    and writes the HTML (Pillow's encoder and resampling release the GIL). Returns
+    ``rep``, with the time taken."""
     stem = os.path.splitext(os.fspath(out))[0]
     t1 = time.perf_counter()
     figures = report and "overlaps" in rep
@@ -262,7 +285,7 @@ def _products(out, rep, png, report, layout) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
         from swathflow.mosaicking.drawing import png_bytes
-        data, f = overview(out, 1024)
+        data, f = overview(out, 1024) if data is None else data
         grey = stretch(data)
         with ThreadPoolExecutor(1, thread_name_prefix="swathflow-report") as ex:
             picture = None
@@ -278,3 +301,4 @@ def _products(out, rep, png, report, layout) -> None:
                 mosaic_report_html(out, rep, layout, stem + ".html", grey, f, encoded)
                 picture.result()
     rep["seconds_quicklook"] = round(time.perf_counter() - t1, 3)
+    return rep

@@ -200,11 +200,13 @@ def _first_level(H, W, tile, blocksize, dtype, nodata):
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                  mode: str = "feather", tile: int = 1024, workers: int | None = None,
                  dtype=None, nodata=None, cog: bool = True, blocksize: int = 512,
-                 handles=None) -> dict:
+                 handles=None, on_level1=None) -> dict:
     """Render the mosaic tile by tile on ``workers`` threads into ``out`` (a COG with
     overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles and the
     swing cache. ``handles``: the :class:`_Handles` to read the swings through (its own
-    if None).
+    if None). ``on_level1``: called with the first overview level (:func:`level_overview`'s
+    argument) once every tile is written and before the COG is laid out, when that level
+    is reduced in memory (it may start work beside the layout; it must not change it).
 
     The COG is written as the rectification's (:mod:`swathflow.rectification.writing`):
     GDAL compresses each tile once as it is streamed (DEFLATE level 1 with the
@@ -247,6 +249,8 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                             level1)
                 ds.update_tags(product="mosaic", blend=mode, software="swathflow")
             t_render = time.perf_counter() - t0
+            if on_level1 is not None and level1 is not None:
+                on_level1(level1.array[0], nodata)
             if cog:
                 writing._layout_cog(part, final, out, level1, profile, blocksize, "average")
     finally:
@@ -265,6 +269,20 @@ def overview(src_path, max_side: int = 1024):
         shape = (max(1, int(ds.height / f)), max(1, int(ds.width / f)))
         a = ds.read(1, out_shape=shape, masked=True).astype(np.float32)
     return a.filled(np.nan), f
+
+
+def level_overview(level, nodata, shape, max_side: int = 1024):
+    """What :func:`overview` reads from the COG of ``shape`` (rows, cols), taken from its
+    first overview level ``level`` (the array the COG's level is written from) when that is
+    the level :func:`overview` reads whole (the same size); else None."""
+    H, W = shape
+    f = max(1.0, max(W, H) / max_side)
+    if f == 1.0 or (max(1, int(H / f)), max(1, int(W / f))) != level.shape:
+        return None
+    a = level.astype(np.float32)
+    if nodata is not None and not np.isnan(nodata):
+        a[level == nodata] = np.nan
+    return a, f
 
 
 def stretch(data):
