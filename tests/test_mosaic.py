@@ -380,3 +380,32 @@ def test_scan_hands_its_datasets_to_the_decoding(scene, monkeypatch):
             assert all(ds.closed for ds in opened) and not small._opened
         finally:
             small.close()
+
+
+def test_products_from_the_first_overview_level_are_the_cogs(scene, tmp_path, monkeypatch):
+    """The quicklook, report picture and HTML made from the first overview level in memory
+    (beside the COG's layout) are byte for byte those made from the written COG."""
+    H, W = scene["shape"]
+    side = max(H, W) // 2
+    if (H % 2, W % 2) != (0, 0) or max(H, W) % 2:
+        pytest.skip("the scene's sides are not even")
+    monkeypatch.setattr(M, "QUICKLOOK_SIDE", side)
+    used = []
+    real = M.level_overview
+    monkeypatch.setattr(M, "level_overview", lambda *a: used.append(real(*a)) or used[-1])
+    for d in ("early", "read"):
+        (tmp_path / d).mkdir()
+    M.mosaic(scene["paths"], tmp_path / "early" / "m.tif", anchors=["0"], tile=256)
+    assert len(used) == 1 and used[0] is not None and used[0][0].shape == (H // 2, W // 2)
+    monkeypatch.setattr(M, "level_overview", lambda *a: None)
+    M.mosaic(scene["paths"], tmp_path / "read" / "m.tif", anchors=["0"], tile=256)
+    for ext in (".png", ".report.png", ".html"):
+        assert (tmp_path / "early" / f"m{ext}").read_bytes() == \
+            (tmp_path / "read" / f"m{ext}").read_bytes()
+    # the COG's pixels (its bytes may differ run to run: base too, tiles land in any order)
+    np.testing.assert_array_equal(_read(tmp_path / "early" / "m.tif")[0],
+                                  _read(tmp_path / "read" / "m.tif")[0])
+    data, f = M.overview(tmp_path / "read" / "m.tif", side)
+    np.testing.assert_array_equal(used[0][0], data)
+    assert used[0][1] == f
+    assert M.level_overview(used[0][0][:-1], np.nan, (H, W), side) is None

@@ -299,3 +299,42 @@ def test_blend_modules_do_not_import_the_matching():
     assert lines[0] == "[]"
     assert lines[1].split() == ["swathflow.mosaicking.seams", "swathflow.mosaicking.overlaps",
                                 "swathflow.mosaicking.network"]
+
+
+def test_numba_extensions_declared_reads_the_entry_points(tmp_path, monkeypatch):
+    """A distribution naming the numba_extensions group counts; others, files without
+    entry points and missing folders do not; a zip on the path lets numba look."""
+    from swathflow.mosaicking.mosaic import numba_extensions_declared
+    (tmp_path / "plain-1.0.dist-info").mkdir()
+    (tmp_path / "plain-1.0.dist-info" / "entry_points.txt").write_text(
+        "[console_scripts]\nplain = plain:main\n")
+    (tmp_path / "bare-1.0.dist-info").mkdir()
+    (tmp_path / "old.egg-info").write_text("")
+    monkeypatch.setattr("sys.path", [str(tmp_path), str(tmp_path / "missing")])
+    assert not numba_extensions_declared()
+    (tmp_path / "ext-1.0.dist-info").mkdir()
+    (tmp_path / "ext-1.0.dist-info" / "entry_points.txt").write_text(
+        "[numba_extensions]\ninit = ext:init\n")
+    assert numba_extensions_declared()
+    (tmp_path / "lib.zip").write_bytes(b"PK")
+    monkeypatch.setattr("sys.path", [str(tmp_path / "lib.zip")])
+    assert numba_extensions_declared()
+
+
+def test_kernels_start_without_the_entry_point_scan_when_none_is_declared():
+    """With no numba extension installed (this venv), numba's first compilation does not
+    parse every distribution's entry points; compiled code still compiles and runs. With
+    one declared, numba loads it as usual (entry_points() is called)."""
+    code = (
+        "import importlib.metadata as m, sys\n"
+        "calls = []\n"
+        "real = m.entry_points\n"
+        "m.entry_points = lambda *a, **k: calls.append(1) or real(*a, **k)\n"
+        "from swathflow.mosaicking import mosaic as M\n"
+        "{patch}"
+        "M.load_kernels()\n"
+        "import numba\n"
+        "print(len(calls), numba.njit(lambda x: x + 1)(2))\n")
+    assert _fresh(code.format(patch="")).split() == ["0", "3"]
+    patch = "M.numba_extensions_declared = lambda: True\n"
+    assert _fresh(code.format(patch=patch)).split() == ["1", "3"]
