@@ -338,3 +338,35 @@ def test_kernels_start_without_the_entry_point_scan_when_none_is_declared():
     assert _fresh(code.format(patch="")).split() == ["0", "3"]
     patch = "M.numba_extensions_declared = lambda: True\n"
     assert _fresh(code.format(patch=patch)).split() == ["1", "3"]
+
+
+def _fresh_in(code: str, cwd) -> list:
+    import subprocess
+    import sys
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True, cwd=cwd).stdout.split()
+
+
+_YAML_CODE = (
+    "import sys\n"
+    "from swathflow.mosaicking.mosaic import load_kernels\n"
+    "load_kernels()\n"
+    "import numba\n"
+    "from numba.core import config\n"
+    "print('yaml' in sys.modules, config.DEVELOPER_MODE)\n"
+    "open('.numba_config.yaml', 'w').write('developer_mode: 1\\n')\n"
+    "print(numba.njit(lambda x: x + 1)(2), config.DEVELOPER_MODE)\n"
+    "import yaml\n"
+    "print(type(yaml).__name__, yaml.safe_load('a: 5')['a'])\n")
+
+
+def test_numba_starts_without_yaml_and_still_reads_a_config_file_made_later(tmp_path):
+    """Without a numba config file numba is imported without PyYAML; a config file made
+    later is read at the next compilation (numba re-reads its config), and ``import
+    yaml`` then gives the real module."""
+    assert _fresh_in(_YAML_CODE, tmp_path) == ["False", "0", "3", "1", "module", "5"]
+
+
+def test_a_numba_config_file_is_read_at_numba_start(tmp_path):
+    (tmp_path / ".numba_config.yaml").write_text("developer_mode: 1\n")
+    assert _fresh_in(_YAML_CODE, tmp_path)[:2] == ["True", "1"]

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 from typing import TYPE_CHECKING
 
@@ -36,6 +35,7 @@ from swathflow.io import write_text
 from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, Layout, Swing,
                                          _Handles, find_inputs, mission_strips, read_window,
                                          scan_inputs)
+from swathflow.mosaicking.lean_numba import config_without_yaml, numba_extensions_declared
 from swathflow.mosaicking.output import (level_overview, mosaic_array, overview, quicklook,
                                           render_tile, stretch, swing_cache, write_mosaic)
 
@@ -194,7 +194,8 @@ def load_kernels(matching: bool = False) -> None:
     from swathflow.startup import lean_numba_arrays, uncollected
     first = not _FROZEN
     with uncollected(freeze=first):
-        from swathflow.mosaicking import kernels
+        with config_without_yaml():
+            from swathflow.mosaicking import kernels
         if matching:
             from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
         if first and not numba_extensions_declared():
@@ -211,32 +212,6 @@ def load_kernels(matching: bool = False) -> None:
 QUICKLOOK_SIDE = 1024
 
 _FROZEN: list = []     # load_kernels froze the start-up objects (once per process)
-
-
-def numba_extensions_declared() -> bool:
-    """Whether an installed distribution may declare numba extensions (entry point group
-    ``numba_extensions``): its ``entry_points.txt`` names the group, or a ``sys.path``
-    entry is not a folder to look in. numba's first compilation loads them through
-    ``importlib.metadata.entry_points()``, which parses every distribution's entry points
-    (178 in this venv: 25-45 ms at load, on the critical path of a mosaic's start); when
-    none declares any, :func:`load_kernels` marks them loaded instead (2 ms of reads)."""
-    for entry in sys.path:
-        folder = entry or "."
-        if os.path.isfile(folder):
-            return True             # a zip: let numba look
-        try:
-            names = os.listdir(folder)
-        except OSError:
-            continue
-        for n in names:
-            if n.endswith((".dist-info", ".egg-info")):
-                try:
-                    with open(os.path.join(folder, n, "entry_points.txt"), "rb") as f:
-                        if b"numba_extensions" in f.read():
-                            return True
-                except OSError:
-                    pass
-    return False
 
 
 def load_kernels_async(matching: bool = False):
