@@ -159,8 +159,10 @@ def finish_mosaic(planned, out, feather: int = 64, mode: str = "feather", tile: 
     early = []          # the products made from the first overview level, on a thread
 
     def products_now(level, nodata):
-        data = level_overview(level, nodata, layout.shape, QUICKLOOK_SIDE) if cog else None
-        if data is not None and (png or (report and "overlaps" in rep)):
+        if not (cog and (png or (report and "overlaps" in rep))):
+            return
+        data = level_overview(level, nodata, layout.shape, QUICKLOOK_SIDE)
+        if data is not None:
             early.append(_submit(_products, out, dict(rep), png, report, layout, data))
 
     try:
