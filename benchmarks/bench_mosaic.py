@@ -19,6 +19,10 @@
 --peers16 the same on 16x the area (768 swings, 58 Mpx).
 --quick   with --peers/--peers16: only mosaic() in one process, the blend alone and
           rasterio.merge (the long 16x run in a few minutes).
+--repeat N  with --peers/--peers16: N alternated rounds of swathflow's runs and
+          rasterio.merge (the GDAL peers in the first only): the table of medians, then
+          each round's ratio of the CLI and of the blend to that round's merge (idle
+          estimate and wall), their medians and how many rounds meet issue 15's targets.
 --paper   You & Li's job (papers.md section 3): 24 strips of 6 km at 2 m pixels, swath of
           a 30 degree field of view from 650 m (348 m = 174 px), 20 % overlap, about 40 km2,
           strips displaced by 1-5 px; simulated as rectified swings and mosaicked end to end.
@@ -261,27 +265,14 @@ def _peer_commands(work, folder, paths):
     return out
 
 
-def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
-    print(f"\n== side by side, same inputs ({label}), one run each ==")
-    d = os.path.join(work, f"peers{n_strips}")
-    g = generate(d, n_strips, length)
-    H, W = g["shape"]
-    mpx = H * W / 1e6
+def _peer_round(work, d, g, env, sf, quick, gdal):
+    """One round of the side-by-side runs: (rows, mosaic() report, max offset error)."""
     paths = g["paths"]
-    env = dict(os.environ, GDAL_NUM_THREADS="2")
-    sf = os.path.join(os.path.dirname(sys.executable), "swathflow")
     rows = []       # (name, whole wall, whole cpu, in-process s, rss, idle-machine wall est.)
-    # once before measuring: the first run after an install compiles and caches the numba
-    # kernels (a one-off cost of several seconds a user meets once, not per mosaic)
-    _measured([sf, "mosaic", d, "--out", os.path.join(work, "warm.tif"), "--anchor", "0",
-               "-q", "--no-match"] if quick else
-              [sf, "mosaic", d, "--out", os.path.join(work, "warm.tif"), "--anchor", "0",
-               "-q"], env)
     if not quick:
         w, c, r, _ = _measured([sf, "mosaic", d, "--out", os.path.join(work, "cli.tif"),
                                 "--anchor", "0", "-q"], env)
-        rows.append(("swathflow mosaic (CLI: match+network+feather, COG+PNG)", w, c, None, r,
-                     LAST_IDLE[0]))
+        rows.append((CLI_ROW, w, c, None, r, LAST_IDLE[0]))
     # the same environment as the peers' (GDAL_NUM_THREADS=2)
     w, r, rep = mosaic_subprocess(paths, os.path.join(work, "sf1.tif"), env)
     err = offset_errors(rep, g["shifts"]).max()
@@ -289,9 +280,8 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
                  rep["seconds"], r, rep["idle"]))
     w, r, rb = mosaic_subprocess(paths, os.path.join(work, "sf_blend.tif"), env, match=False,
                                  png=False)
-    rows.append(("swathflow blend only (feather, COG)", w, rb["cpu"], rb["seconds"], r,
-                 rb["idle"]))
-    for name, cmds in ([] if quick else _peer_commands(work, d, paths)):
+    rows.append((BLEND_ROW, w, rb["cpu"], rb["seconds"], r, rb["idle"]))
+    for name, cmds in (_peer_commands(work, d, paths) if gdal else []):
         w = c = r = e = 0.0
         for argv in cmds:
             w1, c1, r1, _ = _measured(argv, env)
@@ -301,6 +291,64 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
         paths=paths, out=os.path.join(work, "merge.tif")))], env)
     rows.append(("rasterio.merge.merge + write (python -c)", w, c,
                  json.loads(out)["seconds"], r, LAST_IDLE[0]))
+    return rows, rep, err
+
+
+CLI_ROW = "swathflow mosaic (CLI: match+network+feather, COG+PNG)"
+BLEND_ROW = "swathflow blend only (feather, COG)"
+
+
+def _medians(rounds):
+    """Per tool, the median of every column over the rounds that ran it."""
+    import statistics
+    out = []
+    for name, *_ in rounds[0]:
+        runs = [row for rows in rounds for row in rows if row[0] == name]
+        cols = [None if runs[0][k] is None else statistics.median(row[k] for row in runs)
+                for k in range(1, 6)]
+        out.append((name, *cols))
+    return out
+
+
+def _ratio_lines(rounds) -> None:
+    """Each round's ratio of the CLI and the blend to that round's rasterio.merge (idle
+    estimate and wall), their medians and how many rounds meet the targets (issue 15:
+    the command within 2x, the blend no slower)."""
+    import statistics
+    for name, short, target in ((CLI_ROW, "swathflow mosaic (CLI)", 2.0),
+                                (BLEND_ROW, "blend alone", 1.0)):
+        pairs = [(row, rows[-1]) for rows in rounds for row in rows if row[0] == name]
+        if not pairs:
+            continue
+        for label, k in (("idle est.", 5), ("wall", 1)):
+            r = [a[k] / m[k] for a, m in pairs]
+            print(f"{short} / merge, {label}: {' '.join(f'{x:.2f}' for x in r)}; median "
+                  f"{statistics.median(r):.2f}, {sum(x <= target for x in r)} of {len(r)} "
+                  f"rounds within {target:g}x")
+
+
+def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False, repeat=1):
+    each = "one run each" if repeat == 1 else \
+        f"{repeat} alternated rounds (GDAL peers in the first only), medians"
+    print(f"\n== side by side, same inputs ({label}), {each} ==")
+    d = os.path.join(work, f"peers{n_strips}")
+    g = generate(d, n_strips, length)
+    H, W = g["shape"]
+    mpx = H * W / 1e6
+    paths = g["paths"]
+    env = dict(os.environ, GDAL_NUM_THREADS="2")
+    sf = os.path.join(os.path.dirname(sys.executable), "swathflow")
+    # once before measuring: the first run after an install compiles and caches the numba
+    # kernels (a one-off cost of several seconds a user meets once, not per mosaic)
+    _measured([sf, "mosaic", d, "--out", os.path.join(work, "warm.tif"), "--anchor", "0",
+               "-q", "--no-match"] if quick else
+              [sf, "mosaic", d, "--out", os.path.join(work, "warm.tif"), "--anchor", "0",
+               "-q"], env)
+    rounds = []
+    for k in range(max(1, repeat)):
+        rows, rep, err = _peer_round(work, d, g, env, sf, quick, gdal=not quick and k == 0)
+        rounds.append(rows)
+    rows = _medians(rounds) if len(rounds) > 1 else rounds[0]
     ref = rows[-1]
     print(f"grid {H} x {W} = {mpx:.2f} Mpx, {len(paths)} swings; strip offsets recovered to "
           f"{err:.3f} px (max); in one process: match {rep['seconds_match']:.2f} s, render "
@@ -318,6 +366,8 @@ def bench_peers(work, n_strips=12, length=2048, label="48 swings", quick=False):
         ipr = "" if ip is None else f"{ip / ref[3]:.2f}"
         print(f"{name:<56} {w:>8.2f} {c:>7.2f} {'' if ip is None else f'{ip:.2f}':>9} "
               f"{r:>7.0f} {w / ref[1]:>11.2f} {ipr:>13} {e:>11.2f} {e / ref[5]:>10.2f}")
+    if len(rounds) > 1:
+        _ratio_lines(rounds)
     shutil.rmtree(d, ignore_errors=True)
     return rows
 
@@ -353,6 +403,11 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true",
                     help="--peers/--peers16: only swathflow's mosaic() and blend and "
                          "rasterio.merge (no CLI run, no GDAL peers)")
+    ap.add_argument("--repeat", type=int, default=1, metavar="N",
+                    help="--peers/--peers16: N alternated rounds of swathflow's runs and "
+                         "rasterio.merge (the GDAL peers once), the table of medians and "
+                         "each round's ratios to merge (the machine is shared: one round "
+                         "says little)")
     ap.add_argument("--regional", type=float, metavar="GPX", default=0.0,
                     help="the regional case: a mosaic of GPX gigapixels (cheap texture), "
                          "wall time and peak RSS, and four quarter runs compared pixel "
@@ -370,17 +425,18 @@ def main(argv=None):
     print("reproduce: python benchmarks/bench_mosaic.py "
           + " ".join(f"--{k}" for k in ("memory", "peers", "paper", "peers16") if getattr(a, k))
           + (" --quick" if a.quick else "")
+          + (f" --repeat {a.repeat}" if a.repeat > 1 else "")
           + (f" --regional {a.regional}" if a.regional else ""))
     try:
         if a.memory:
             bench_memory(work)
         if a.peers:
-            bench_peers(work, quick=a.quick)
+            bench_peers(work, quick=a.quick, repeat=a.repeat)
         if a.paper:
             bench_paper(work)
         if a.peers16:
             bench_peers(work, n_strips=48, length=8192, label="16x area, 768 swings",
-                        quick=a.quick)
+                        quick=a.quick, repeat=a.repeat)
         if a.regional:
             from bench_regional import bench_regional
             bench_regional(work, a.regional, at_once=a.quarters_at_once)
