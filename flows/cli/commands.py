@@ -149,12 +149,13 @@ def _one_blas_thread() -> None:
 
 
 def _lean_imports() -> None:
-    """Load ``dask.array`` and numba's array target without the scipy parts they import
-    for features no rectification uses (``scipy.fftpack``, the ``scipy.linalg`` package:
-    0.2 CPU-s together on the command's serial start, before its workers fork; see
-    :mod:`swathflow.startup`). Only this command's process is concerned."""
+    """Load ``dask.array`` and numba's array target without the parts they import for
+    features no rectification uses (``scipy.fftpack``, ``scipy.sparse``, the
+    ``scipy.linalg`` package, ``cffi``: 0.25-0.3 CPU-s together on the command's serial
+    start, before its workers fork; see :mod:`swathflow.startup`). Only this command's
+    process is concerned."""
     from swathflow.startup import import_without, lean_numba_arrays
-    import_without("scipy.fftpack", "dask.array")
+    import_without(("scipy.fftpack", "scipy.sparse"), "dask.array")
     lean_numba_arrays()
 
 
