@@ -47,7 +47,11 @@ def import_without(names: str | tuple[str, ...], module: str) -> None:
     modules, 0.08-0.1 CPU-s), and its ``chunk_types`` imports ``scipy.sparse`` only to
     accept sparse matrices as chunks (with it ``scipy._lib``'s array-API shims,
     ``numpy.testing`` and ``numpy.f2py``: 120 modules, about 0.05 CPU-s); and for numba's
-    CFFI support (``cffi`` and ``pycparser``, 0.02-0.04 CPU-s), which no kernel here uses."""
+    CFFI typing (``cffi`` and ``pycparser``, 0.02-0.04 CPU-s on numba's first compiled
+    call), which no kernel here uses.
+
+    Only on a process's main thread while no other thread imports: the modules held back
+    are unimportable for every thread meanwhile."""
     held = (names,) if isinstance(names, str) else tuple(names)
     if module in sys.modules or any(n in sys.modules for n in held):
         return
@@ -103,9 +107,7 @@ def blas_probe_alone():
 def lean_numba_arrays() -> None:
     """Load numba's array target (``numba.np.arraymath``) with its BLAS probe satisfied by
     :func:`blas_probe_alone`, so that neither it nor a later first compiled call runs the
-    ``scipy.linalg`` package; and numba's CFFI typing without ``cffi`` (its first compiled
-    call would import both): in this process, compiled code cannot call CFFI functions."""
-    import_without("cffi", "numba.core.typing.cffi_utils")
+    ``scipy.linalg`` package."""
     if "numba.np.arraymath" in sys.modules:
         return
     with blas_probe_alone():

@@ -156,6 +156,7 @@ def _lean_imports() -> None:
     process is concerned."""
     from swathflow.startup import import_without, lean_numba_arrays
     import_without(("scipy.fftpack", "scipy.sparse"), "dask.array")
+    import_without("cffi", "numba.core.typing.cffi_utils")   # compiled code calls no CFFI
     lean_numba_arrays()
 
 
