@@ -47,23 +47,27 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
 
 def test_rectify_loads_dask_array_and_numba_without_scipy_fft_sparse_linalg_cffi():
     """The rectify command loads dask.array without scipy.fftpack (and scipy.fft,
-    scipy.special behind it) and scipy.sparse, and numba's array target without
-    scipy.linalg and its CFFI typing without cffi (0.25-0.3 CPU-s of its serial start
-    together); all still work afterwards: dask.array's FFTs, scipy.sparse, cffi and a
-    compiled np.dot (numba imports scipy's BLAS when it compiles one)."""
+    scipy.special behind it), scipy.sparse and jinja2, and numba's array target without
+    scipy.linalg and its CFFI typing without cffi (0.3 CPU-s of its serial start
+    together); all still work afterwards: dask.array's FFTs, scipy.sparse, cffi, jinja2
+    and a compiled np.dot (numba imports scipy's BLAS when it compiles one)."""
     code = ("import sys\nfrom swathflow.flows.cli import commands\n"
             "commands._lean_imports()\n"
             "print(*(m in sys.modules for m in ('dask.array', 'numba.np.arraymath',\n"
             "                                   'numba.core.typing.cffi_utils', 'scipy.fft',\n"
-            "                                   'scipy.linalg', 'scipy.sparse', 'cffi')))\n"
-            "import numba, numpy as np, scipy.fftpack, scipy.sparse, cffi, dask.array as da\n"
+            "                                   'scipy.linalg', 'scipy.sparse', 'cffi',\n"
+            "                                   'jinja2')))\n"
+            "import numba, numpy as np, scipy.fftpack, scipy.sparse, cffi, jinja2\n"
+            "import dask.array as da\n"
             "x = np.arange(8.0)\n"
             "print(np.allclose(da.fft.fft(da.from_array(x)).compute(), scipy.fftpack.fft(x)),\n"
             "      numba.njit(lambda a: np.dot(a, a))(x) == 140.0,\n"
-            "      scipy.sparse.eye(3).sum() == 3.0, cffi.FFI().sizeof('int') > 0)\n")
+            "      scipy.sparse.eye(3).sum() == 3.0, cffi.FFI().sizeof('int') > 0,\n"
+            "      jinja2.Template('{{ 1 + 1 }}').render() == '2')\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.stdout.split() == ["True", "True", "True", "False", "False", "False", "False",
-                                "True", "True", "True", "True"], r.stdout + r.stderr
+                                "False", "True", "True", "True", "True", "True"], \
+        r.stdout + r.stderr
 
 
 def test_import_without_falls_back_to_the_usual_import():
