@@ -36,24 +36,35 @@ def uncollected(freeze: bool = True):
             gc.enable()
 
 
-def import_without(name: str, module: str) -> None:
-    """Import ``module`` while an import of ``name`` fails (ImportError), when neither is
-    loaded yet; if ``module`` cannot do without it after all, the usual way. ``name``
-    stays importable afterwards.
+def import_without(names: str | tuple[str, ...], module: str) -> None:
+    """Import ``module`` while an import of ``names`` (one module name or several) fails
+    (ImportError), when ``module`` is not loaded yet and none of ``names`` is; if
+    ``module`` cannot do without them after all, the usual way. ``names`` stay importable
+    afterwards.
 
-    Used for ``dask.array``, whose ``fft`` module imports ``scipy.fftpack`` only to warn
-    about ``fft_wrap(scipy.fftpack...)``: with it ``scipy.fft`` and ``scipy.special``
-    (53 modules, 0.08-0.1 CPU-s)."""
-    if module in sys.modules or name in sys.modules:
+    Used for ``dask.array``: its ``fft`` module imports ``scipy.fftpack`` only to warn
+    about ``fft_wrap(scipy.fftpack...)`` (with it ``scipy.fft`` and ``scipy.special``, 53
+    modules, 0.08-0.1 CPU-s), and its ``chunk_types`` imports ``scipy.sparse`` only to
+    accept sparse matrices as chunks (with it ``scipy._lib``'s array-API shims,
+    ``numpy.testing`` and ``numpy.f2py``: 120 modules, about 0.05 CPU-s); and for numba's
+    CFFI typing (``cffi`` and ``pycparser``, 0.02-0.04 CPU-s on numba's first compiled
+    call), which no kernel here uses.
+
+    Only on a process's main thread while no other thread imports: the modules held back
+    are unimportable for every thread meanwhile."""
+    held = (names,) if isinstance(names, str) else tuple(names)
+    if module in sys.modules or any(n in sys.modules for n in held):
         return
-    sys.modules[name] = None              # an import of it fails while ``module`` loads
+    for n in held:
+        sys.modules[n] = None             # an import of it fails while ``module`` loads
     try:
         import_module(module)
     except ImportError:
         pass
     finally:
-        if sys.modules.get(name, 0) is None:
-            del sys.modules[name]
+        for n in held:
+            if sys.modules.get(n, 0) is None:
+                del sys.modules[n]
     import_module(module)
 
 

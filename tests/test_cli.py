@@ -45,21 +45,28 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
     assert len(ids) >= 2 and all((out / f"{i}.tif").exists() for i in ids)
 
 
-def test_rectify_loads_dask_array_and_numba_without_scipy_fft_and_linalg():
+def test_rectify_loads_dask_array_and_numba_without_scipy_fft_sparse_linalg_cffi():
     """The rectify command loads dask.array without scipy.fftpack (and scipy.fft,
-    scipy.special behind it) and numba's array target without scipy.linalg (0.2 CPU-s
-    of its serial start together); both still work afterwards: dask.array's FFTs and
-    a compiled np.dot (numba imports scipy's BLAS when it compiles one)."""
+    scipy.special behind it), scipy.sparse and jinja2, and numba's array target without
+    scipy.linalg and its CFFI typing without cffi (0.3 CPU-s of its serial start
+    together); all still work afterwards: dask.array's FFTs, scipy.sparse, cffi, jinja2
+    and a compiled np.dot (numba imports scipy's BLAS when it compiles one)."""
     code = ("import sys\nfrom swathflow.flows.cli import commands\n"
             "commands._lean_imports()\n"
             "print(*(m in sys.modules for m in ('dask.array', 'numba.np.arraymath',\n"
-            "                                   'scipy.fft', 'scipy.linalg')))\n"
-            "import numba, numpy as np, scipy.fftpack, dask.array as da\n"
+            "                                   'numba.core.typing.cffi_utils', 'scipy.fft',\n"
+            "                                   'scipy.linalg', 'scipy.sparse', 'cffi',\n"
+            "                                   'jinja2')))\n"
+            "import numba, numpy as np, scipy.fftpack, scipy.sparse, cffi, jinja2\n"
+            "import dask.array as da\n"
             "x = np.arange(8.0)\n"
             "print(np.allclose(da.fft.fft(da.from_array(x)).compute(), scipy.fftpack.fft(x)),\n"
-            "      numba.njit(lambda a: np.dot(a, a))(x) == 140.0)\n")
+            "      numba.njit(lambda a: np.dot(a, a))(x) == 140.0,\n"
+            "      scipy.sparse.eye(3).sum() == 3.0, cffi.FFI().sizeof('int') > 0,\n"
+            "      jinja2.Template('{{ 1 + 1 }}').render() == '2')\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert r.stdout.split() == ["True", "True", "False", "False", "True", "True"], \
+    assert r.stdout.split() == ["True", "True", "True", "False", "False", "False", "False",
+                                "False", "True", "True", "True", "True", "True"], \
         r.stdout + r.stderr
 
 
@@ -72,6 +79,22 @@ def test_import_without_falls_back_to_the_usual_import():
             ".documentElement.tagName)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.stdout.split() == ["True", "a"], r.stdout + r.stderr
+
+
+def test_import_without_holds_back_several_modules_and_leaves_them_importable(tmp_path):
+    """Every module named is held back while the module loads (its optional import of
+    each fails), and each is importable after."""
+    (tmp_path / "optional_users.py").write_text(
+        "try:\n    import json\nexcept ImportError:\n    json = None\n"
+        "try:\n    import csv\nexcept ImportError:\n    csv = None\n")
+    code = ("import sys\nsys.path.insert(0, sys.argv[1])\n"
+            "from swathflow.startup import import_without\n"
+            "import_without(('json', 'csv'), 'optional_users')\n"
+            "import optional_users as m\nprint(m.json, m.csv)\n"
+            "import json, csv\nprint(json.dumps(1), csv.QUOTE_ALL)\n")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True,
+                       text=True)
+    assert r.stdout.split() == ["None", "None", "1", "1"], r.stdout + r.stderr
 
 
 def test_rectify_imports_its_engine_without_collector_passes():

@@ -149,12 +149,14 @@ def _one_blas_thread() -> None:
 
 
 def _lean_imports() -> None:
-    """Load ``dask.array`` and numba's array target without the scipy parts they import
-    for features no rectification uses (``scipy.fftpack``, the ``scipy.linalg`` package:
-    0.2 CPU-s together on the command's serial start, before its workers fork; see
+    """Load ``dask.array`` and numba's array target without the parts they import for
+    features no rectification uses (``scipy.fftpack``, ``scipy.sparse``, the
+    ``scipy.linalg`` package, ``cffi``, and ``jinja2`` of dask's notebook HTML views:
+    0.25-0.3 CPU-s together on the command's serial start, before its workers fork; see
     :mod:`swathflow.startup`). Only this command's process is concerned."""
     from swathflow.startup import import_without, lean_numba_arrays
-    import_without("scipy.fftpack", "dask.array")
+    import_without(("scipy.fftpack", "scipy.sparse", "jinja2"), "dask.array")
+    import_without("cffi", "numba.core.typing.cffi_utils")   # compiled code calls no CFFI
     lean_numba_arrays()
 
 
