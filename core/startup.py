@@ -46,9 +46,7 @@ def import_without(names: str | tuple[str, ...], module: str) -> None:
     about ``fft_wrap(scipy.fftpack...)`` (with it ``scipy.fft`` and ``scipy.special``, 53
     modules, 0.08-0.1 CPU-s), and its ``chunk_types`` imports ``scipy.sparse`` only to
     accept sparse matrices as chunks (with it ``scipy._lib``'s array-API shims,
-    ``numpy.testing`` and ``numpy.f2py``: 120 modules, about 0.05 CPU-s); and for numba's
-    CFFI typing (``cffi`` and ``pycparser``, 0.02-0.04 CPU-s on numba's first compiled
-    call), which no kernel here uses.
+    ``numpy.testing`` and ``numpy.f2py``: 120 modules, about 0.05 CPU-s).
 
     Only on a process's main thread while no other thread imports: the modules held back
     are unimportable for every thread meanwhile."""

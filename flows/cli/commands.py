@@ -151,12 +151,13 @@ def _one_blas_thread() -> None:
 def _lean_imports() -> None:
     """Load ``dask.array`` and numba's array target without the parts they import for
     features no rectification uses (``scipy.fftpack``, ``scipy.sparse``, the
-    ``scipy.linalg`` package, ``cffi``, and ``jinja2`` of dask's notebook HTML views:
-    0.25-0.3 CPU-s together on the command's serial start, before its workers fork; see
-    :mod:`swathflow.startup`). Only this command's process is concerned."""
+    ``scipy.linalg`` package, and ``jinja2`` of dask's notebook HTML views:
+    0.25 CPU-s together on the command's serial start, before its workers fork; see
+    :mod:`swathflow.startup`). Only this command's process is concerned. numba's
+    CFFI support stays (holding ``cffi`` back would save 0.02-0.04 CPU-s, and break a
+    sensor plugin whose compiled code calls a CFFI function)."""
     from swathflow.startup import import_without, lean_numba_arrays
     import_without(("scipy.fftpack", "scipy.sparse", "jinja2"), "dask.array")
-    import_without("cffi", "numba.core.typing.cffi_utils")   # compiled code calls no CFFI
     lean_numba_arrays()
 
 
