@@ -133,3 +133,13 @@ def test_kernel_loop_counts_no_references():
     2/3 of the kernel's time on the demo."""
     from swathflow.sensors.pendulum import kernel
     assert kernel._g2i.targetoptions["_nrt"] is False
+
+
+def test_ray_loop_counts_no_references():
+    """image_to_ground's compiled rays and DEM intersection: no reference counting in
+    their per-ray loops (the same reason as the kernel's above)."""
+    from swathflow.geometry import march
+    from swathflow.sensors.pendulum import kernel
+    for f in (kernel._rays, march.hits, march._one_ray, march._march_piece,
+              march._may_graze, march._refine):
+        assert f.targetoptions["_nrt"] is False, f.py_func.__name__

@@ -409,9 +409,14 @@ def rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out):
     epochs' and the lines', as in :func:`_camera_of`). Returns False where a line is not
     finite or the POS cannot be interpolated at its time (the caller then takes the numpy
     path, which reports it)."""
+    return _rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out, np.empty(8))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out, pos):
+    """:func:`rays`' loop, compiled without reference counting (as :func:`_g2i`)."""
     cols, time, table, max_gap, r_bp, r_hs, u_gps, u_sen = geo
     pos_trig, line_trig, line_epoch, e0 = trig_t
-    pos = np.empty(8)
     n = cols.shape[0]
     for i in range(image.shape[0]):
         line = image[i, 0]
