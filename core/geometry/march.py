@@ -154,7 +154,7 @@ def _gap(t, q, data):
     return h - dem, slope
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _may_graze(t0, t1, q, data):
     """Whether the DEM may rise above the ray between ``t0`` and ``t1`` (at most one cell
     apart across the ground): the lower end of the ray against the highest DEM node of
@@ -176,7 +176,7 @@ def _may_graze(t0, t1, q, data):
     return False
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _refine(ta, ga, tb, gb, q, data, max_iter):
     """The crossing in ``[ta, tb]`` (gap > 0 at ``ta``, <= 0 at ``tb``) to 1e-5 m: Newton
     steps on the bilinear DEM from the chord's root, bisection where one leaves the
@@ -230,7 +230,7 @@ def _narrow(q, blocks, nr, nc):
     return max(_t_at_height(q, hi + 1e-3), 0.0), min(_t_at_height(q, lo - 1e-3), 1.0)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _march_piece(q, data, blocks, g_prev, max_iter):
     """The first crossing from above on one quadratic piece (``t`` in [0, 1], NaN: none)
     and the gap at its end: steps of at most one cell across the ground between the
@@ -291,7 +291,7 @@ def _piece(e, n, u, de, dn, du, l0, length, grid, ubox, coef):
     return _quadratic(c0, c1, c2) + _quadratic(r0, r1, r2) + _quadratic(h0, h1, h2)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _one_ray(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, max_iter):
     """``lam`` of the first crossing of the ray ``o + lam d`` (3-tuples, ``d`` a unit
     vector) with the DEM from above; NaN where none."""
@@ -322,7 +322,7 @@ def _one_ray(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, ma
     return np.nan
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def hits(o, d, h_top, h_bot, origin, rot, grid, ubox, coef, blocks, data, max_iter, out):
     """ECEF points ``out`` where the rays (``d`` any length) first meet the DEM from above
     (NaN: never)."""

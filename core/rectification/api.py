@@ -202,13 +202,17 @@ def warm_up(mission, image_id: str | None = None, calibration=None, *,
     an 8 x 8 px window in the middle of its footprint grid and discarding it. A process
     that forks workers calls it first, so that each worker starts with them loaded (a
     survey swing's first rectification in a forked worker: 0.45 -> 0.16 CPU-s; arguments
-    as :func:`rectify`'s exact method)."""
+    as :func:`rectify`'s exact method). It also keeps freed heap memory in this process and
+    the ones it forks (:func:`~swathflow.rectification.heap.keep_freed_memory`)."""
     from dask.local import get_sync
+
+    from swathflow.rectification.heap import keep_freed_memory
 
     import rioxarray  # noqa: F401  (the .rio accessor of every rectified array)
     from swathflow.rectification.lattice import TOLERANCE_PX
     from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.tiles import output_plan, rectify_blocks
+    keep_freed_memory()
     m = mission if isinstance(mission, Mission) else load_mission(mission)
     iid = image_id if image_id is not None else next(iter(m.images))
     m, model, terrain, grid, _ = _swing(m, iid, calibration, None, None)

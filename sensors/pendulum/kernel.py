@@ -315,8 +315,18 @@ def ground_to_image(points, planes, grid, nvec, geo, trig, frames, rough_line, p
     (``pixel``: k0, focal length, pixel pitch, elements); NaN behind the camera, where no
     line sees the point and, with ``clip``, off the detector. False where the POS could
     not be interpolated (the caller then takes the numpy path, which reports it)."""
-    cam0, cam1, cam2 = np.empty(3), np.empty(3), np.empty(3)
-    pos, gi, cam = np.empty(8), np.empty(3), np.empty(3)
+    return _g2i(points, planes, grid, nvec, geo, trig, frames, rough_line, pixel, clip, out,
+                np.empty((6, 8)))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _g2i(points, planes, grid, nvec, geo, trig, frames, rough_line, pixel, clip, out,
+         scratch):
+    """:func:`ground_to_image`'s loop, compiled without reference counting (``scratch``:
+    its work vectors): with it, the arrays handed to the inlined helpers were counted in
+    and out at every point (atomic operations, 2/3 of the kernel's time)."""
+    cam0, cam1, cam2 = scratch[0, :3], scratch[1, :3], scratch[2, :3]
+    pos, gi, cam = scratch[3], scratch[4, :3], scratch[5, :3]
     k0, focal, pitch, n_elements = pixel
     # the tuples unpacked once, and the refinement written out in the loop: helpers
     # taking the arrays (or the tuples) paid reference counting on every argument at
@@ -399,9 +409,14 @@ def rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out):
     epochs' and the lines', as in :func:`_camera_of`). Returns False where a line is not
     finite or the POS cannot be interpolated at its time (the caller then takes the numpy
     path, which reports it)."""
+    return _rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out, np.empty(8))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _rays(image, geo, trig_t, k0, pixel_pitch, y0, focal, c_out, d_out, pos):
+    """:func:`rays`' loop, compiled without reference counting (as :func:`_g2i`)."""
     cols, time, table, max_gap, r_bp, r_hs, u_gps, u_sen = geo
     pos_trig, line_trig, line_epoch, e0 = trig_t
-    pos = np.empty(8)
     n = cols.shape[0]
     for i in range(image.shape[0]):
         line = image[i, 0]
