@@ -35,7 +35,6 @@ from swathflow.io import write_text
 from swathflow.mosaicking.inputs import (TAG_DIRECTION, TAG_IMAGE, TAG_STRIP, Layout, Swing,
                                          _Handles, find_inputs, mission_strips, read_window,
                                          scan_inputs)
-from swathflow.mosaicking.lean_numba import config_without_yaml, numba_extensions_declared
 from swathflow.mosaicking.output import (level_overview, mosaic_array, overview, quicklook,
                                           render_tile, stretch, swing_cache, write_mosaic)
 
@@ -196,13 +195,9 @@ def load_kernels(matching: bool = False) -> None:
     from swathflow.startup import lean_numba_arrays, uncollected
     first = not _FROZEN
     with uncollected(freeze=first):
-        with config_without_yaml():
-            from swathflow.mosaicking import kernels
+        from swathflow.mosaicking import kernels
         if matching:
             from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
-        if first and not numba_extensions_declared():
-            from numba.core import entrypoints
-            entrypoints._already_initialized = True     # none to load: no metadata scan
         lean_numba_arrays()
         z = np.zeros((1, 1), np.float32)
         kernels.normalise(z, z)             # numba's first call: its typing and targets
