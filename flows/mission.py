@@ -108,13 +108,15 @@ def _early_rectify(address: str, mission: str, out: str, calibration: str):
     out = str(Path(out).resolve())
     try:
         cal = stages.calibrate.fn(mission, out, calibration)
-        ids = list(swings.load(mission).images)
+        loaded = swings.load(mission)
     except Exception:  # noqa: BLE001 - the flow's stages meet it again and report
         yield
         return
+    ids = list(loaded.images)
     with Client(address) as client:
+        # handed to workers that do not hold it (forked ones inherited it)
         _EARLY.update(address=address, client=client, key=(mission, out, cal, tuple(ids)),
-                      futures=submit_swings(client, mission, ids, cal, out))
+                      futures=submit_swings(client, mission, ids, cal, out, loaded))
         try:
             yield
         finally:
