@@ -169,8 +169,8 @@ def _print_timeline(n: int, path: Path, t0: float, wall: float, checked: float) 
 
 def _print_swings(out: Path, t0: float) -> None:
     """When the swings were rectified, from their files and manifests (each records its
-    seconds; the file's time is its end): Dask's task stream misses the work the workers
-    started before the flow run."""
+    seconds; the file's time is its end), independent of Dask's task stream (which
+    records only what ends while the flow runs)."""
     spans = []
     for m in (out / "rectified").glob("*.tif.swathflow.json"):
         end = m.with_name(m.name[:-len(".swathflow.json")]).stat().st_mtime

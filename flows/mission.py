@@ -47,17 +47,14 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     a local cluster (``workers`` processes; default: one per core, at most 4)."""
     mission = str(Path(mission).resolve())
     out = str(Path(out).resolve())
-    early = _EARLY if dask_address and _EARLY.get("address") == dask_address else {}
-    with Progress() as prog, contextlib.ExitStack() as stack:
-        client = early.get("client") or stack.enter_context(dask_client(
-            dask_address, cluster=cluster, jobs=jobs, n_workers=workers))
-        stack.enter_context(_task_stream(client, prog))
-        warm = [] if early else [client.submit(swings.warm, workers=[w], pure=False)
-                                 for w in client.scheduler_info()["workers"]]
+    with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs,
+                                            n_workers=workers) as client, \
+            _task_stream(client, prog):
+        warm = [client.submit(swings.warm, workers=[w], pure=False)
+                for w in client.scheduler_info()["workers"]]
         # the loaded mission sent to the workers (0.5-0.7 s for the survey's 48 MB, load
         # 7) while this process starts the flow run and its first stages
-        handing = _beside(hand_mission, client, mission, stages._load(mission)) \
-            if not early else None
+        handing = _beside(hand_mission, client, mission, stages._load(mission))
         prog.start("ingest")
         info = stages.ingest(mission)
         prog.finish("ingest")
@@ -68,10 +65,8 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         # the workers rectify while this process writes the POS products (no swing needs
         # them; the mission check already found the POS covering every line)
         prog.start("rectify", len(ids))
-        if handing is not None:
-            handing.join()
-        futures = _early_futures(mission, out, ids, cal) or \
-            submit_swings(client, mission, ids, cal, out)
+        handing.join()
+        futures = submit_swings(client, mission, ids, cal, out)
         prog.start("interpolate-pos")
         eo = stages.interpolate_pos(mission, out)
         prog.finish("interpolate-pos")
@@ -91,52 +86,6 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
     return {"mission": info["name"], "eo": eo, "calibration": cal,
             "report": report if os.path.exists(report) else None,
             "rectified": rectified, "mosaic": mos, "catalog": stac, "timings": prog.timings}
-
-
-#: the rectify stage's work started before the flow run (:func:`_early_rectify`):
-#: {"address", "client", "key", "futures"}
-_EARLY: dict = {}
-
-
-@contextlib.contextmanager
-def _early_rectify(address: str, mission: str, out: str, calibration: str):
-    """Every swing of the checked ``mission`` handed to the local cluster at ``address`` as
-    soon as its workers are up, with the given ``calibration`` (checked here as the
-    calibrate stage checks it): they rectify while Prefect's server starts and the flow
-    run begins, instead of waiting idle for the rectify stage (:func:`_early_futures`
-    gives the flow the futures). A client of this process holds them until exit (the
-    flow uses it); nothing is started when the calibration does not suit the mission
-    (the flow reports it)."""
-    from distributed import Client
-    out = str(Path(out).resolve())
-    try:
-        cal = stages.calibrate.fn(mission, out, calibration)
-        loaded = swings.load(mission)
-    except Exception:  # noqa: BLE001 - the flow's stages meet it again and report
-        yield
-        return
-    ids = list(loaded.images)
-    with Client(address) as client:
-        # handed to workers that do not hold it (forked ones inherited it)
-        _EARLY.update(address=address, client=client, key=(mission, out, cal, tuple(ids)),
-                      futures=submit_swings(client, mission, ids, cal, out, loaded))
-        try:
-            yield
-        finally:
-            _EARLY.clear()
-
-
-def _early_futures(mission: str, out: str, ids: list, calibration: str) -> list | None:
-    """The futures of :func:`_early_rectify` when they are this rectify stage's work (the
-    same mission, output folder, swings and calibration); None otherwise (any started
-    are cancelled)."""
-    futures = _EARLY.pop("futures", None)
-    if futures is None:
-        return None
-    if _EARLY.get("key") != (mission, out, calibration, tuple(ids)):
-        _EARLY["client"].cancel(futures)
-        return None
-    return futures
 
 
 def _beside(fn, *args):
@@ -243,8 +192,7 @@ def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs
     fresh.forget(out)
     from prefect.settings import (PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY,
                                   temporary_settings)
-    with _started(mission, dask_address, cluster, workers, out, calibration) as (address,
-                                                                               api_url):
+    with _started(mission, dask_address, cluster, workers) as (address, api_url):
         settings = {PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}
         if api_url:
             settings[PREFECT_API_URL] = api_url
@@ -358,15 +306,13 @@ def _stop_server() -> None:
 
 
 @contextlib.contextmanager
-def _started(mission, dask_address, cluster, workers, out=None, calibration=None):
+def _started(mission, dask_address, cluster, workers):
     """Prefect's temporary server (when no server is configured: started first, it takes
     longest), the local Dask cluster (when no other is asked for; its workers forked from
     this process first, while only its main thread runs, so they inherit the mission the
     check loaded) and the mission's loading (when no check loaded it), side by side: each
     mostly waits on its own processes, so together they take about the longest of them
-    rather than their sum. With ``calibration`` given and the mission checked, the local
-    workers start the rectify stage's work as soon as they are up
-    (:func:`_early_rectify`). Yields the Dask scheduler's address
+    rather than their sum. Yields the Dask scheduler's address
     for the flow (None: the flow connects as asked) and the temporary server's API url
     (None: Prefect's configured one). A failure here other than the server's is left to
     the flow to report."""
@@ -387,8 +333,6 @@ def _started(mission, dask_address, cluster, workers, out=None, calibration=None
             address = stack.enter_context(local_cluster(
                 workers, preload=(swings.__name__,), fork_setup=swings.warm,
                 worker_setup=functools.partial(swings.warm, root))).scheduler_address
-            if calibration and out and swings.loaded(root):
-                stack.enter_context(_early_rectify(address, root, out, calibration))
         loader = None if swings.loaded(root) else _beside(swings.load, root)
         url = _server_ready() if own_server else None
         if loader is not None:

@@ -504,9 +504,9 @@ def test_run_checks_the_calibration_before_starting_prefect(m, tmp_path, content
 
 
 def test_sigterm_while_the_workers_rectify_stops_everything(base, tmp_path):
-    """SIGTERM once the workers are rectifying, with the calibration given (their work
-    starts before the flow run): exit 143, one line, and no process of ours left (the
-    client holding that work, the cluster and the server closed on the way out)."""
+    """SIGTERM once the workers are rectifying (the calibration given): exit 143, one
+    line, and no process of ours left (the cluster and the server closed on the way
+    out), waited for by polling, not by fixed sleeps."""
     import signal
     out = tmp_path / "o"
     proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(base),

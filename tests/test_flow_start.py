@@ -11,13 +11,6 @@ import asyncio, json, sys
 from swathflow.flows.guard import check_run_inputs
 check_run_inputs(sys.argv[1])     # as `swathflow run` does, before the flow's module
 from swathflow.flows import mission as fm
-from prefect.context import FlowRunContext
-submitted = []     # for each submission of the rectify stage's work: inside the flow run?
-_submit = fm.submit_swings
-def submit_swings(*args, **kw):
-    submitted.append(FlowRunContext.get() is not None)
-    return _submit(*args, **kw)
-fm.submit_swings = submit_swings
 result = fm.run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=1)
 server_code = "prefect.server.api.server" in sys.modules
 from prefect.client.orchestration import get_client
@@ -35,9 +28,7 @@ with temporary_settings({PREFECT_API_URL: fm._SERVER["url"]}):
     flows, tasks = asyncio.run(recorded())
 print("RESULT " + json.dumps({"server_code": server_code, "flows": flows, "tasks": tasks,
                               "pid": fm._SERVER["process"].pid,
-                              "mosaic": result["mosaic"], "submitted": submitted,
-                              "rectified": len(result["rectified"]),
-                              "images": len(fm.swings.load(sys.argv[1]).images)}))
+                              "mosaic": result["mosaic"]}))
 """
 
 
@@ -58,10 +49,6 @@ def test_run_is_a_prefect_flow_run_on_its_own_temporary_server(tiny_mission, tmp
     assert {"ingest", "calibrate", "interpolate-pos", "mosaic", "catalog"} <= stages, stages
     assert {state for _, state in doc["tasks"]} == {"COMPLETED"}
     assert os.path.exists(doc["mosaic"])
-    # the swings handed to the workers once, before the flow run began (the calibration
-    # given, the mission checked): they rectify while the server starts
-    assert doc["submitted"] == [False], doc["submitted"]
-    assert doc["rectified"] == doc["images"] > 0
     # the temporary server ended with the process that started it
     try:
         os.kill(doc["pid"], 0)
@@ -194,27 +181,3 @@ def test_local_workers_forked_from_a_one_thread_process(tmp_path):
         assert run["left"] == [], "a worker process outlived its cluster"
         assert 8787 not in run["ports"]
         assert run["codes"] == [404, 404, 404]
-
-
-def test_early_rectify_work_is_used_only_for_the_same_stage():
-    """The futures started before the flow run (``_early_rectify``) serve the rectify
-    stage only when the mission, output folder, swings and calibration are the ones the
-    flow's stages found; otherwise they are cancelled and the stage submits its own."""
-    from swathflow.flows import mission as fm
-
-    class Client:
-        cancelled: list = []
-
-        def cancel(self, futures):
-            self.cancelled.append(futures)
-
-    key = ("/m", "/o", "/m/cal.json", ("a", "b"))
-    try:
-        fm._EARLY.update(address="tcp://x", client=Client(), key=key, futures=["f1", "f2"])
-        assert fm._early_futures("/m", "/o", ["a", "b"], "/m/cal.json") == ["f1", "f2"]
-        assert fm._early_futures("/m", "/o", ["a", "b"], "/m/cal.json") is None  # taken
-        fm._EARLY.update(futures=["f3"])
-        assert fm._early_futures("/m", "/o", ["a", "b"], "/other.json") is None
-        assert Client.cancelled == [["f3"]]
-    finally:
-        fm._EARLY.clear()
