@@ -96,8 +96,9 @@ def main(argv=None) -> int:
                                   str(n)])
         os.environ.pop("SWATHFLOW_TASK_STREAM", None)
         if args.timeline:
-            _print_timeline(n, timeline, float(text.split("T0", 1)[1].split()[0]), wall,
-                            float(text.split("CHECKED", 1)[1].split()[0]))
+            t0 = float(text.split("T0", 1)[1].split()[0])
+            _print_timeline(n, timeline, t0, wall, float(text.split("CHECKED", 1)[1].split()[0]))
+            _print_swings(out, t0)
             own = float(text.split("OWN_CPU", 1)[1].split()[0])
             print(f"  CPU-s: the run's process {own:.1f}, its children (the Dask workers "
                   f"and Prefect's server) {cpu - own:.1f}")
@@ -164,6 +165,20 @@ def _print_timeline(n: int, path: Path, t0: float, wall: float, checked: float) 
         print(f"  worker {w}: {len(spans)} tasks, busy {busy:.1f} s of the rectify stage's "
               f"{b - a:.1f} ({busy / max(b - a, 1e-9):.0%}); idle gaps > 0.5 s (at+for): "
               + (", ".join(gaps) or "none"))
+
+
+def _print_swings(out: Path, t0: float) -> None:
+    """When the swings were rectified, from their files and manifests (each records its
+    seconds; the file's time is its end), independent of Dask's task stream (which
+    records only what ends while the flow runs)."""
+    spans = []
+    for m in (out / "rectified").glob("*.tif.swathflow.json"):
+        end = m.with_name(m.name[:-len(".swathflow.json")]).stat().st_mtime
+        spans.append((end - json.loads(m.read_text())["seconds"], end))
+    if spans:
+        print(f"  swings: {len(spans)} rectified from {min(spans)[0] - t0:.1f} to "
+              f"{max(e for _, e in spans) - t0:.1f} s, {sum(e - s for s, e in spans):.1f} "
+              f"worker-s in all")
 
 
 def _per_swing(mission, cal, n: int) -> int:

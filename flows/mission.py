@@ -70,6 +70,9 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         prog.start("interpolate-pos")
         eo = stages.interpolate_pos(mission, out)
         prog.finish("interpolate-pos")
+        # the mosaic's control offsets, while the workers rectify (a failure: the mosaic
+        # stage meets it again and reports)
+        _quietly(stages.prepare_mosaic, mission, cal)
         rectified = gather_swings(futures, lambda done: prog.update("rectify", done, len(ids)))
         prog.finish("rectify", len(ids))
         del warm

@@ -26,6 +26,12 @@ def _key(mission_path) -> tuple[Path, tuple]:
     return root, (str(root), hash(stamp))
 
 
+def mission_stamp(mission_path) -> tuple:
+    """The mission folder's identity and its files' stamps (path, modification time,
+    size), as :func:`load` memoises on them."""
+    return _key(mission_path)[1]
+
+
 def load(mission_path):
     """load_mission, memoised per process on the mission folder's file stamps: every task
     of a run needs the mission, and loading it (POS, DEM, GCPs, checks) costs seconds."""

@@ -501,3 +501,37 @@ def test_run_checks_the_calibration_before_starting_prefect(m, tmp_path, content
     assert "RC 2 - -" in r.stdout, text
     assert str(cal) in text and all(w in text for w in words), text
     assert "Traceback" not in text
+
+
+def test_sigterm_while_the_workers_rectify_stops_everything(base, tmp_path):
+    """SIGTERM once the workers are rectifying (the calibration given): exit 143, one
+    line, and no process of ours left (the cluster and the server closed on the way
+    out), waited for by polling, not by fixed sleeps."""
+    import signal
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(base),
+                             "--out", str(out), "--calibration",
+                             str(base / "truth" / "calibration.json")],
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None \
+            and not list((out / "rectified").glob("*.swathflow.json")):
+        time.sleep(0.02)
+    children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                              text=True).stdout.split()
+    assert proc.poll() is None and children, "the run ended before a swing was rectified"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143 and "terminated" in err and "Traceback" not in err, err
+    alive = set(children)
+    deadline = time.monotonic() + 60      # the children's own exit, polled
+    while alive and time.monotonic() < deadline:
+        for pid in list(alive):
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    if f.read().split(") ", 1)[1].startswith("Z"):
+                        alive.discard(pid)
+            except FileNotFoundError:
+                alive.discard(pid)
+        time.sleep(0.05)
+    assert not alive, f"left running: {alive}"

@@ -290,3 +290,27 @@ def test_workers_rectify_in_batches_without_prefect(tiny_mission, tmp_path):
     paths = swings.rectify_batch(ids, str(tiny_mission), cal, str(out))
     assert paths == [str(out / "rectified" / f"{i}.tif") for i in ids]
     _check_against_truth(tiny_mission, {"rectified": paths})
+
+
+def test_mosaic_control_prepared_while_the_workers_rectify(tiny_mission, tmp_path):
+    """The mosaic's control offsets are computed once per mission and calibration
+    (``prepare_mosaic``, which the flow calls while the workers rectify; the mosaic stage
+    then finds them), the same values as computed afresh, and again for a changed
+    calibration file."""
+    from swathflow.tasks import stages
+    cal = tmp_path / "calibration.json"
+    shutil.copy(tiny_mission / "truth" / "calibration.json", cal)
+    stages._CONTROL.clear()
+    stages.prepare_mosaic(str(tiny_mission), str(cal))
+    assert len(stages._CONTROL) == 1
+    (key, kept), = stages._CONTROL.items()
+    again = stages.mosaic_control(str(tiny_mission), str(cal))
+    assert list(stages._CONTROL) == [key] and again == kept and again is not kept
+    stages._CONTROL.clear()
+    fresh = stages.mosaic_control(str(tiny_mission), str(cal))
+    assert fresh.keys() == again.keys() and all(
+        np.array_equal(fresh[k][0], again[k][0]) and np.array_equal(fresh[k][1], again[k][1])
+        for k in fresh)
+    os.utime(cal, ns=(cal.stat().st_atime_ns, cal.stat().st_mtime_ns + 10**9))
+    stages.mosaic_control(str(tiny_mission), str(cal))
+    assert list(stages._CONTROL) != [key], "a changed calibration file used the old offsets"
