@@ -32,10 +32,18 @@ def signalled(exc: BaseException) -> BaseException | None:
     return None
 
 
+#: SIGTERM arrived during :func:`on_sigterm` (its exception may have been swallowed: a
+#: signal handler that raises inside a ``__del__`` or a callback of compiled code is only
+#: printed as "Exception ignored"): the command then still ends as terminated
+SIGTERM_RECEIVED: list = []
+
+
 @contextlib.contextmanager
 def on_sigterm():
     def handler(signum, frame):
+        SIGTERM_RECEIVED.append(True)
         raise Terminated()
+    SIGTERM_RECEIVED.clear()
     try:
         old = signal.signal(signal.SIGTERM, handler)
     except ValueError:          # not the main thread: leave signals alone

@@ -272,6 +272,34 @@ def test_a_signal_raised_inside_compiled_code_still_ends_the_run_as_signalled(
     assert word in err and "Traceback" not in err and "SystemError" not in err
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # expected
+def test_a_sigterm_whose_exception_was_swallowed_still_ends_the_run_as_terminated(
+        tmp_path, monkeypatch, capsys):
+    """SIGTERM handled inside a ``__del__`` (or a callback of compiled code): Python only
+    prints its exception as "Exception ignored" and the command goes on; when it returns,
+    the run still ends as terminated (143), not as a success."""
+    import gc
+    import os
+    import signal
+
+    from swathflow.flows.cli import commands
+
+    class Finaliser:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):        # the handler runs between these bytecodes
+                pass
+
+    def simulate(args):
+        Finaliser()
+        gc.collect()
+        return 0
+    monkeypatch.setattr(commands, "simulate", simulate)
+    assert main(["simulate", str(tmp_path / "d"), "--preset", "demo"]) == 143
+    err = capsys.readouterr().err
+    assert "terminated" in err
+
+
 # ------------------------------------------------------------------------------------------
 # tracebacks
 

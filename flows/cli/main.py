@@ -332,6 +332,7 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
         return 2
     _apply_verbosity(args)
     from swathflow.flows.guard import (
+        SIGTERM_RECEIVED,
         Terminated,
         check_outputs,
         explain_os_error,
@@ -348,14 +349,16 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
             check_outputs(args)
             with output_lock(args):
                 code = int(args.func(args) or 0)
+        if SIGTERM_RECEIVED:                 # its exception was swallowed on the way
+            raise Terminated()
     except SwathflowError as exc:
         print(f"swathflow {args.command}: error: {exc}", file=sys.stderr)
         code = 2
     except (Terminated, KeyboardInterrupt) as exc:
         code = _signalled(args.command, exc)
     except Exception as exc:
-        if signalled(exc) is not None:       # raised inside compiled code's Python call
-            code = _signalled(args.command, signalled(exc))
+        if signalled(exc) is not None or SIGTERM_RECEIVED:  # raised inside compiled
+            code = _signalled(args.command, signalled(exc) or Terminated())  # code's call
         else:
             msg = explain_os_error(exc, getattr(args, "out", None))
             if msg is None:
