@@ -357,8 +357,9 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
     except (Terminated, KeyboardInterrupt) as exc:
         code = _signalled(args.command, exc)
     except Exception as exc:
-        if signalled(exc) is not None or SIGTERM_RECEIVED:  # raised inside compiled
-            code = _signalled(args.command, signalled(exc) or Terminated())  # code's call
+        # the signal's exception raised inside compiled code's call, or swallowed before
+        if signalled(exc) is not None or SIGTERM_RECEIVED:
+            code = _signalled(args.command, signalled(exc) or Terminated())
         else:
             msg = explain_os_error(exc, getattr(args, "out", None))
             if msg is None:
