@@ -5,6 +5,12 @@ import sys
 from swathflow.flows.cli import main
 
 
+
+def _python(code: str, *argv: str, env=None) -> subprocess.CompletedProcess:
+    """``code`` run by a fresh interpreter (``argv``: its arguments), output captured."""
+    return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True,
+                          text=True, env=env)
+
 def test_help_lists_every_command(capsys):
     try:
         main(["--help"])
@@ -36,7 +42,7 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
             f"rc = main(['rectify', {str(tiny_mission)!r}, '--out', {str(out)!r}, '-q'])\n"
             "print(rc, sorted(m for m in sys.modules if m.split('.')[0] == 'distributed'\n"
             "                 or m.startswith(('scipy.fft', 'scipy.special', 'scipy.linalg'))))\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    r = _python(code)
     assert r.stdout.strip() == "0 []", r.stdout + r.stderr
     assert "Traceback" not in r.stderr, r.stderr
     ids = [line.split("=", 1)[1].strip().strip('"') for line in
@@ -63,7 +69,7 @@ def test_rectify_loads_dask_array_and_numba_without_scipy_fft_sparse_linalg():
             "      numba.njit(lambda a: np.dot(a, a))(x) == 140.0,\n"
             "      scipy.sparse.eye(3).sum() == 3.0, cffi.FFI().sizeof('int') > 0,\n"
             "      jinja2.Template('{{ 1 + 1 }}').render() == '2')\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    r = _python(code)
     assert r.stdout.split() == ["True", "True", "False", "False", "False", "False",
                                 "True", "True", "True", "True", "True"], \
         r.stdout + r.stderr
@@ -76,7 +82,7 @@ def test_import_without_falls_back_to_the_usual_import():
             "import xml.dom.minidom\n"
             "print(sys.modules['xml.dom'] is not None, xml.dom.minidom.parseString('<a/>')"
             ".documentElement.tagName)\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    r = _python(code)
     assert r.stdout.split() == ["True", "a"], r.stdout + r.stderr
 
 
@@ -91,8 +97,7 @@ def test_import_without_holds_back_several_modules_and_leaves_them_importable(tm
             "import_without(('json', 'csv'), 'optional_users')\n"
             "import optional_users as m\nprint(m.json, m.csv)\n"
             "import json, csv\nprint(json.dumps(1), csv.QUOTE_ALL)\n")
-    r = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True,
-                       text=True)
+    r = _python(code, str(tmp_path))
     assert r.stdout.split() == ["None", "None", "1", "1"], r.stdout + r.stderr
 
 
@@ -105,7 +110,7 @@ def test_rectify_imports_its_engine_without_collector_passes():
             "with uncollected():\n"
             "    import xarray\n"
             "print(len(passes), gc.isenabled(), gc.get_freeze_count() > 10000)\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    r = _python(code)
     assert r.stdout.split() == ["0", "True", "True"], r.stdout + r.stderr
 
 
@@ -150,8 +155,7 @@ def test_rectify_keeps_openblas_on_one_thread():
             "commands._one_blas_thread()\nimport numpy\n"
             "print(os.environ['OPENBLAS_NUM_THREADS'], len(os.listdir('/proc/self/task')))\n")
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    r = _python(code, env=env)
     assert r.stdout.split() == ["1", "1"], r.stdout + r.stderr
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       env=dict(env, OPENBLAS_NUM_THREADS="2"))
+    r = _python(code, env=dict(env, OPENBLAS_NUM_THREADS="2"))
     assert r.stdout.split()[0] == "2", r.stdout + r.stderr
