@@ -13,11 +13,13 @@
           mosaic() in one process (threads; the same work), swathflow blending only
           (feather + COG), `rio merge`, gdalbuildvrt + gdal_translate -of COG, gdalwarp -of
           COG, gdal_merge.py, and rasterio.merge.merge + a tiled GTiff write in `python -c`
-          (the reference of the ratios; the peers do no blending). Each also with its
+          (the reference of the ratios; the peers do no blending), and a floor: a
+          `python -c` that only starts numba (import, first call of a cached kernel),
+          the fixed cost under every swathflow row. Each also with its
           wall time on an idle machine estimated from the scheduler's accounting (the
           machine is shared: under load the wall times say little).
 --peers16 the same on 16x the area (768 swings, 58 Mpx).
---quick   with --peers/--peers16: only mosaic() in one process, the blend alone and
+--quick   with --peers/--peers16: only mosaic() in one process, the blend alone, the floor and
           rasterio.merge (the long 16x run in a few minutes).
 --repeat N  with --peers/--peers16: N alternated rounds of swathflow's runs and
           rasterio.merge (the GDAL peers in the first only): the table of medians, then
@@ -287,6 +289,10 @@ def _peer_round(work, d, g, env, sf, quick, gdal):
             w1, c1, r1, _ = _measured(argv, env)
             w, c, r, e = w + w1, c + c1, max(r, r1), e + LAST_IDLE[0]
         rows.append((name, w, c, None, r, e))
+    # the floor under our rows: an interpreter that only starts numba (import and the first
+    # call of a cached kernel: its typing and targets), no mosaic work at all
+    w, c, r, _ = _measured([sys.executable, "-c", _NUMBA_START], env)
+    rows.append((FLOOR_ROW, w, c, None, r, LAST_IDLE[0]))
     w, c, r, out = _measured([sys.executable, "-c", _MERGE, json.dumps(dict(
         paths=paths, out=os.path.join(work, "merge.tif")))], env)
     rows.append(("rasterio.merge.merge + write (python -c)", w, c,
@@ -294,6 +300,9 @@ def _peer_round(work, d, g, env, sf, quick, gdal):
     return rows, rep, err
 
 
+_NUMBA_START = ("from swathflow.mosaicking.mosaic import load_kernels\n"
+                "load_kernels()\n")
+FLOOR_ROW = "floor: numba's start alone (no mosaic work)"
 CLI_ROW = "swathflow mosaic (CLI: match+network+feather, COG+PNG)"
 BLEND_ROW = "swathflow blend only (feather, COG)"
 
