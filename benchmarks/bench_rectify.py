@@ -11,6 +11,8 @@ texture at the output pixel centres) over the whole footprint and per 128-px til
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m  # whole command vs GDAL
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.11,0.4 \
         --baseline /work/main/.venv/bin/swathflow        # output sizes; another build beside
+    .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.05 --timeline
+        # ours alone: the serial start (imports, mission, warm-up), then the workers
     .venv/bin/python benchmarks/bench_rectify.py --startup         # start-up, numba cache warm/cold
     .venv/bin/python benchmarks/bench_rectify.py --startup --command /tmp/m \
         --baseline /work/main/.venv/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
@@ -344,6 +346,9 @@ def main():
     ap.add_argument("--baseline", metavar="EXE",
                     help="another swathflow executable run beside ours in --command")
     ap.add_argument("--no-peers", action="store_true", help="--command without GDAL")
+    ap.add_argument("--timeline", action="store_true",
+                    help="--command: ours alone, where its wall time goes (the serial start "
+                         "before the workers fork, then the workers)")
     ap.add_argument("--cube", type=int, metavar="BANDS", help="a uint16 cube of BANDS bands")
     ap.add_argument("--igm", action="store_true", help="image_to_ground on a DEM, points/s")
     ap.add_argument("--phases", action="store_true",
@@ -377,6 +382,11 @@ def main():
     elif args.startup:
         X.main("startup", mission_dir=args.command, preset=args.preset,
                baseline=args.baseline)
+    elif args.command and args.timeline:
+        for gsd in ([float(g) for g in args.command_gsd.split(",")] if args.command_gsd
+                    else [None]):
+            X.main("timeline", mission_dir=args.command, preset=args.preset, gsd=gsd,
+                   threads=args.threads, repeat=args.repeat)
     elif args.command:
         for gsd in ([float(g) for g in args.command_gsd.split(",")] if args.command_gsd
                     else [None]):

@@ -312,6 +312,67 @@ def _table(rows, gsd) -> dict:
 
 
 # ----------------------------------------------------------------------------------------
+# the command's timeline: its serial start, then the forked workers
+# ----------------------------------------------------------------------------------------
+_TIMELINE = r"""
+import json, sys, time
+t0, c0 = time.perf_counter(), time.process_time()
+marks = []
+def mark(name):
+    marks.append((name, time.perf_counter() - t0, time.process_time() - c0))
+import swathflow.flows.cli.commands as C
+lean = C._lean_imports
+def lean_imports():
+    mark("command parsed"); lean(); mark("dask.array, numba's array target")
+    import swathflow.rectification.mission as M
+    mark("engine imported")
+    load, warm, run = M.load_mission, M._warm, M._run
+    def load_(*a, **k):
+        m = load(*a, **k); mark("mission loaded and checked (numba's first call)"); return m
+    def warm_(*a, **k):
+        warm(*a, **k); mark("kernels warmed: workers fork")
+    def run_(*a, **k):
+        yield from run(*a, **k); mark("workers done")
+    M.load_mission, M._warm, M._run = load_, warm_, run_
+C._lean_imports = lean_imports
+from swathflow.flows.cli import main
+sys.argv = ["swathflow", "rectify", *sys.argv[1:]]
+try:
+    main()
+except SystemExit as e:
+    if e.code:
+        raise
+mark("command returned")
+print(json.dumps(marks))
+"""
+
+
+def timeline(mission_dir, preset="demo", gsd=None, threads=2, repeat: int = 3) -> dict:
+    """Where the wall time of ``swathflow rectify`` goes, in a fresh interpreter: the
+    serial start (imports, the mission loaded and checked, the kernels warmed) before the
+    workers fork, then the workers. Median seconds since the interpreter ran the first
+    line (wall and the parent's CPU), over ``repeat`` runs; the whole command's wall too."""
+    import statistics
+    m = _at_gsd(_mission(mission_dir, preset), gsd)
+    cal = m / "truth" / "calibration.json"
+    env = dict(os.environ, DASK_NUM_WORKERS=str(threads))
+    runs, walls = [], []
+    with tempfile.TemporaryDirectory() as td:
+        for i in range(max(repeat, 1)):
+            wall, _, out = _run([sys.executable, "-c", _TIMELINE, str(m), "--calibration",
+                                 str(cal), "--out", f"{td}/{i}", "-q"], env=env)
+            runs.append(json.loads(out.strip().splitlines()[-1]))
+            walls.append(wall)
+    names = [n for n, _, _ in runs[0]]
+    return {"mission": str(m), "runs": len(runs),
+            "whole_command_wall_s": round(statistics.median(walls), 3),
+            "marks_wall_s_parent_cpu_s": {
+                n: [round(statistics.median(r[k][1] for r in runs), 3),
+                    round(statistics.median(r[k][2] for r in runs), 3)]
+                for k, n in enumerate(names)}}
+
+
+# ----------------------------------------------------------------------------------------
 # a 100-band uint16 cube
 # ----------------------------------------------------------------------------------------
 def cube(bands=100, lines=1200, elements=256, threads=1) -> dict:
@@ -377,6 +438,7 @@ def igm(points=200_000) -> dict:
 
 
 def main(what: str, **kw) -> None:
-    fn = {"startup": startup, "command": command, "cube": cube, "igm": igm}[what]
+    fn = {"startup": startup, "command": command, "cube": cube, "igm": igm,
+          "timeline": timeline}[what]
     r = fn(**kw)
     print(json.dumps(r, indent=1))
