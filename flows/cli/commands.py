@@ -118,7 +118,6 @@ def calibrate(args) -> int:
 def rectify(args) -> int:
     """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image,
     each ``swathflow.to_cog(swathflow.rectify(...))`` (through ``rectify_mission``)."""
-    _one_blas_thread()
     from swathflow.startup import uncollected
     with uncollected():
         _lean_imports()
@@ -136,16 +135,6 @@ def rectify(args) -> int:
                     bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band,
                     compress=args.compress)
     return 0
-
-
-def _one_blas_thread() -> None:
-    """OpenBLAS on one thread, unless the environment says otherwise, when numpy is not
-    imported yet (it reads the setting once). The command's parallelism is its worker
-    processes, one per core; numpy's and scipy's OpenBLAS each start a thread at import
-    that spins about 0.1 CPU-s before it sleeps (0.19 CPU-s of the command's 3.5 on the
-    demo, measured per thread), on the core the other work needs."""
-    if "numpy" not in sys.modules:
-        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def _lean_imports() -> None:
