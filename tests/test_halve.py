@@ -47,7 +47,7 @@ def test_integer_means_match_the_float_formula(dtype, shape, nodata, use_nodata)
     np.testing.assert_array_equal(out[fits], want[fits].astype(dtype))
     assert fits.sum() >= want.size - n_none       # only cells without data may not fit
     any_out = np.empty_like(out)
-    _halve_any(src, nodata, use_nodata, True, True, any_out)
+    _halve_any(src, nodata, use_nodata, True, True, any_out, 0, 0)
     np.testing.assert_array_equal(out[fits], any_out[fits])
 
 
@@ -65,3 +65,41 @@ def test_every_count_of_valid_pixels_rounds_half_up():
         v = [x for x in cell if x]
         want.append(math.floor(sum(v) / len(v) + 0.5) if v else 0)
     assert out[0, 0].tolist() == want == [7, 6, 6, 7, 0, 2, 1, 2, 1, 2]
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_offsets_write_into_the_whole_array_as_far_as_it_reaches(dtype):
+    rng = np.random.default_rng(5)
+    src = rng.integers(0, 50, (1, 9, 13)).astype(dtype)
+    want = _reference(src, 0.0, True).astype(dtype)          # 5 x 7
+    out = np.full((1, 8, 10), 99, dtype)
+    halve(src, 0.0, True, True, True, out, 2, 1)
+    np.testing.assert_array_equal(out[:, 2:7, 1:8], want)
+    out[:, 2:7, 1:8] = 99
+    assert (out == 99).all()                                  # nothing else touched
+    out = np.full((1, 4, 5), 99, dtype)                       # cut at its bottom right
+    halve(src, 0.0, True, True, True, out, 1, 2)
+    np.testing.assert_array_equal(out[:, 1:, 2:], want[:, :3, :3])
+    out[:, 1:, 2:] = 99
+    assert (out == 99).all()
+
+
+def test_the_writer_passes_whole_contiguous_arrays(tmp_path, monkeypatch):
+    """Views of the overview level would be another numba type: compiled code each forked
+    worker loads again."""
+    from swathflow.rectification import writing
+    seen = []
+
+    def spy(src, nodata, use_nodata, average, is_int, out, r0=0, c0=0):
+        seen.append(src.flags.c_contiguous and out.flags.c_contiguous)
+        halve(src, nodata, use_nodata, average, is_int, out, r0, c0)
+
+    monkeypatch.setattr(writing, "_halve", spy)
+    import dask.array as da
+    # blocks made by a task, as the rectified tiles (a numpy array's blocks are views)
+    data = da.map_blocks(lambda x: (x % 997).astype(np.uint16),
+                         da.arange(1100 * 1300, chunks=256 * 1300).reshape(1100, 1300)
+                         .rechunk(256), dtype=np.uint16)
+    writing.write_cogs([{"path": tmp_path / "a.tif", "array": data, "grid": None,
+                         "nodata": 0}], blocksize=256, scheduler="sync")
+    assert len(seen) > 20 and all(seen)

@@ -155,8 +155,7 @@ class _Level1:
         rs, cs = key
         v = value if value.ndim == 3 else value[None]
         r, c = rs.start // 2, cs.start // 2
-        _halve(v, self.fill, self.use_nd, self.average, self.is_int,
-               self.array[:, r:r + -(-v.shape[1] // 2), c:c + -(-v.shape[2] // 2)])
+        _halve(v, self.fill, self.use_nd, self.average, self.is_int, self.array, r, c)
 
 
 def _fill(dtype, nodata):
@@ -325,8 +324,7 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
                                     min(blocksize, src.height - sr)))
                                 i, j = (sr - 2 * r0) // 2, (sc - 2 * c0) // 2
                                 _halve(block, fill, use_nd, average, dt.kind in "ui",
-                                       out[:, i:i + -(-block.shape[1] // 2),
-                                           j:j + -(-block.shape[2] // 2)])
+                                       out, i, j)
                         dst.write(out, window=Window(c0, r0, nc, nr))
         src_path = path
 
