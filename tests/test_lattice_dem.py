@@ -205,3 +205,27 @@ def test_touching_cells_by_closed_rectangles():
                 mask[r:r + sr + 1, c:c + sc + 1] = True
             want = [mask[r:r + sr + 1, c:c + sc + 1].any() for r, c, sr, sc in a]
             assert touching(a, b, H, W).tolist() == want
+
+
+def test_dense_choice_passes_contiguous_cells_to_the_kernels(scene, monkeypatch):
+    """Strided cells would be another numba type: compiled code each forked worker loads
+    again."""
+    model, dem, grid = scene["model"], scene["dem"], scene["grid"]
+    sub = grid.window(slice(0, min(256, grid.height)), slice(0, min(256, grid.width)))
+    seen = []
+
+    def spy(kernel):
+        def call(*args):
+            seen.extend(a.flags.c_contiguous for a in args if isinstance(a, np.ndarray))
+            return kernel(*args)
+        return call
+
+    monkeypatch.setattr(L, "_cell_unknown", spy(L._cell_unknown))
+    monkeypatch.setattr(L, "_cell_tests", spy(L._cell_tests))
+    chose = []
+    dense_cheaper = L._dense_cheaper
+    monkeypatch.setattr(L, "_dense_cheaper", lambda *a: chose.append(1) or dense_cheaper(*a))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        L.leaves(model, sub, dem, TOL, raw_shape=model.shape)
+    assert chose and seen and all(seen)

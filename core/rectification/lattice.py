@@ -236,7 +236,9 @@ def _dense_cheaper(exact, cells, h: int, w: int, half: float) -> bool:
     c = np.minimum(cells[pick, 1], w - 3)
     sample = np.stack([r, c, np.full(r.size, 2), np.full(r.size, 2)], axis=-1)
     share = None
-    for part in (sample[::4], sample):
+    # both contiguous: a strided array is another type to numba, whose compiled
+    # _cell_unknown and _cell_tests each forked worker would load again (17 ms)
+    for part in (np.ascontiguousarray(sample[::4]), sample):
         exact.cells(part)
         err_c, err_r, err_m, _ = _cell_tests(part, exact.values)
         err = np.maximum(np.maximum(err_c, err_r), err_m)

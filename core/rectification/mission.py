@@ -204,4 +204,5 @@ def _warm(job) -> None:
     if o["method"] != "exact":
         return
     warm_up(mission, iid, calibration, kernel=o["kernel"], tile=o["tile"], tol=o["tol"],
-            bands=o["bands"], dtype=o["dtype"], mask_band=o["mask_band"])
+            bands=o["bands"], dtype=o["dtype"], mask_band=o["mask_band"],
+            compress=o["compress"])

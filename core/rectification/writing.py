@@ -3,7 +3,7 @@
 Each output is streamed window by window into a tiled GeoTIFF beside its target (the
 ``.part``), which GDAL compresses tile by tile as it arrives, with the COG's own codec and
 predictor: each tile is compressed once. The overviews are computed here, each level from
-the one above it (:func:`_halve`: a compiled 2 x 2 reduction, nodata-aware): the first
+the one above it (:func:`.halve.halve`: a compiled 2 x 2 reduction, nodata-aware): the first
 level in memory as the tiles arrive (:class:`_Level1`), or, for outputs whose first level
 would not fit in :data:`LEVEL1_RAM_BYTES`, block by block from the ``.part``
 (:func:`build_overviews`); GDAL compresses them into tiled GeoTIFFs too. Then
@@ -27,8 +27,8 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit
 from swathflow.io import atomic_path
+from swathflow.rectification.halve import halve as _halve
 from swathflow.rectification.store import store_here
 
 if TYPE_CHECKING:   # an annotation only: the mosaic's writer does not import pyproj for it
@@ -142,7 +142,7 @@ LEVEL1_RAM_BYTES = 256 << 20
 
 class _Level1:
     """The first overview level of an output (``(bands, ceil(rows / 2), ceil(cols / 2))``),
-    filled by :func:`_halve` from each full-resolution tile as it is written (tiles start
+    filled by :func:`.halve.halve` from each full-resolution tile as it is written (tiles start
     on even rows and columns)."""
 
     def __init__(self, bands, rows, cols, dtype, nodata, resampling):
@@ -155,8 +155,7 @@ class _Level1:
         rs, cs = key
         v = value if value.ndim == 3 else value[None]
         r, c = rs.start // 2, cs.start // 2
-        _halve(v, self.fill, self.use_nd, self.average, self.is_int,
-               self.array[:, r:r + -(-v.shape[1] // 2), c:c + -(-v.shape[2] // 2)])
+        _halve(v, self.fill, self.use_nd, self.average, self.is_int, self.array, r, c)
 
 
 def _fill(dtype, nodata):
@@ -288,40 +287,6 @@ def overview_factors(height: int, width: int, blocksize: int) -> list[int]:
     return out
 
 
-@njit(cache=True, nogil=True)
-def _halve(src, nodata, use_nodata, average, is_int, out):
-    """One overview level of a block: ``out[b, i, j]`` from the 2 x 2 pixels
-    ``src[b, 2i:2i+2, 2j:2j+2]`` (fewer at the right and bottom edges). ``average``: the
-    mean of the valid ones (not NaN, not ``nodata`` when ``use_nodata``), rounded half up
-    for integer output, ``nodata`` (or NaN) where none is valid; else nearest: the pixel
-    at (2i + 1, 2j + 1), clamped to the block. (At the edges a pixel taken twice leaves
-    the mean unchanged.)"""
-    nb, h, w = src.shape
-    oh, ow = out.shape[1], out.shape[2]
-    for b in range(nb):
-        for i in range(oh):
-            r0 = 2 * i
-            r1 = min(r0 + 1, h - 1)
-            for j in range(ow):
-                c0 = 2 * j
-                c1 = min(c0 + 1, w - 1)
-                if not average:
-                    out[b, i, j] = src[b, r1, c1]
-                    continue
-                s = 0.0
-                n = 0
-                for v in (src[b, r0, c0], src[b, r0, c1], src[b, r1, c0], src[b, r1, c1]):
-                    if v == v and not (use_nodata and v == nodata):
-                        s += v
-                        n += 1
-                if n == 0:
-                    out[b, i, j] = nodata
-                elif is_int:
-                    out[b, i, j] = math.floor(s / n + 0.5)
-                else:
-                    out[b, i, j] = s / n
-
-
 def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str,
                     compression: Mapping | None = None) -> None:
     """Write the overview levels of the tiled GeoTIFF ``part`` into ``paths`` (factor 2,
@@ -359,8 +324,7 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
                                     min(blocksize, src.height - sr)))
                                 i, j = (sr - 2 * r0) // 2, (sc - 2 * c0) // 2
                                 _halve(block, fill, use_nd, average, dt.kind in "ui",
-                                       out[:, i:i + -(-block.shape[1] // 2),
-                                           j:j + -(-block.shape[2] // 2)])
+                                       out, i, j)
                         dst.write(out, window=Window(c0, r0, nc, nr))
         src_path = path
 
