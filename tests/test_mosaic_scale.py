@@ -107,6 +107,45 @@ def test_blend_tile_is_the_weighted_mean():
     assert v[7, 7] == 20.0
 
 
+def _mapping(a):
+    """The memory mapping an array's memory belongs to, or None (the C heap)."""
+    import mmap
+    while isinstance(a, np.ndarray):
+        a = a.base
+    return a.obj if isinstance(a, memoryview) and isinstance(a.obj, mmap.mmap) else None
+
+
+def test_swing_cache_keeps_its_swings_in_reused_mappings():
+    from swathflow.mosaicking.blend import Corrected, SwingCache
+    rng = np.random.default_rng(0)
+    made = {k: Corrected(k, 0, rng.random((30, 20), dtype=np.float32),
+                         rng.random((30, 20), dtype=np.float32)) for k in range(6)}
+    cache = SwingCache(made.__getitem__, max_bytes=2 * made[0].nbytes)
+    first = cache.get(0)
+    assert np.array_equal(first.values, made[0].values)
+    assert np.array_equal(first.weight, made[0].weight)
+    maps = {id(_mapping(first.values)), id(_mapping(first.weight))}
+    assert None not in {_mapping(first.values), _mapping(first.weight)}
+    del first
+    for k in range(1, 4):           # 0 is evicted as 2 comes in, its mappings freed
+        c = cache.get(k)
+        assert np.array_equal(c.values, made[k].values) and c.row == k
+        assert cache._bytes <= cache.max_bytes
+    # 3 was copied into the mappings 0 left
+    assert {id(_mapping(c.values)), id(_mapping(c.weight))} == maps
+
+
+def test_mappings_keep_at_most_spare_unused():
+    from swathflow.mosaicking.blend import Mappings
+    m = Mappings(spare=2)
+    arrays = [m.copy(np.full((4, 4), k, np.float64)) for k in range(5)]
+    assert [a[0, 0] for a in arrays] == [0, 1, 2, 3, 4]
+    del arrays
+    assert [len(v) for v in m._free.values()] == [2]
+    m.clear()
+    assert m._free == {}
+
+
 def test_bbox_sweep_finds_every_intersecting_pair():
     rng = np.random.default_rng(4)
     r0 = rng.integers(0, 500, 300)
