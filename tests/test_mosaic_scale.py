@@ -146,6 +146,24 @@ def test_mappings_keep_at_most_spare_unused():
     assert m._free == {}
 
 
+def test_tiles_go_down_bands_a_swing_wide():
+    from types import SimpleNamespace as NS
+
+    from swathflow.mosaicking.output import _tile_order
+    tall = NS(shape=(2500, 5000), swings=[NS(height=3000, width=2100)] * 3)
+    order = _tile_order(tall, 1000)
+    grid = {(r, c, min(2500, r + 1000), min(5000, c + 1000))
+            for r in range(0, 2500, 1000) for c in range(0, 5000, 1000)}
+    assert len(order) == len(grid) and set(order) == grid
+    # bands of 3 tile columns (a swing is 2.1 tiles wide), row by row down each band
+    assert [(r, c) for r, c, _, _ in order[:9]] == [(r, c) for r in (0, 1000, 2000)
+                                                   for c in (0, 1000, 2000)]
+    assert order[9][:2] == (0, 3000)
+    wide = NS(shape=(5000, 2500), swings=[NS(height=900, width=2000)] * 3)
+    assert [t[:2] for t in _tile_order(wide, 1000)[:4]] == [(0, 0), (0, 1000), (0, 2000),
+                                                            (1000, 0)]
+
+
 def test_bbox_sweep_finds_every_intersecting_pair():
     rng = np.random.default_rng(4)
     r0 = rng.integers(0, 500, 300)
