@@ -107,6 +107,63 @@ def test_blend_tile_is_the_weighted_mean():
     assert v[7, 7] == 20.0
 
 
+def _mapping(a):
+    """The memory mapping an array's memory belongs to, or None (the C heap)."""
+    import mmap
+    while isinstance(a, np.ndarray):
+        a = a.base
+    return a.obj if isinstance(a, memoryview) and isinstance(a.obj, mmap.mmap) else None
+
+
+def test_swing_cache_keeps_its_swings_in_reused_mappings():
+    from swathflow.mosaicking.blend import Corrected, SwingCache
+    rng = np.random.default_rng(0)
+    made = {k: Corrected(k, 0, rng.random((30, 20), dtype=np.float32),
+                         rng.random((30, 20), dtype=np.float32)) for k in range(6)}
+    cache = SwingCache(made.__getitem__, max_bytes=2 * made[0].nbytes)
+    first = cache.get(0)
+    assert np.array_equal(first.values, made[0].values)
+    assert np.array_equal(first.weight, made[0].weight)
+    maps = {id(_mapping(first.values)), id(_mapping(first.weight))}
+    assert None not in {_mapping(first.values), _mapping(first.weight)}
+    del first
+    for k in range(1, 4):           # 0 is evicted as 2 comes in, its mappings freed
+        c = cache.get(k)
+        assert np.array_equal(c.values, made[k].values) and c.row == k
+        assert cache._bytes <= cache.max_bytes
+    # 3 was copied into the mappings 0 left
+    assert {id(_mapping(c.values)), id(_mapping(c.weight))} == maps
+
+
+def test_mappings_keep_at_most_spare_unused():
+    from swathflow.mosaicking.blend import Mappings
+    m = Mappings(spare=2)
+    arrays = [m.copy(np.full((4, 4), k, np.float64)) for k in range(5)]
+    assert [a[0, 0] for a in arrays] == [0, 1, 2, 3, 4]
+    del arrays
+    assert [len(v) for v in m._free.values()] == [2]
+    m.clear()
+    assert m._free == {}
+
+
+def test_tiles_go_down_bands_a_swing_wide():
+    from types import SimpleNamespace as NS
+
+    from swathflow.mosaicking.output import _tile_order
+    tall = NS(shape=(2500, 5000), swings=[NS(height=3000, width=2100)] * 3)
+    order = _tile_order(tall, 1000)
+    grid = {(r, c, min(2500, r + 1000), min(5000, c + 1000))
+            for r in range(0, 2500, 1000) for c in range(0, 5000, 1000)}
+    assert len(order) == len(grid) and set(order) == grid
+    # bands of 3 tile columns (a swing is 2.1 tiles wide), row by row down each band
+    assert [(r, c) for r, c, _, _ in order[:9]] == [(r, c) for r in (0, 1000, 2000)
+                                                   for c in (0, 1000, 2000)]
+    assert order[9][:2] == (0, 3000)
+    wide = NS(shape=(5000, 2500), swings=[NS(height=900, width=2000)] * 3)
+    assert [t[:2] for t in _tile_order(wide, 1000)[:4]] == [(0, 0), (0, 1000), (0, 2000),
+                                                            (1000, 0)]
+
+
 def test_bbox_sweep_finds_every_intersecting_pair():
     rng = np.random.default_rng(4)
     r0 = rng.integers(0, 500, 300)
