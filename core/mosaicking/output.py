@@ -210,9 +210,9 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                  handles=None, on_level1=None) -> dict:
     """Render the mosaic tile by tile on ``workers`` threads into ``out`` (a COG with
     overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles and the
-    swing cache (its swings in memory mappings of their own, the swings' short-lived
-    arrays in one heap kept for the next: :func:`swathflow.rectification.heap.one_heap`).
-    ``handles``: the :class:`_Handles` to read the swings through (its own if None).
+    swing cache (its swings in memory mappings of their own, outside the C heap: see
+    :class:`swathflow.mosaicking.blend.Mappings`), which is let go before the COG is laid
+    out. ``handles``: the :class:`_Handles` to read the swings through (its own if None).
     ``on_level1``: called with the first overview level (:func:`level_overview`'s
     argument) once every tile is written and before the COG is laid out, when that level
     is reduced in memory (it may start work beside the layout; it must not change it).
@@ -226,7 +226,6 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     import rasterio
 
     from swathflow.rectification import writing
-    from swathflow.rectification.heap import one_heap
     dtypes = {s.dtype for s in layout.swings}
     if dtype is None:
         dtype = "float32" if len(dtypes) != 1 or next(iter(dtypes)).startswith("float") \
@@ -252,8 +251,7 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     t0 = time.perf_counter()
     out = os.fspath(out)
     try:
-        with one_heap(), atomic_path(out, suffix=".tif") as final, \
-                contextlib.ExitStack() as stack:
+        with atomic_path(out, suffix=".tif") as final, contextlib.ExitStack() as stack:
             part = stack.enter_context(writing._scratch(out, "part.tif")) if cog else final
             with rasterio.open(part, "w", **profile) as ds:
                 _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n,

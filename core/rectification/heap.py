@@ -9,7 +9,6 @@ swings at 0.05 m. With the thresholds set once, the heap keeps up to :data:`TRIM
 of freed memory: about 1 400 faults, the same peak memory."""
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import platform
 import sys
@@ -22,10 +21,6 @@ MMAP_BYTES = 32 << 20
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
-_M_ARENA_MAX = -8
-
-#: :func:`one_heap`'s trim threshold: the freed blocks of a mosaic's swings stay for the next
-ONE_HEAP_TRIM_BYTES = 1 << 30
 
 
 def keep_freed_memory() -> bool:
@@ -41,38 +36,3 @@ def keep_freed_memory() -> bool:
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     return bool(mallopt(_M_TRIM_THRESHOLD, TRIM_BYTES)) and \
         bool(mallopt(_M_MMAP_THRESHOLD, MMAP_BYTES))
-
-
-def _mallopt():
-    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
-        return None
-    try:
-        libc = ctypes.CDLL(None)
-        mallopt, trim = libc.mallopt, libc.malloc_trim
-    except (OSError, AttributeError):
-        return None
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    trim.argtypes = (ctypes.c_size_t,)
-    return mallopt, trim
-
-
-@contextlib.contextmanager
-def one_heap():
-    """glibc's heap set for a mosaic's blend, then given back: threads that start their
-    first allocation inside share the main heap (arena limit 1; glibc fixes its limit when
-    a process first needs it, so it holds afterwards too), blocks below :data:`MMAP_BYTES`
-    come from the heap and freed memory up to :data:`ONE_HEAP_TRIM_BYTES` stays there
-    for the next swing (a swing's short-lived arrays, 4-34 MB, are freed and made again
-    for each of the 1.06 Gpx regional mosaic's 1834 swing builds). On leaving, the trim
-    threshold is :data:`TRIM_BYTES` again and the free memory is given back
-    (``malloc_trim``). Yields whether it applied (glibc only)."""
-    fns = _mallopt()
-    ok = fns is not None and bool(fns[0](_M_ARENA_MAX, 1)) and \
-        bool(fns[0](_M_MMAP_THRESHOLD, MMAP_BYTES)) and \
-        bool(fns[0](_M_TRIM_THRESHOLD, ONE_HEAP_TRIM_BYTES))
-    try:
-        yield ok
-    finally:
-        if fns is not None:
-            fns[0](_M_TRIM_THRESHOLD, TRIM_BYTES)
-            fns[1](0)
