@@ -323,7 +323,7 @@ def mark(name):
 import swathflow.flows.cli.commands as C
 lean = C._lean_imports
 def lean_imports():
-    mark("command parsed"); lean(); mark("dask.array, numba's array target")
+    mark("command parsed"); lean(); mark("dask.array")
     import swathflow.rectification.mission as M
     mark("engine imported")
     load, warm, run = M.load_mission, M._warm, M._run

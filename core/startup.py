@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import importlib.abc
+import importlib.machinery
+import importlib.util
 import os
 import sys
 from importlib import import_module
@@ -69,37 +72,53 @@ def import_without(names: str | tuple[str, ...], module: str) -> None:
 @contextlib.contextmanager
 def blas_probe_alone():
     """numba probes for BLAS with ``import scipy.linalg.cython_blas`` when its array target
-    loads (``numba.np.arraymath``, on a process's first compiled call), which runs the whole
-    ``scipy.linalg`` package (0.1-0.27 CPU-s: array-API shims, docstring parsing,
-    ``numpy.f2py``): about half of numba's start, for kernels that never use
-    ``scipy.linalg``. Inside this block that module is the extension file alone, loaded by
-    the standard loader under its own name (numba's BLAS wrappers get their function
+    loads (``numba.np.arraymath``: on a process's first compiled call, or when a cached
+    kernel's environment names it), which runs the whole ``scipy.linalg`` package
+    (0.1-0.27 CPU-s: array-API shims, docstring parsing, ``numpy.f2py``): about half of
+    numba's start, for kernels that never use ``scipy.linalg``. If the array target loads
+    inside this block, that module is the extension file alone, loaded by the standard
+    loader under its own name just before (numba's BLAS wrappers get their function
     pointers from it as from the package's). It leaves ``sys.modules`` after the block, so
     a later ``import scipy.linalg`` runs the package as usual and binds the same module
-    object (an extension is initialised once per process). Nothing is done when
-    ``scipy.linalg`` is loaded already or the file is not found."""
+    object (an extension is initialised once per process). Nothing is done when the
+    array target does not load in the block, ``scipy.linalg`` is loaded already or the
+    file is not found."""
     name = "scipy.linalg.cython_blas"
-    added = False
-    if "scipy.linalg" not in sys.modules and name not in sys.modules:
-        try:
-            import importlib.machinery
-            import importlib.util
+    added: list = []
 
-            import scipy
-            spec = importlib.machinery.PathFinder.find_spec(
-                name, [os.path.join(p, "linalg") for p in scipy.__path__])
-            if spec is not None and spec.loader is not None:
-                module = importlib.util.module_from_spec(spec)
-                spec.loader.exec_module(module)
-                sys.modules[name] = module
-                added = True
-        except ImportError:
-            pass
+    class ArrayTargetWatch(importlib.abc.MetaPathFinder):
+        def find_spec(self, fullname, path, target=None):
+            if fullname == "numba.np.arraymath" and not added and \
+                    "scipy.linalg" not in sys.modules and name not in sys.modules:
+                module = _extension_alone(name)
+                if module is not None:
+                    sys.modules[name] = module
+                    added.append(module)
+            return None                       # the usual finders find the module itself
+
+    watch = ArrayTargetWatch()
+    sys.meta_path.insert(0, watch)
     try:
         yield
     finally:
+        sys.meta_path.remove(watch)
         if added:
             sys.modules.pop(name, None)
+
+
+def _extension_alone(name: str):
+    """``scipy.linalg``'s extension module ``name`` loaded without its package, or None."""
+    try:
+        import scipy
+        spec = importlib.machinery.PathFinder.find_spec(
+            name, [os.path.join(p, "linalg") for p in scipy.__path__])
+        if spec is None or spec.loader is None:
+            return None
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    except ImportError:
+        return None
 
 
 def lean_numba_arrays() -> None:

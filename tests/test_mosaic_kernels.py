@@ -268,9 +268,10 @@ def _fresh(code: str) -> str:
 
 
 def test_kernels_start_without_scipy_linalg_and_blas_still_works():
-    """load_kernels probes numba's BLAS without running the scipy.linalg package and leaves
-    no trace in sys.modules: a later import of scipy.linalg binds the same extension, and
-    compiled code using BLAS (np.dot) still compiles and runs."""
+    """load_kernels starts numba without running the scipy.linalg package (its kernels
+    from the cache need no BLAS probe; a compiled one probes through the extension alone)
+    and leaves no trace in sys.modules: a later import of scipy.linalg binds the
+    extension, and compiled code using BLAS (np.dot) still compiles and runs."""
     out = _fresh(
         "import sys\n"
         "from swathflow.mosaicking.mosaic import load_kernels\n"

@@ -15,7 +15,7 @@ from typing import Iterator
 import numpy as np
 import pyproj
 from affine import Affine
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.errors import FormatError
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.geometry.demframe import BLOCK, dem_frame, poly, poly3, tile_of
 

@@ -10,7 +10,7 @@ import os
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.errors import FormatError, SwathflowError
 from swathflow.geometry.geodesy import transformer

@@ -5,7 +5,7 @@ releases the GIL (the numpy/scipy versions held it between their many small call
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.mosaicking.match_kernels import _grad, _median
 

@@ -21,7 +21,7 @@ All release the GIL, so the tiles of a mosaic render on every core through threa
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 __all__ = ["fill_rows", "sample_clip", "capped_distance", "accumulate"]
 

@@ -6,7 +6,7 @@ swathflow.mosaicking.block_kernels."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.mosaicking.kernels import _b3  # the cubic B-spline, written once
 

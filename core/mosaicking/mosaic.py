@@ -188,19 +188,17 @@ def load_kernels(matching: bool = False) -> None:
     """Load the mosaic's compiled kernels (numba's start and its cache: the blend's, and
     with ``matching`` the matching's) without the collector's passes (numba makes some
     100 000 objects as it starts, all of which live to the end: 0.15-0.2 CPU-s of passes
-    on the 48-swing benchmark) and without the ``scipy.linalg`` package that numba's BLAS
-    probe would run (:mod:`swathflow.startup`). The first time in a process the objects
-    then alive are frozen: the 48-swing mosaic's exit cost 0.20-0.23 CPU-s, now about
-    0.03."""
-    from swathflow.startup import lean_numba_arrays, uncollected
+    on the 48-swing benchmark) and without numba's compiler contexts (:mod:`swathflow.jit`).
+    The first time in a process the objects then alive are frozen: the 48-swing mosaic's
+    exit cost 0.20-0.23 CPU-s, now about 0.03."""
+    from swathflow.startup import uncollected
     first = not _FROZEN
     with uncollected(freeze=first):
         from swathflow.mosaicking import kernels
         if matching:
             from swathflow.mosaicking import block_kernels, match_kernels  # noqa: F401
-        lean_numba_arrays()
         z = np.zeros((1, 1), np.float32)
-        kernels.normalise(z, z)             # numba's first call: its typing and targets
+        kernels.normalise(z, z)             # numba's first call: its runtime
         if first:
             _FROZEN.append(True)
 

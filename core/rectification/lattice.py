@@ -40,7 +40,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.geometry.grid import tile_frame
 from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.rectification.kernel import _bil  # one bilinear rule for both painters
 

@@ -138,16 +138,13 @@ def rectify(args) -> int:
 
 
 def _lean_imports() -> None:
-    """Load ``dask.array`` and numba's array target without the parts they import for
-    features no rectification uses (``scipy.fftpack``, ``scipy.sparse``, the
-    ``scipy.linalg`` package, and ``jinja2`` of dask's notebook HTML views:
-    0.25 CPU-s together on the command's serial start, before its workers fork; see
-    :mod:`swathflow.startup`). Only this command's process is concerned. numba's
-    CFFI support stays (holding ``cffi`` back would save 0.02-0.04 CPU-s, and break a
-    sensor plugin whose compiled code calls a CFFI function)."""
-    from swathflow.startup import import_without, lean_numba_arrays
+    """Load ``dask.array`` without the parts it imports for features no rectification
+    uses (``scipy.fftpack``, ``scipy.sparse``, and ``jinja2`` of dask's notebook HTML
+    views: 0.15 CPU-s on the command's serial start, before its workers fork; see
+    :mod:`swathflow.startup`). Only this command's process is concerned. numba's compiled
+    kernels load from their cache without its compiler's contexts (:mod:`swathflow.jit`)."""
+    from swathflow.startup import import_without
     import_without(("scipy.fftpack", "scipy.sparse", "jinja2"), "dask.array")
-    lean_numba_arrays()
 
 
 def mosaic(args) -> int:

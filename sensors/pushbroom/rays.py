@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from swathflow.jit import njit
 
 from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
 

@@ -1,0 +1,60 @@
+"""numba's ``njit`` for the compiled kernels, with a lighter load of its on-disk cache.
+
+Loading a cached kernel (``cache=True``), numba first refreshes its whole typing and
+target context (``BaseContext.refresh``): it imports some 60 modules of its compiler
+(array, linalg, random, typed containers, unicode, ...) and installs their typing and
+lowering registries. A cached kernel needs none of that, only numba's runtime (NRT),
+whose missing start is what the refresh was added for (numba #2198). On a process's first
+kernel that refresh costs 0.08-0.1 CPU-s, and importing numba's array target before it
+0.04 more (with :func:`swathflow.startup.lean_numba_arrays`; 0.2-0.3 without), in every
+command and every worker process. The maintainers
+explored the same (numba PR #9806, refresh only for object mode, which our kernels do not
+use).
+
+:func:`njit` is numba's ``njit``; with ``cache=True`` the dispatcher's cache loads a
+kernel after starting the NRT alone. On a cache miss numba compiles as usual (its compiler
+refreshes the contexts itself). Where numba's cache does not have the methods this relies
+on (another numba), the kernel keeps numba's own cache.
+
+For code without Python objects (no ``objmode``, no typed dict, set or string hashing,
+whose symbols come from modules the refresh imports): swathflow's kernels and those of
+its sensor plugins. Kernels of another kind use numba's ``njit``.
+"""
+from __future__ import annotations
+
+import numba
+from numba.core.caching import FunctionCache
+
+from swathflow.startup import blas_probe_alone, lean_numba_arrays
+
+__all__ = ["njit"]
+
+
+class _LightCache(FunctionCache):
+    """numba's per-function cache, loading without the context refresh."""
+
+    def load_overload(self, sig, target_context):
+        from numba.core.runtime import rtsys
+        rtsys.initialize(target_context)       # once a process; the kernels allocate
+        cres = None
+        # a kernel's environment may name numba's array target (loaded as it unpickles)
+        with blas_probe_alone(), self._guard_against_spurious_io_errors():
+            cres = self._load_overload(sig, target_context)
+        if cres is None:        # numba compiles it now, its contexts refreshed by its compiler
+            lean_numba_arrays()     # (their array target without the scipy.linalg package)
+        return cres
+
+
+_USABLE = all(hasattr(FunctionCache, a) for a in (
+    "load_overload", "_load_overload", "_guard_against_spurious_io_errors"))
+
+
+def njit(fn=None, **options):
+    """``numba.njit(fn, **options)`` (also as ``@njit(**options)``); with ``cache=True``
+    its cache loads as :class:`_LightCache`."""
+    if fn is None:
+        return lambda f: njit(f, **options)
+    d = numba.njit(fn, **options)
+    if _USABLE and type(getattr(d, "_cache", None)) is FunctionCache:
+        d._cache.__class__ = _LightCache           # same state, one method differs
+    return d

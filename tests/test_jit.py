@@ -1,0 +1,75 @@
+"""swathflow.jit: a kernel loads from numba's on-disk cache without numba's compiler
+contexts (their modules are not imported), in a fresh interpreter, and computes what the
+truth says; a cache miss compiles as numba always does."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+from scipy import ndimage
+
+KERNEL = """
+import numpy as np
+from swathflow.jit import njit
+
+
+@njit(cache=True, nogil=True)
+def ramp(n, step):
+    out = np.empty(n)           # allocates: numba's runtime (NRT) must be started
+    for i in range(n):
+        out[i] = i * step
+    return out
+"""
+
+RUN = """
+import json, sys
+sys.path.insert(0, {folder!r})
+import kmod
+r = kmod.ramp(5, 0.5)
+print(json.dumps(dict(values=[float(v) for v in r],
+                      hits=sum(kmod.ramp.stats.cache_hits.values()),
+                      misses=sum(kmod.ramp.stats.cache_misses.values()),
+                      compiler=[m for m in ("numba.np.arraymath", "numba.np.linalg",
+                                            "numba.typed.typeddict") if m in sys.modules])))
+"""
+
+
+def _fresh(code: str) -> dict:
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_a_cached_kernel_loads_without_the_compiler_contexts(tmp_path):
+    (tmp_path / "kmod.py").write_text(KERNEL)
+    first = _fresh(RUN.format(folder=str(tmp_path)))
+    assert first["values"] == [0.0, 0.5, 1.0, 1.5, 2.0]
+    assert (first["hits"], first["misses"]) == (0, 1)     # compiled, contexts refreshed
+    assert "numba.np.arraymath" in first["compiler"]
+    second = _fresh(RUN.format(folder=str(tmp_path)))
+    assert second["values"] == [0.0, 0.5, 1.0, 1.5, 2.0]
+    assert (second["hits"], second["misses"]) == (1, 0)   # from the cache
+    assert second["compiler"] == []        # numba's own cache would have imported all three
+
+
+def test_the_mosaic_distance_from_the_cache_is_the_exact_distance():
+    """The feather's capped distance, loaded from the cache in a fresh interpreter, equals
+    scipy's exact Euclidean distance transform below the cap."""
+    ok = np.zeros((60, 90), bool)
+    ok[4:-3, 7:-11] = True
+    ok[20:30, 40:47] = False
+    code = ("import json, sys, numpy as np\n"
+            "from swathflow.mosaicking import kernels as K\n"
+            f"ok = np.array({ok.astype(int).tolist()}, bool)\n"
+            "d = K.capped_distance(ok, 12.0)\n"
+            "print(json.dumps(dict(d=d.tolist(),\n"
+            "    hits=sum(K.capped_distance.stats.cache_hits.values()),\n"
+            "    arraymath='numba.np.arraymath' in sys.modules)))\n")
+    _fresh(code)                                   # the cache written if it was not
+    out = _fresh(code)
+    assert out["hits"] == 1 and out["arraymath"] is False
+    truth = np.minimum(ndimage.distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1], 12.0)
+    np.testing.assert_allclose(np.array(out["d"]), truth, atol=1e-5)
