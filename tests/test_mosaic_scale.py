@@ -120,7 +120,12 @@ def test_swing_cache_keeps_its_swings_in_reused_mappings():
     rng = np.random.default_rng(0)
     made = {k: Corrected(k, 0, rng.random((30, 20), dtype=np.float32),
                          rng.random((30, 20), dtype=np.float32)) for k in range(6)}
-    cache = SwingCache(made.__getitem__, max_bytes=2 * made[0].nbytes)
+
+    def make(k, empty):                 # as corrected_swing makes its arrays
+        v, w = empty((30, 20), np.float32), empty((30, 20), np.float32)
+        v[...], w[...] = made[k].values, made[k].weight
+        return Corrected(k, 0, v, w)
+    cache = SwingCache(make, max_bytes=2 * made[0].nbytes)
     first = cache.get(0)
     assert np.array_equal(first.values, made[0].values)
     assert np.array_equal(first.weight, made[0].weight)
@@ -131,14 +136,16 @@ def test_swing_cache_keeps_its_swings_in_reused_mappings():
         c = cache.get(k)
         assert np.array_equal(c.values, made[k].values) and c.row == k
         assert cache._bytes <= cache.max_bytes
-    # 3 was copied into the mappings 0 left
+    # 3 was made on the mappings 0 left
     assert {id(_mapping(c.values)), id(_mapping(c.weight))} == maps
 
 
 def test_mappings_keep_at_most_spare_unused():
     from swathflow.mosaicking.blend import Mappings
     m = Mappings(spare=2)
-    arrays = [m.copy(np.full((4, 4), k, np.float64)) for k in range(5)]
+    arrays = [m.empty((4, 4), np.float64) for k in range(5)]
+    for k, a in enumerate(arrays):
+        a[...] = k
     assert [a[0, 0] for a in arrays] == [0, 1, 2, 3, 4]
     del arrays
     assert [len(v) for v in m._free.values()] == [2]

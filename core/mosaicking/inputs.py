@@ -286,12 +286,17 @@ def _valid(a, nodata):
 
 
 def read_window(handles: _Handles, sw: Swing, r0: int, c0: int, r1: int, c1: int,
-                step: int = 1):
+                step: int = 1, scratch=None):
     """Values (float64) and valid mask of grid window ``[r0, r1) x [c0, c1)`` of one swing
-    (outside the file: invalid). ``step > 1`` reads a decimated window (nearest)."""
+    (outside the file: invalid). ``step > 1`` reads a decimated window (nearest).
+    ``scratch``: a :meth:`swathflow.mosaicking.blend.Scratch.get` whose arrays the
+    window is read into (valid until the thread reads the next), instead of new ones."""
     h, w = (r1 - r0 + step - 1) // step, (c1 - c0 + step - 1) // step
-    val = np.zeros((h, w))
-    ok = np.zeros((h, w), bool)
+    if scratch is None:
+        val, ok = np.zeros((h, w)), np.zeros((h, w), bool)
+    else:
+        val, ok = scratch("window", (h, w), np.float64), scratch("window ok", (h, w), bool)
+        val[...], ok[...] = 0.0, False
     # the part of the window inside the file, aligned to the decimation lattice
     a0 = max(r0, sw.row)
     b0 = max(c0, sw.col)
@@ -311,20 +316,20 @@ def read_window(handles: _Handles, sw: Swing, r0: int, c0: int, r1: int, c1: int
         cols = slice(b0 - sw.col, b1 - sw.col, step)
         g = good[rows, cols]
         hh, ww = g.shape
-        val[i0:i0 + hh, j0:j0 + ww] = np.where(g, data[rows, cols], 0)
+        np.copyto(val[i0:i0 + hh, j0:j0 + ww], data[rows, cols], where=g)
         ok[i0:i0 + hh, j0:j0 + ww] = g
         return val, ok
     ds = handles.get(sw.path)
     win = Window(b0 - sw.col, a0 - sw.row, b1 - b0, a1 - a0)
-    if step == 1:
-        data = ds.read(1, window=win)
+    shape = ((a1 - a0 + step - 1) // step, (b1 - b0 + step - 1) // step)
+    if scratch is None:
+        data = ds.read(1, window=win, out_shape=shape if step > 1 else None)
     else:
-        shape = ((a1 - a0 + step - 1) // step, (b1 - b0 + step - 1) // step)
-        data = ds.read(1, window=win, out_shape=shape)
+        data = ds.read(1, window=win, out=scratch("window raw", shape, ds.dtypes[0]))
     hh, ww = data.shape
-    val[i0:i0 + hh, j0:j0 + ww] = data
-    ok[i0:i0 + hh, j0:j0 + ww] = _valid(data, sw.nodata)
-    val[~ok] = 0.0
+    good = ok[i0:i0 + hh, j0:j0 + ww]
+    good[...] = _valid(data, sw.nodata)
+    np.copyto(val[i0:i0 + hh, j0:j0 + ww], data, where=good)
     return val, ok
 
 

@@ -23,15 +23,23 @@ from __future__ import annotations
 import numpy as np
 from swathflow.jit import njit
 
-__all__ = ["fill_rows", "sample_clip", "capped_distance", "accumulate"]
+__all__ = ["fill_rows", "sample_clip", "capped_distance", "accumulate", "fill_rows_into",
+           "sample_clip_into", "capped_distance_into", "prefilter_into"]
 
 
 @njit(cache=True, nogil=True)
 def fill_rows(val, ok):
     """A copy of ``val`` (float64) where each invalid pixel takes the previous valid value
     of its row, else the next; rows without a valid pixel take the nearest such row."""
+    out = np.empty(val.shape)
+    fill_rows_into(val, ok, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def fill_rows_into(val, ok, out):
+    """:func:`fill_rows` into ``out`` (float64, the shape of ``val``)."""
     h, w = val.shape
-    out = np.empty((h, w))
     has = np.zeros(h, np.bool_)
     for i in range(h):
         last = -1
@@ -53,7 +61,7 @@ def fill_rows(val, ok):
             elif np.isnan(out[i, j]):
                 out[i, j] = val[i, nxt]
     if h == 0:
-        return out
+        return
     # rows with no valid pixel: the previous filled row, else the next
     prev = -1
     for i in range(h):
@@ -71,7 +79,6 @@ def fill_rows(val, ok):
             out[i, :] = out[nxt, :]
     if nxt < 0 and prev < 0:
         out[:, :] = 0.0
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -108,14 +115,23 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
     columns ``x - 1 .. x + 2``, edge-extended). Returns ``(values float32 (0 where
     invalid), valid)``."""
     h, w = filled.shape
+    out = np.empty((h, w), np.float32)
+    valid = np.empty((h, w), np.bool_)
+    sample_clip_into(coef, filled, ok, pad, fr, fc, radiometric, out, valid)
+    return out, valid
+
+
+@njit(cache=True, nogil=True)
+def sample_clip_into(coef, filled, ok, pad, fr, fc, radiometric, out, valid):
+    """:func:`sample_clip` into ``out`` (float32) and ``valid`` (bool), the shape of
+    ``filled``."""
+    h, w = filled.shape
     wr = np.empty(4)
     wc = np.empty(4)
     for k in range(4):
         wr[k] = _b3(fr - (k - 1))
         wc[k] = _b3(fc - (k - 1))
     sr, sc = fr >= 1e-6, fc >= 1e-6
-    out = np.zeros((h, w), np.float32)
-    valid = np.zeros((h, w), np.bool_)
     tmp = np.empty(w + 3)
     # the row bounds of the 4 rows around row i, in a ring of 4 rows (row a in a % 4)
     # made as the rows come (not a whole image's worth of them: less memory traffic)
@@ -136,6 +152,7 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
             valid[i, j] = m
             empty = empty and not m
         if empty:
+            out[i, :] = 0.0
             continue
         # rows of the spline sum first (4 taps), then columns
         for jj in range(w + 3):
@@ -148,6 +165,7 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
         a2, a3 = min(i + 1, h - 1) % 4, min(i + 2, h - 1) % 4
         for j in range(w):
             if not valid[i, j]:
+                out[i, j] = 0.0
                 continue
             v = wc[0] * tmp[j] + wc[1] * tmp[j + 1] + wc[2] * tmp[j + 2] + wc[3] * tmp[j + 3]
             lo = min(min(min(min(np.inf, lo_r[a0, j]), lo_r[a1, j]), lo_r[a2, j]), lo_r[a3, j])
@@ -155,7 +173,6 @@ def sample_clip(coef, filled, ok, pad, fr, fc, radiometric):
                      hi_r[a3, j])
             v = min(max(v, lo), hi)
             out[i, j] = v - radiometric
-    return out, valid
 
 
 @njit(cache=True, nogil=True)
@@ -185,8 +202,16 @@ def _envelope(f, n, d, v, z):
 def capped_distance(ok, cap):
     """``min(edt, cap)`` as float32: the distance of each valid pixel of ``ok`` to the
     nearest invalid pixel (outside the array: invalid); 0 where invalid."""
+    out = np.empty(ok.shape, np.float32)
+    capped_distance_into(ok, cap, out, np.empty(ok.shape))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def capped_distance_into(ok, cap, out, g):
+    """:func:`capped_distance` into ``out`` (float32), with ``g`` (float64) for its
+    column pass; both the shape of ``ok``."""
     h, w = ok.shape
-    g = np.empty((h, w))
     c = float(cap)
     # the column pass row by row (the arrays' order): each column's run down, then up
     run = np.zeros(w)
@@ -199,7 +224,6 @@ def capped_distance(ok, cap):
         for j in range(w):
             run[j] = min(run[j] + 1.0, c) if ok[i, j] else 0.0
             g[i, j] = min(g[i, j], run[j])
-    out = np.zeros((h, w), np.float32)
     f = np.empty(w)
     d = np.empty(w)
     v = np.empty(w, np.int64)
@@ -210,10 +234,10 @@ def capped_distance(ok, cap):
         _envelope(f, w, d, v, z)
         for j in range(w):
             if not ok[i, j]:
+                out[i, j] = 0.0
                 continue
             e = min(d[j], float(j + 1) ** 2, float(w - j) ** 2)
             out[i, j] = min(np.sqrt(e), c)
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -330,8 +354,16 @@ def prefilter(val, pad):
     same recursions and mirror initialisation, in one compiled pass per axis; equal to
     scipy's to about 1e-12 relative)."""
     h, w = val.shape
+    c = np.empty((h + 2 * pad, w + 2 * pad))
+    prefilter_into(val, pad, c)
+    return c
+
+
+@njit(cache=True, nogil=True)
+def prefilter_into(val, pad, c):
+    """:func:`prefilter` into ``c`` (float64, the shape of ``val`` plus ``2 * pad``)."""
+    h, w = val.shape
     H, W = h + 2 * pad, w + 2 * pad
-    c = np.empty((H, W))
     for i in range(H):
         r = min(max(i - pad, 0), h - 1)
         for j in range(W):
@@ -346,4 +378,3 @@ def prefilter(val, pad):
     else:
         for i in range(H):
             c[i, 0] /= 6.0
-    return c

@@ -21,16 +21,18 @@ def swing_cache(layout: Layout, offsets, radiometric, feather: int = 64, handles
                 max_bytes: int = 512 * 2 ** 20):
     """A :class:`swathflow.blend.SwingCache` of the swings corrected by ``offsets`` and
     ``radiometric`` (per swing), read through ``handles``."""
-    from swathflow.mosaicking.blend import SwingCache, corrected_swing
+    from swathflow.mosaicking.blend import Scratch, SwingCache, corrected_swing
     handles = handles or _Handles()
     offsets = np.asarray(offsets, float)
     radiometric = np.asarray(radiometric, float)
+    scratch = Scratch()         # the reading's and the correction's arrays, per thread
 
-    def make(k):
+    def make(k, empty):
         sw = layout.swings[k]
         val, ok = read_window(handles, sw, sw.row, sw.col, sw.row + sw.height,
-                              sw.col + sw.width)
-        return corrected_swing(val, ok, sw.row, sw.col, offsets[k], radiometric[k], feather)
+                              sw.col + sw.width, scratch=scratch.get)
+        return corrected_swing(val, ok, sw.row, sw.col, offsets[k], radiometric[k], feather,
+                               empty=empty, scratch=scratch.get)
     return SwingCache(make, max_bytes)
 
 
