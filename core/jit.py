@@ -4,12 +4,11 @@ Loading a cached kernel (``cache=True``), numba first refreshes its whole typing
 target context (``BaseContext.refresh``): it imports some 60 modules of its compiler
 (array, linalg, random, typed containers, unicode, ...) and installs their typing and
 lowering registries. A cached kernel needs none of that, only numba's runtime (NRT),
-whose missing start is what the refresh was added for (numba #2198). On a process's first
-kernel that refresh costs 0.08-0.1 CPU-s, and importing numba's array target before it
-0.04 more (with :func:`swathflow.startup.lean_numba_arrays`; 0.2-0.3 without), in every
-command and every worker process. The maintainers
-explored the same (numba PR #9806, refresh only for object mode, which our kernels do not
-use).
+whose missing start is what the refresh was added for (numba #2198). On a process's
+first kernel the refresh cost 0.12 CPU-s (0.08-0.1 for the refresh, 0.04 for numba's
+array target loaded before it), in every command and every worker process. numba's
+maintainers explored the same (numba PR #9806: refresh only for object mode, which our
+kernels do not use).
 
 :func:`njit` is numba's ``njit``; with ``cache=True`` the dispatcher's cache loads a
 kernel after starting the NRT alone. On a cache miss numba compiles as usual (its compiler

@@ -83,27 +83,34 @@ def blas_probe_alone():
     object (an extension is initialised once per process). Nothing is done when the
     array target does not load in the block, ``scipy.linalg`` is loaded already or the
     file is not found."""
-    name = "scipy.linalg.cython_blas"
-    added: list = []
-
-    class ArrayTargetWatch(importlib.abc.MetaPathFinder):
-        def find_spec(self, fullname, path, target=None):
-            if fullname == "numba.np.arraymath" and not added and \
-                    "scipy.linalg" not in sys.modules and name not in sys.modules:
-                module = _extension_alone(name)
-                if module is not None:
-                    sys.modules[name] = module
-                    added.append(module)
-            return None                       # the usual finders find the module itself
-
-    watch = ArrayTargetWatch()
+    watch = _ArrayTargetWatch()
     sys.meta_path.insert(0, watch)
     try:
         yield
     finally:
         sys.meta_path.remove(watch)
-        if added:
-            sys.modules.pop(name, None)
+        if watch.added:
+            sys.modules.pop(_BLAS, None)
+
+
+_BLAS = "scipy.linalg.cython_blas"
+
+
+class _ArrayTargetWatch(importlib.abc.MetaPathFinder):
+    """As ``numba.np.arraymath`` is about to load: ``scipy.linalg``'s BLAS extension put in
+    ``sys.modules`` alone (``added``), unless that package or module is there already."""
+
+    def __init__(self):
+        self.added = False
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname == "numba.np.arraymath" and not self.added and \
+                "scipy.linalg" not in sys.modules and _BLAS not in sys.modules:
+            module = _extension_alone(_BLAS)
+            if module is not None:
+                sys.modules[_BLAS] = module
+                self.added = True
+        return None                           # the usual finders find the module itself
 
 
 def _extension_alone(name: str):
