@@ -303,3 +303,36 @@ def test_decoded_swings_give_the_windows_gdal_reads(shifted_scene):
     small = M.swing_store(keep_mb=0)
     small.keep_if_fits(lay.swings)
     assert small.keep_bytes == 0
+
+
+def test_corrections_on_reused_dirty_buffers_equal_fresh_ones():
+    """A swing corrected in a thread's scratch buffers and on dirty result arrays (left by
+    a larger swing, NaN-filled) equals the same swing corrected on new arrays: every
+    element the kernels return is written, whatever the buffers held."""
+    from swathflow.mosaicking.blend import Scratch, corrected_swing
+    rng = np.random.default_rng(7)
+    big = rng.normal(size=(90, 80))
+    big_ok = ndimage.binary_opening(rng.random((90, 80)) > 0.1)
+    val = rng.normal(size=(60, 50))
+    ok = np.zeros((60, 50), bool)
+    ok[5:55, 8:40] = True
+    ok[20:30, 8:12] = False
+    ok[0, :] = True                              # an edge row: the fill's borders
+
+    def dirty(shape, dtype):
+        a = np.empty(shape, dtype)
+        a[...] = np.nan if np.dtype(dtype).kind == "f" else True
+        return a
+
+    scratch = Scratch()
+    for offset in ((0.0, 0.0), (0.3, -1.6), (2.5, 0.25)):
+        corrected_swing(big, big_ok, 0, 0, (0.7, 0.2), 1.0, 8, scratch=scratch.get)
+        for buf in ("filled", "coef", "valid", "distance"):   # what the big swing left,
+            b = scratch.get(buf, (90, 80), bool if buf == "valid" else float)  # soiled
+            b[...] = True if buf == "valid" else np.nan
+        got = corrected_swing(val, ok, 3, 4, offset, 2.0, 6, empty=dirty,
+                              scratch=scratch.get)
+        want = corrected_swing(val, ok, 3, 4, offset, 2.0, 6)
+        assert (got.row, got.col) == (want.row, want.col)
+        assert np.array_equal(got.values, want.values)
+        assert np.array_equal(got.weight, want.weight)
