@@ -53,8 +53,9 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
 
 def test_rectify_loads_dask_array_without_scipy_fft_sparse_linalg():
     """The rectify command loads dask.array without scipy.fftpack (and scipy.fft,
-    scipy.special behind it), scipy.sparse and jinja2, and does not load numba's array
-    target (its kernels come from the cache without it); all still work afterwards:
+    scipy.special behind it), scipy.sparse and jinja2, and no longer loads numba's array
+    target up front (cached kernels need none; one whose environment names it loads it
+    through swathflow.startup.blas_probe_alone); all still work afterwards:
     dask.array's FFTs, scipy.sparse, cffi, jinja2 and a compiled np.dot (numba imports
     scipy's BLAS when it compiles one)."""
     code = ("import sys\nfrom swathflow.flows.cli import commands\n"
