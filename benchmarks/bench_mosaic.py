@@ -290,7 +290,7 @@ def _peer_round(work, d, g, env, sf, quick, gdal):
             w, c, r, e = w + w1, c + c1, max(r, r1), e + LAST_IDLE[0]
         rows.append((name, w, c, None, r, e))
     # the floor under our rows: an interpreter that only starts numba (import and the first
-    # call of a cached kernel: its typing and targets), no mosaic work at all
+    # call of a cached kernel: its runtime), no mosaic work at all
     w, c, r, _ = _measured([sys.executable, "-c", _NUMBA_START], env)
     rows.append((FLOOR_ROW, w, c, None, r, LAST_IDLE[0]))
     w, c, r, out = _measured([sys.executable, "-c", _MERGE, json.dumps(dict(

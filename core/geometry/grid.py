@@ -15,11 +15,11 @@ from typing import Iterator
 import numpy as np
 import pyproj
 from affine import Affine
-from swathflow.jit import njit
 
 from swathflow.errors import FormatError
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
 from swathflow.geometry.terrain import bilinear_one
+from swathflow.jit import njit
 
 
 def resolve_crs(spec, lat: float, lon: float) -> str:

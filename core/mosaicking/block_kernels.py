@@ -5,8 +5,8 @@ releases the GIL (the numpy/scipy versions held it between their many small call
 from __future__ import annotations
 
 import numpy as np
-from swathflow.jit import njit
 
+from swathflow.jit import njit
 from swathflow.mosaicking.match_kernels import _grad, _median
 
 __all__ = ["gaussian", "erode", "weakest_gradient", "noise_texture", "block_mean"]

@@ -17,6 +17,9 @@
   float32.
 
 All release the GIL, so the tiles of a mosaic render on every core through threads.
+``fill_rows``, ``sample_clip``, ``capped_distance`` and ``prefilter`` each have an
+``*_into`` variant that writes into arrays it is given (the swing cache's reused buffers,
+:class:`swathflow.mosaicking.blend.Scratch`) and that the function itself calls.
 """
 from __future__ import annotations
 

@@ -40,9 +40,9 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from swathflow.jit import njit
 
 from swathflow.geometry.grid import tile_frame
+from swathflow.jit import njit
 from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,
                                            _off_image, _store, _unknown, corner_bounds)
 from swathflow.rectification.paint import touching

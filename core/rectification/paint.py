@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
 
+from swathflow.jit import njit
 from swathflow.rectification.kernel import _bil  # one bilinear rule for both painters
 
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
 
 from swathflow.geometry.navkernel import body_to_ecef, line_at, pos_epoch
 from swathflow.geometry.planesolve import bracket_one
+from swathflow.jit import njit
 
 DEG = math.pi / 180.0
 

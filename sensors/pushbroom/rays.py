@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
 
 from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
+from swathflow.jit import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
