@@ -11,15 +11,19 @@ maintainers explored the same (numba PR #9806: refresh only for object mode, whi
 kernels do not use).
 
 :func:`njit` is numba's ``njit``; with ``cache=True`` the dispatcher's cache loads a
-kernel after starting the NRT alone. On a cache miss numba compiles as usual (its compiler
-refreshes the contexts itself). Where numba's cache does not have the methods this relies
-on (another numba), the kernel keeps numba's own cache.
+kernel after starting the NRT alone, and without importing the numba modules whose
+functions the kernel was linked with (:func:`_envs_unimported`). On a cache miss numba
+compiles as usual (its compiler refreshes the contexts itself). Where numba's cache does
+not have the methods this relies on (another numba), the kernel keeps numba's own cache.
 
 For code without Python objects (no ``objmode``, no typed dict, set or string hashing,
 whose symbols come from modules the refresh imports): swathflow's kernels and those of
 its sensor plugins. Kernels of another kind use numba's ``njit``.
 """
 from __future__ import annotations
+
+import contextlib
+import sys
 
 import numba
 from numba.core.caching import FunctionCache
@@ -37,11 +41,46 @@ class _LightCache(FunctionCache):
         rtsys.initialize(target_context)       # once a process; the kernels allocate
         cres = None
         # a kernel's environment may name numba's array target (loaded as it unpickles)
-        with blas_probe_alone(), self._guard_against_spurious_io_errors():
+        with blas_probe_alone(), _envs_unimported(), \
+                self._guard_against_spurious_io_errors():
             cres = self._load_overload(sig, target_context)
         if cres is None:        # numba compiles it now, its contexts refreshed by its compiler
             lean_numba_arrays()     # (their array target without the scipy.linalg package)
         return cres
+
+
+@contextlib.contextmanager
+def _envs_unimported():
+    """A cached kernel names the environment of every numba function it was linked with
+    (``np.empty``'s, ``np.searchsorted``'s, an integer's ``str``...): the globals of the
+    numba module that defines it, imported as the kernel unpickles (``_rebuild_env``):
+    ``numba.np.arrayobj``, ``arraymath``, ``npyimpl``, ``cpython.unicode``... (25 modules,
+    about 0.1 s, for the rectify engine's kernels). Compiled code reads those globals only
+    in object mode, which numba's own implementations do not use. Inside this block such
+    an environment, of a numba module not loaded yet, gets the module's name alone for its
+    globals (its constants as pickled), and is not memoised: a later compilation that
+    needs the same environment makes numba's own, from the module then imported."""
+    from numba.core import environment
+    rebuild = getattr(environment, "_rebuild_env", None)
+    if rebuild is None or not hasattr(environment, "lookup_environment"):
+        yield                                  # another numba: its own way
+        return
+
+    def rebuild_unimported(modname, consts, env_name):
+        env = environment.lookup_environment(env_name)
+        if env is not None or modname in sys.modules or \
+                not str(modname).startswith("numba."):
+            return env if env is not None else rebuild(modname, consts, env_name)
+        env = environment.Environment({"__name__": modname})
+        env.consts[:] = consts
+        env.env_name = env_name
+        return env
+
+    environment._rebuild_env = rebuild_unimported
+    try:
+        yield
+    finally:
+        environment._rebuild_env = rebuild
 
 
 _USABLE = all(hasattr(FunctionCache, a) for a in (

@@ -16,7 +16,8 @@ import os
 import sys
 from importlib import import_module
 
-__all__ = ["uncollected", "import_without", "blas_probe_alone", "lean_numba_arrays"]
+__all__ = ["uncollected", "import_without", "underived_docstrings", "blas_probe_alone",
+           "lean_numba_arrays"]
 
 
 @contextlib.contextmanager
@@ -40,9 +41,9 @@ def uncollected(freeze: bool = True):
 
 
 def import_without(names: str | tuple[str, ...], module: str) -> None:
-    """Import ``module`` while an import of ``names`` (one module name or several) fails
-    (ImportError), when ``module`` is not loaded yet and none of ``names`` is; if
-    ``module`` cannot do without them after all, the usual way. ``names`` stay importable
+    """Import ``module`` (unless loaded already) while an import of ``names`` (one module
+    name or several) fails (ImportError); the usual way when one of ``names`` is loaded
+    already or ``module`` cannot do without them after all. ``names`` stay importable
     afterwards.
 
     Used for ``dask.array``: its ``fft`` module imports ``scipy.fftpack`` only to warn
@@ -54,19 +55,48 @@ def import_without(names: str | tuple[str, ...], module: str) -> None:
     Only on a process's main thread while no other thread imports: the modules held back
     are unimportable for every thread meanwhile."""
     held = (names,) if isinstance(names, str) else tuple(names)
-    if module in sys.modules or any(n in sys.modules for n in held):
+    if module in sys.modules:
         return
-    for n in held:
-        sys.modules[n] = None             # an import of it fails while ``module`` loads
-    try:
-        import_module(module)
-    except ImportError:
-        pass
-    finally:
+    if not any(n in sys.modules for n in held):
         for n in held:
-            if sys.modules.get(n, 0) is None:
-                del sys.modules[n]
+            sys.modules[n] = None         # an import of it fails while ``module`` loads
+        try:
+            import_module(module)
+        except ImportError:
+            pass
+        finally:
+            for n in held:
+                if sys.modules.get(n, 0) is None:
+                    del sys.modules[n]
     import_module(module)
+
+
+@contextlib.contextmanager
+def underived_docstrings():
+    """dask's array functions and methods derive their docstrings from numpy's when they
+    are defined (``dask.utils.derived_from``: some 300 of them on ``import dask.array``,
+    each a copy of numpy's text with its unsupported keywords marked: about 0.16 CPU-s,
+    half of that import). Inside this block they keep their own docstrings instead (what
+    ``derived_from`` would add to). A name the original lacks still gives dask's function
+    that raises NotImplementedError. Only for a process that never shows dask's help; the
+    functions defined after the block get dask's docstrings again. Nothing is changed when
+    ``dask.utils`` has no ``_derived_from``."""
+    try:
+        from dask import utils
+        derive = utils._derived_from
+    except (ImportError, AttributeError):
+        yield
+        return
+
+    def own(cls, method, *args, extra="", **kwargs):
+        getattr(cls, method.__name__)      # dask's AttributeError where cls lacks it
+        return extra or None
+
+    utils._derived_from = own
+    try:
+        yield
+    finally:
+        utils._derived_from = derive
 
 
 @contextlib.contextmanager

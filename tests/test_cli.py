@@ -76,6 +76,40 @@ def test_rectify_loads_dask_array_without_scipy_fft_sparse_linalg():
         r.stdout + r.stderr
 
 
+def test_rectify_loads_dask_array_without_building_its_docstrings_from_numpys():
+    """dask.array's functions keep their own docstrings in the rectify command's process
+    (numpy's are not copied into them), dask's derivation is restored after (a function
+    derived later gets numpy's text), and inside the block a method numpy's class lacks
+    still gives dask's function that raises NotImplementedError."""
+    code = ("import sys\nimport numpy as np\nfrom swathflow.flows.cli import commands\n"
+            "commands._lean_imports()\n"
+            "import dask.array as da, dask.utils as U\n"
+            "from swathflow.startup import underived_docstrings\n"
+            "def nansum():\n    'Dask: the own text.'\n"
+            "def no_such_numpy_function():\n    pass\n"
+            "with underived_docstrings():\n"
+            "    missing = U.derived_from(np.ndarray)(no_such_numpy_function)\n"
+            "try:\n    missing()\n    raised = False\n"
+            "except NotImplementedError:\n    raised = True\n"
+            "print('copied from numpy' in (da.sum.__doc__ or ''),\n"
+            "      'copied from numpy' in U.derived_from(np)(nansum).__doc__,\n"
+            "      'the own text' in nansum.__doc__, raised,\n"
+            "      float(da.ones(4, chunks=2).sum().compute()))\n")
+    r = _python(code)
+    assert r.stdout.split() == ["False", "True", "True", "True", "4.0"], \
+        r.stdout + r.stderr
+
+
+def test_import_without_imports_the_module_when_a_held_one_is_loaded_already():
+    """With a module held back loaded already, the module is still imported (the usual
+    way), not skipped."""
+    code = ("import sys, json\nfrom swathflow.startup import import_without\n"
+            "import_without(('json', 'csv'), 'xml.dom.minidom')\n"
+            "print('xml.dom.minidom' in sys.modules)\n")
+    r = _python(code)
+    assert r.stdout.split() == ["True"], r.stdout + r.stderr
+
+
 def test_import_without_falls_back_to_the_usual_import():
     """A module that cannot do without the module held back is imported the usual way."""
     code = ("import sys\nfrom swathflow.startup import import_without\n"

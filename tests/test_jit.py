@@ -73,3 +73,43 @@ def test_the_mosaic_distance_from_the_cache_is_the_exact_distance():
     assert out["hits"] == 1 and out["arraymath"] is False
     truth = np.minimum(ndimage.distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1], 12.0)
     np.testing.assert_allclose(np.array(out["d"]), truth, atol=1e-5)
+
+
+SORTER = """
+import numpy as np
+from swathflow.jit import njit
+
+
+@njit(cache=True, nogil=True)
+def order(x):
+    return np.argsort(x)        # linked with numba.np.arrayobj's argsort and np.empty
+"""
+
+RUN_SORTER = """
+import json, sys
+import numpy as np
+sys.path.insert(0, {folder!r})
+import kmod2
+x = np.array([3.0, -1.0, 2.0, 7.0, 0.5])
+first = kmod2.order(x).tolist()
+unloaded = "numba.np.arrayobj" not in sys.modules
+import numba
+fresh = numba.njit(lambda a: np.argsort(a))(x).tolist()      # compiled, not cached
+print(json.dumps(dict(first=first, fresh=fresh, again=kmod2.order(x[::-1].copy()).tolist(),
+                      unloaded=unloaded,
+                      hits=sum(kmod2.order.stats.cache_hits.values()))))
+"""
+
+
+def test_a_cached_kernel_loads_without_the_numba_modules_it_was_linked_with(tmp_path):
+    """A kernel linked with numba's own implementations (argsort, np.empty) loads from the
+    cache without importing their module (numba.np.arrayobj), sorts right, and a
+    compilation in the same process that needs that module's environment afterwards
+    works, as does the cached kernel after it."""
+    (tmp_path / "kmod2.py").write_text(SORTER)
+    _fresh(RUN_SORTER.format(folder=str(tmp_path)))          # the cache written
+    out = _fresh(RUN_SORTER.format(folder=str(tmp_path)))
+    truth = np.argsort(np.array([3.0, -1.0, 2.0, 7.0, 0.5]), kind="stable").tolist()
+    assert out["hits"] == 1 and out["unloaded"] is True
+    assert out["first"] == truth and out["fresh"] == truth
+    assert out["again"] == np.argsort(np.array([0.5, 7.0, 2.0, -1.0, 3.0])).tolist()

@@ -140,11 +140,15 @@ def rectify(args) -> int:
 def _lean_imports() -> None:
     """Load ``dask.array`` without the parts it imports for features no rectification
     uses (``scipy.fftpack``, ``scipy.sparse``, and ``jinja2`` of dask's notebook HTML
-    views: 0.15 CPU-s on the command's serial start, before its workers fork; see
+    views: 0.15 CPU-s on the command's serial start, before its workers fork), and
+    without building its docstrings from numpy's (0.16 CPU-s more; see
     :mod:`swathflow.startup`). Only this command's process is concerned. numba's compiled
     kernels load from their cache without its compiler's contexts (:mod:`swathflow.jit`)."""
-    from swathflow.startup import import_without
-    import_without(("scipy.fftpack", "scipy.sparse", "jinja2"), "dask.array")
+    from swathflow.startup import import_without, underived_docstrings
+    held = ("scipy.fftpack", "scipy.sparse", "jinja2")
+    import_without(held, "dask")            # dask.utils, for underived_docstrings
+    with underived_docstrings():
+        import_without(held, "dask.array")
 
 
 def mosaic(args) -> int:
