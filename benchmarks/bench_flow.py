@@ -25,10 +25,11 @@ import tempfile
 import time
 from pathlib import Path
 
-# as `swathflow run` does it: the inputs checked (the mission loaded once, memoised for
-# the flow), then the flow; with the number of Dask workers the command line leaves to
-# the machine (one per core)
+# as `swathflow run` does it: dask.array imported lean, the inputs checked (the mission
+# loaded once, memoised for the flow), then the flow; with the number of Dask workers the
+# command line leaves to the machine (one per core)
 _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
+        "from swathflow.flows.cli.commands import _lean_imports\n_lean_imports()\n"
         "from swathflow.flows.guard import check_run_inputs\n"
         "from swathflow.flows.mission import run\n"
         "check_run_inputs(sys.argv[1], sys.argv[3])\n"

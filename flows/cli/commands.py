@@ -142,7 +142,8 @@ def _lean_imports() -> None:
     uses (``scipy.fftpack``, ``scipy.sparse``, and ``jinja2`` of dask's notebook HTML
     views: 0.15 CPU-s on the command's serial start, before its workers fork), and
     without building its docstrings from numpy's (0.16 CPU-s more; see
-    :mod:`swathflow.startup`). Only this command's process is concerned. numba's compiled
+    :mod:`swathflow.startup`). Only the process of the command (rectify, run, demo) is
+    concerned; the modules held back stay importable (Prefect imports jinja2 later). numba's compiled
     kernels load from their cache without its compiler's contexts (:mod:`swathflow.jit`)."""
     from swathflow.startup import import_without, underived_docstrings
     held = ("scipy.fftpack", "scipy.sparse", "jinja2")
@@ -230,6 +231,7 @@ def run(args) -> int:
         _echo(args, f"mission {done['mission']}: up to date, nothing to recompute "
               f"(products in {os.path.abspath(args.out)})")
         return 0
+    _lean_imports()
     from swathflow.flows.guard import check_run_inputs
     check_run_inputs(args.mission, args.calibration)   # bad input: before Prefect and Dask
     from swathflow.flows.mission import run as run_flow
@@ -240,6 +242,7 @@ def run(args) -> int:
 
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
+    _lean_imports()
     from swathflow.flows.mission import run as run_flow
     from swathflow.simulation import simulate as simulate_mission
     out = Path(args.out).resolve()
