@@ -4,6 +4,7 @@ truth says; a cache miss compiles as numba always does."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -113,3 +114,44 @@ def test_a_cached_kernel_loads_without_the_numba_modules_it_was_linked_with(tmp_
     assert out["hits"] == 1 and out["unloaded"] is True
     assert out["first"] == truth and out["fresh"] == truth
     assert out["again"] == np.argsort(np.array([0.5, 7.0, 2.0, -1.0, 3.0])).tolist()
+
+
+RUN_RUNTIME = """
+import glob, json, os, sys
+import numpy as np
+from numba.core.runtime import nrtdynmod
+built = []
+create = nrtdynmod.create_nrt_module
+nrtdynmod.create_nrt_module = lambda ctx: built.append(1) or create(ctx)
+sys.path.insert(0, {folder!r})
+import kmod
+import numba
+from numba.core.caching import FunctionCache
+import swathflow.jit as J
+ramp = kmod.ramp(4, 0.25).tolist()                     # cached, allocates
+fresh = float(numba.njit(lambda n: np.ones(n).sum())(7))   # compiled now, links the runtime
+folder = FunctionCache(J._anchor)._cache_path
+print(json.dumps(dict(ramp=ramp, fresh=fresh, built=len(built),
+                      files=glob.glob(os.path.join(folder, "jit.nrt-*.nbo")))))
+"""
+
+
+def test_numbas_runtime_starts_from_its_kept_object_code(tmp_path):
+    """numba's runtime functions are compiled once and kept beside the kernels' cache: a
+    fresh interpreter then starts the runtime from that file (numba's runtime module not
+    built), runs a cached kernel that allocates and compiles a new one that links the
+    runtime; a damaged file is compiled again, and replaced."""
+    (tmp_path / "kmod.py").write_text(KERNEL)
+    first = _fresh(RUN_RUNTIME.format(folder=str(tmp_path)))
+    assert len(first["files"]) == 1, first
+    out = _fresh(RUN_RUNTIME.format(folder=str(tmp_path)))
+    assert (out["ramp"], out["fresh"], out["built"]) == ([0.0, 0.25, 0.5, 0.75], 7.0, 0)
+    path = out["files"][0]
+    tmp = path + ".test.tmp"
+    with open(tmp, "wb") as f:
+        f.write(b"not a pickle")
+    os.replace(tmp, path)                                  # damaged, atomically
+    again = _fresh(RUN_RUNTIME.format(folder=str(tmp_path)))
+    assert (again["ramp"], again["fresh"], again["built"]) == ([0.0, 0.25, 0.5, 0.75], 7.0, 1)
+    after = _fresh(RUN_RUNTIME.format(folder=str(tmp_path)))
+    assert after["built"] == 0 and after["fresh"] == 7.0
