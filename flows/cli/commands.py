@@ -143,8 +143,9 @@ def _lean_imports() -> None:
     views: 0.15 CPU-s on the command's serial start, before its workers fork), and
     without building its docstrings from numpy's (0.16 CPU-s more; see
     :mod:`swathflow.startup`). Only the process of the command (rectify, run, demo) is
-    concerned; the modules held back stay importable (Prefect imports jinja2 later). numba's compiled
-    kernels load from their cache without its compiler's contexts (:mod:`swathflow.jit`)."""
+    concerned; the modules held back stay importable (Prefect imports jinja2 later).
+    numba's compiled kernels load from their cache without its compiler's contexts
+    (:mod:`swathflow.jit`)."""
     from swathflow.startup import import_without, underived_docstrings
     held = ("scipy.fftpack", "scipy.sparse", "jinja2")
     import_without(held, "dask")            # dask.utils, for underived_docstrings
