@@ -240,7 +240,6 @@ def _launch_server() -> None:
     (:mod:`swathflow.flows.standby`) serves, when there is one. Returns at once;
     :func:`_server_ready` waits for it."""
     import atexit
-    import subprocess
 
     from prefect.settings import get_current_settings
     proc = _SERVER.get("process")
@@ -251,7 +250,7 @@ def _launch_server() -> None:
     env = {**os.environ, **standby.SERVER_ENV, **settings}
     proc = standby.claim(port, settings, env)   # its code imported during the check
     if proc is None:
-        proc = subprocess.Popen(_server_command(port), env=env)
+        proc = standby.spawn(_server_command(port), env)
     _SERVER.update(process=proc, url=f"http://127.0.0.1:{port}/api", env=env, ready=False)
     if not _SERVER.get("atexit"):
         atexit.register(_stop_server)
@@ -261,7 +260,6 @@ def _launch_server() -> None:
 def _server_ready() -> str:
     """Wait until the temporary server answers its health check (a port taken meanwhile:
     started again on another, as Prefect does); its API url."""
-    import subprocess
     import time
     import urllib.error
     import urllib.request
@@ -273,12 +271,14 @@ def _server_ready() -> str:
         if proc.poll() in (3, standby.STALE):   # uvicorn: the port is taken; or a
             # standby spawned with other Prefect settings than the ones in force now
             port = _free_port()
-            _SERVER.update(process=subprocess.Popen(_server_command(port), env=_SERVER["env"]),
+            _SERVER.update(process=standby.spawn(_server_command(port), _SERVER["env"]),
                            url=f"http://127.0.0.1:{port}/api")
             continue
         if proc.poll() is not None:
+            tail = standby.output_tail(proc)
             raise RuntimeError(f"Prefect's temporary server exited with code "
-                               f"{proc.returncode} before it was ready")
+                               f"{proc.returncode} before it was ready"
+                               + (f"; it printed:\n{tail}" if tail else ""))
         if time.monotonic() > limit:
             raise RuntimeError("timed out while waiting for Prefect's temporary server")
         try:

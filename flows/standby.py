@@ -4,9 +4,10 @@ Importing the server's code is almost all of its start (about 3.2 CPU-s of 3.4, 
 3.8), and ``swathflow run`` checks the mission first (about 4 CPU-s on the survey) so that
 bad input is told before any server or cluster starts. :func:`start` spawns, as the check
 begins, a process that only imports the server's code and builds its app, on the core the
-check leaves idle; it binds no port and opens no database until :func:`claim` hands it a
-port once the check has passed (flows/mission.py ``_launch_server``), and it is ended unused
-when the check fails (:func:`discard`) or the caller exits.
+check leaves idle; it binds no port until :func:`claim` hands it one once the check has
+passed (flows/mission.py ``_launch_server``), and it is ended unused when the check fails
+(:func:`discard`) or the caller exits. Meanwhile a new Prefect home gets its database, a
+copy of a migrated one (:mod:`swathflow.flows.prefectdb`).
 
 No Prefect here: the check's process must not import it before the check.
 """
@@ -32,15 +33,18 @@ QUIET_PREFECT = {
 STALE = 4
 
 #: the standby: import the server's code and build its app (Prefect's uvicorn factory
-#: returns the cached app), then wait for ``{"port", "settings"}`` on stdin and serve as
-#: ``python -m uvicorn ...`` (Prefect's own command, flows/mission.py ``_server_command``)
-#: would, unless the caller's Prefect settings differ from the ones seen here
+#: returns the cached app), give a new Prefect home its database (flows/prefectdb.py),
+#: then wait for ``{"port", "settings"}`` on stdin and serve as ``python -m uvicorn ...``
+#: (Prefect's own command, flows/mission.py ``_server_command``) would, unless the caller's
+#: Prefect settings differ from the ones seen here
 _CODE = r"""
 import json, os, sys
 import prefect
 import prefect.server.api.server as server
 from prefect.settings import get_current_settings
 server.create_app()
+from swathflow.flows import prefectdb
+prefectdb.seed()    # a new Prefect home's database: a copy of a migrated one, kept
 line = sys.stdin.readline()
 if not line:
     sys.exit(0)
@@ -69,12 +73,33 @@ def start() -> None:
         return
     env = {**QUIET_PREFECT, **os.environ,
            **SERVER_ENV}
-    _STANDBY["process"] = subprocess.Popen([sys.executable, "-c", _CODE], env=env,
-                                           stdin=subprocess.PIPE)
+    _STANDBY["process"] = spawn([sys.executable, "-c", _CODE], env, stdin=subprocess.PIPE)
     _STANDBY["env"] = env
     if not _STANDBY.get("atexit"):
         atexit.register(discard)
         _STANDBY["atexit"] = True
+
+
+def spawn(args: list[str], env: dict, **kw) -> subprocess.Popen:
+    """Start the server's process with its output in an anonymous file (``proc.output``),
+    not on the caller's terminal: what uvicorn or Prefect's services print when the
+    server is stopped (e.g. an event flush cancelled when a run is ended by SIGTERM) is
+    not the user's concern; :func:`output_tail` gives it when the server fails to start."""
+    import tempfile
+    output = tempfile.TemporaryFile()
+    proc = subprocess.Popen(args, env=env, stdout=output, stderr=subprocess.STDOUT, **kw)
+    proc.output = output     # type: ignore[attr-defined]
+    return proc
+
+
+def output_tail(proc, chars: int = 2000) -> str:
+    """The last ``chars`` characters the server's process printed ('' if none)."""
+    output = getattr(proc, "output", None)
+    if output is None:
+        return ""
+    output.seek(0, os.SEEK_END)
+    output.seek(max(0, output.tell() - chars))
+    return output.read().decode(errors="replace").strip()
 
 
 def claim(port: int, settings: dict, env: dict):

@@ -181,3 +181,28 @@ def test_local_workers_forked_from_a_one_thread_process(tmp_path):
         assert run["left"] == [], "a worker process outlived its cluster"
         assert 8787 not in run["ports"]
         assert run["codes"] == [404, 404, 404]
+
+
+def test_server_output_kept_off_the_terminal_and_told_when_it_fails_to_start(capfd):
+    """What the temporary server prints (e.g. Prefect's services cancelled while a run
+    ended by SIGTERM stops it) goes to its own file, not the user's terminal; a server
+    that exits before it is ready is reported with the end of what it printed."""
+    import pytest
+    from swathflow.flows import mission as fm
+    from swathflow.flows import standby
+    code = "import sys; print('starting'); sys.stderr.write('Traceback: no database\\n'); sys.exit(1)"
+    proc = standby.spawn([sys.executable, "-c", code], dict(os.environ))
+    proc.wait(timeout=60)
+    seen = capfd.readouterr()
+    assert "Traceback" not in seen.err + seen.out and "starting" not in seen.out
+    assert standby.output_tail(proc) == "starting\nTraceback: no database"
+    saved = dict(fm._SERVER)
+    fm._SERVER.clear()
+    fm._SERVER.update(process=proc, url="http://127.0.0.1:9/api", env={}, ready=False)
+    try:
+        with pytest.raises(RuntimeError, match="exited with code 1 before it was ready; "
+                                               "it printed:\nstarting\nTraceback: no database"):
+            fm._server_ready()
+    finally:
+        fm._SERVER.clear()
+        fm._SERVER.update(saved)

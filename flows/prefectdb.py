@@ -1,0 +1,125 @@
+"""A new Prefect home's database, copied from a migrated empty one kept per Prefect version.
+
+Prefect's server migrates a new SQLite database through all its revisions (114 in Prefect
+3.8) when it first starts: 30-45 s wall on a 2-core machine, paid by the first run in every
+new ``PREFECT_HOME`` (a fresh machine, a CI job, a container, a test's own home), several
+times a run itself. The first migration is kept as a template in swathflow's cache folder
+(``$SWATHFLOW_CACHE``, else ``$XDG_CACHE_HOME/swathflow``, else ``~/.cache/swathflow``),
+named by Prefect's version and its migrations; a database that does not exist yet is a copy
+of it, and the server's own migration on start then finds nothing to do.
+
+Both files are written atomically (a temporary name, then a link or a rename), so an
+interrupted build leaves no template, and a database that exists is never replaced.
+Only SQLite databases are concerned (PostgreSQL is left to Prefect). Imports Prefect's
+server code: called by the process that serves (:mod:`swathflow.flows.standby`).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+_SQLITE = "sqlite+aiosqlite:///"
+
+
+def cache_folder() -> Path:
+    """swathflow's cache folder for this user (not created here)."""
+    if os.environ.get("SWATHFLOW_CACHE"):
+        return Path(os.environ["SWATHFLOW_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "swathflow"
+
+
+def database_path() -> Path | None:
+    """The SQLite file of the current Prefect settings' database (None: not SQLite, or
+    in memory)."""
+    from prefect.settings import get_current_settings
+    url = get_current_settings().server.database.connection_url
+    url = url.get_secret_value() if hasattr(url, "get_secret_value") else str(url)
+    if not url.startswith(_SQLITE) or ":memory:" in url or "mode=memory" in url:
+        return None
+    return Path(url[len(_SQLITE):].split("?", 1)[0])
+
+
+def template_path() -> Path:
+    """Where this Prefect's migrated empty database is kept: named by Prefect's version and
+    the names of its SQLite migrations."""
+    import prefect
+    import prefect.server.database as database
+    versions = Path(database.__file__).parent / "_migrations" / "versions" / "sqlite"
+    names = sorted(p.name for p in versions.glob("*.py"))
+    key = hashlib.sha256("\n".join([prefect.__version__, *names]).encode()).hexdigest()[:16]
+    return cache_folder() / f"prefect-{prefect.__version__}-{key}.db"
+
+
+def seed(path: Path | None = None) -> bool:
+    """Make the database at ``path`` (default: the current settings' SQLite database) a
+    copy of the template when it does not exist yet, building the template first when
+    there is none. True when it copied; False when the database exists, is not SQLite, or
+    the template cannot be made (the server then migrates as usual)."""
+    path = Path(path) if path is not None else database_path()
+    if path is None or path.exists():
+        return False
+    try:
+        template = template_path()
+        if not template.exists():
+            _build(template)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _temporary(path)
+        tmp.write_bytes(template.read_bytes())
+        try:
+            os.link(tmp, path)      # never over a database made meanwhile
+        except FileExistsError:
+            return False
+        finally:
+            tmp.unlink()
+    except OSError:
+        return False
+    return True
+
+
+def _build(template: Path) -> None:
+    """Migrate a new database at a temporary name beside ``template`` (Prefect's own
+    migration, in this process), then rename it to ``template``."""
+    import asyncio
+
+    from prefect.server.database import provide_database_interface
+    from prefect.server.database.dependencies import temporary_database_interface
+    from prefect.settings import PREFECT_SERVER_DATABASE_CONNECTION_URL, temporary_settings
+    template.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temporary(template)
+
+    async def migrate():
+        db = provide_database_interface()
+        await db.create_db()
+        await (await db.engine()).dispose()    # closes its connections: the log is checkpointed
+
+    try:
+        with temporary_settings({PREFECT_SERVER_DATABASE_CONNECTION_URL: _SQLITE + str(tmp)}), \
+                temporary_database_interface():
+            asyncio.run(migrate())
+        if Path(f"{tmp}-wal").exists() and Path(f"{tmp}-wal").stat().st_size:
+            raise OSError(f"{tmp}: its write-ahead log was not checkpointed")
+        os.replace(tmp, template)
+    finally:
+        for extra in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
+            extra.unlink(missing_ok=True)
+
+
+def _temporary(path: Path) -> Path:
+    """This process's temporary name for ``path``; those of processes that ended (an
+    interrupted copy or build) are removed."""
+    for leftover in path.parent.glob(f".{path.name}.*.tmp*"):
+        if not _alive(leftover.name[len(path.name) + 2:].split(".")[0]):
+            leftover.unlink(missing_ok=True)
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def _alive(pid: str) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except (ValueError, ProcessLookupError):
+        return False
+    except PermissionError:
+        return True
+    return True
