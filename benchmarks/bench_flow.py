@@ -29,11 +29,11 @@ from pathlib import Path
 # loaded once, memoised for the flow), then the flow; with the number of Dask workers the
 # command line leaves to the machine (one per core)
 _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
-        "from swathflow.flows.cli.commands import _lean_imports\n_lean_imports()\n"
+        "from swathflow.flows.cli.commands import _flow_run, _lean_imports\n_lean_imports()\n"
         "from swathflow.flows.guard import check_run_inputs\n"
-        "from swathflow.flows.mission import run\n"
         "check_run_inputs(sys.argv[1], sys.argv[3])\n"
         "print('CHECKED', time.time())\n"
+        "run = _flow_run()\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
         "import resource\nu = resource.getrusage(resource.RUSAGE_SELF)\n"
         "print('OWN_CPU', u.ru_utime + u.ru_stime)\n"

@@ -17,7 +17,7 @@ import sys
 from importlib import import_module
 
 __all__ = ["uncollected", "import_without", "underived_docstrings", "blas_probe_alone",
-           "lean_numba_arrays"]
+           "lean_numba_arrays", "lazy_modules"]
 
 
 @contextlib.contextmanager
@@ -166,3 +166,64 @@ def lean_numba_arrays() -> None:
         return
     with blas_probe_alone():
         import_module("numba.np.arraymath")
+
+
+@contextlib.contextmanager
+def lazy_modules(names: tuple[str, ...]):
+    """Inside the block, an import of one of ``names`` (not loaded yet) binds the module
+    without running it: it runs, complete, on the first use of a name it defines (an
+    attribute its module object lacks), whenever that is; its ``__spec__``, ``__name__``
+    and the like are there from the start, so a second ``import`` of it does not run it
+    (``importlib.util.LazyLoader`` runs a module on any attribute, ``__spec__`` included,
+    which the import system reads on every import of a module already loaded). For
+    modules a package imports only to have its classes defined: ``import prefect`` runs
+    ``prefect.blocks``, whose ``notifications`` and ``webhook`` define some 20 pydantic
+    block models (0.3-0.7 CPU-s) that a flow run never uses. Only the command's own process
+    (``swathflow run``, ``demo``); a module already loaded is left as it is."""
+    finder = _LazyFinder(names)
+    sys.meta_path.insert(0, finder)
+    try:
+        yield
+    finally:
+        sys.meta_path.remove(finder)
+
+
+class _LazyFinder(importlib.abc.MetaPathFinder):
+    def __init__(self, names):
+        self.names = set(names)
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname not in self.names:
+            return None
+        self.names.discard(fullname)           # the usual finders, without this one
+        spec = importlib.util.find_spec(fullname)
+        if spec is None or spec.loader is None:
+            return None
+        spec.loader = _Unrun(spec.loader)
+        return spec
+
+
+class _Unrun(importlib.abc.Loader):
+    """Loads a module by giving it the class :class:`_UnrunModule` (its code not run)."""
+
+    def __init__(self, loader):
+        self.loader = loader
+
+    def create_module(self, spec):
+        return self.loader.create_module(spec)
+
+    def exec_module(self, module):
+        module.__class__ = _UnrunModule
+
+
+class _UnrunModule(type(sys)):          # types.ModuleType
+    def __getattr__(self, name):
+        """A name the module does not have yet: run its code (with its own loader), then
+        look the name up again."""
+        loader = self.__spec__.loader
+        if not isinstance(loader, _Unrun):
+            raise AttributeError(name)
+        self.__class__ = type(sys)
+        self.__spec__.loader = self.__loader__ = loader.loader
+        loader.loader.exec_module(self)
+        return getattr(self, name)

@@ -136,6 +136,30 @@ def test_import_without_holds_back_several_modules_and_leaves_them_importable(tm
     assert r.stdout.split() == ["None", "None", "1", "1"], r.stdout + r.stderr
 
 
+def test_run_imports_the_flow_without_running_prefects_notification_blocks():
+    """`swathflow run`'s flow module is imported with Prefect's notification and webhook
+    block modules bound but not run (their pydantic models are not built); the first use
+    of one of their names runs the module, complete (a block class, registered with
+    Prefect's block registry as usual); a flow still runs, on Prefect's own engine."""
+    code = ("import sys, importlib.util\nfrom swathflow.flows.cli import commands\n"
+            "run = commands._flow_run()\n"
+            "n = sys.modules['prefect.blocks.notifications']\n"
+            "w = sys.modules['prefect.blocks.webhook']\n"
+            "print(type(n).__name__, type(w).__name__, run.__module__)\n"
+            "from prefect.blocks.core import Block\n"
+            "slack = n.SlackWebhook\n"
+            "print(type(n).__name__, issubclass(slack, Block),\n"
+            "      Block.get_block_class_from_key('slack-webhook') is slack, 'url' in slack.model_fields)\n"
+            "from swathflow.startup import lazy_modules\n"
+            "with lazy_modules(('prefect.blocks.notifications', 'json')):\n"
+            "    import prefect.blocks.notifications, json\n"
+            "print(type(sys.modules['json']).__name__, json.dumps([1]))\n")
+    r = _python(code)
+    assert r.stdout.split() == ["_UnrunModule", "_UnrunModule", "swathflow.flows.mission",
+                                "module", "True", "True", "True", "module", "[1]"], \
+        r.stdout + r.stderr
+
+
 def test_rectify_imports_its_engine_without_collector_passes():
     """The rectify command's imports (1,500 modules) run without the collector's passes
     (265 of them, 0.1-0.2 CPU-s on its serial start), and their objects are frozen after;

@@ -153,6 +153,16 @@ def _lean_imports() -> None:
         import_without(held, "dask.array")
 
 
+def _flow_run():
+    """The flow's ``run``, its module imported with Prefect's notification and webhook
+    block models left unrun until used (``import prefect`` defines them, 0.3-0.7 CPU-s on
+    the run's serial start; a flow run never uses them; see :mod:`swathflow.startup`)."""
+    from swathflow.startup import lazy_modules
+    with lazy_modules(("prefect.blocks.notifications", "prefect.blocks.webhook")):
+        from swathflow.flows.mission import run
+    return run
+
+
 def mosaic(args) -> int:
     """``swathflow mosaic SOURCE --out FILE.tif``: match strips, feather, write a COG
     (``swathflow.mosaicking.api.write_mosaic``: the code of ``swathflow.mosaic(..., out)``
@@ -235,7 +245,7 @@ def run(args) -> int:
     _lean_imports()
     from swathflow.flows.guard import check_run_inputs
     check_run_inputs(args.mission, args.calibration)   # bad input: before Prefect and Dask
-    from swathflow.flows.mission import run as run_flow
+    run_flow = _flow_run()
     _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
                             args.cluster, args.jobs), args)
     return 0
@@ -244,7 +254,7 @@ def run(args) -> int:
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
     _lean_imports()
-    from swathflow.flows.mission import run as run_flow
+    run_flow = _flow_run()
     from swathflow.simulation import simulate as simulate_mission
     out = Path(args.out).resolve()
     mission = out / "mission"
