@@ -27,9 +27,13 @@ def _revision(path) -> str:
 
 
 def test_new_home_gets_a_database_migrated_to_prefects_head(tmp_path, monkeypatch):
-    from prefect.settings import PREFECT_HOME, temporary_settings
+    from prefect.settings import (PREFECT_HOME, PREFECT_SERVER_DATABASE_CONNECTION_URL,
+                                  temporary_settings)
     monkeypatch.setenv("SWATHFLOW_CACHE", str(tmp_path / "cache"))
-    with temporary_settings({PREFECT_HOME: tmp_path / "home"}):
+    # the database's default place in the home (a test server's harness may have named
+    # another database for the session)
+    with temporary_settings({PREFECT_HOME: tmp_path / "home"},
+                            restore_defaults={PREFECT_SERVER_DATABASE_CONNECTION_URL}):
         _new_home(tmp_path)
 
 

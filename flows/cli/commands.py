@@ -242,6 +242,8 @@ def run(args) -> int:
         _echo(args, f"mission {done['mission']}: up to date, nothing to recompute "
               f"(products in {os.path.abspath(args.out)})")
         return 0
+    from swathflow.flows import standby
+    standby.start()     # Prefect's server code imported from now on, on the other core
     _lean_imports()
     from swathflow.flows.guard import check_run_inputs
     check_run_inputs(args.mission, args.calibration)   # bad input: before Prefect and Dask
@@ -253,6 +255,8 @@ def run(args) -> int:
 
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
+    from swathflow.flows import standby
+    standby.start()     # Prefect's server code imported meanwhile, on the other core
     _lean_imports()
     run_flow = _flow_run()
     from swathflow.simulation import simulate as simulate_mission
