@@ -14,6 +14,7 @@ import importlib.machinery
 import importlib.util
 import os
 import sys
+import threading
 from importlib import import_module
 
 __all__ = ["uncollected", "import_without", "underived_docstrings", "blas_probe_alone",
@@ -216,14 +217,19 @@ class _Unrun(importlib.abc.Loader):
         module.__class__ = _UnrunModule
 
 
+_UNRUN_LOCK = threading.RLock()
+
+
 class _UnrunModule(type(sys)):          # types.ModuleType
     def __getattr__(self, name):
-        """A name the module does not have yet: run its code (with its own loader), then
-        look the name up again."""
-        loader = self.__spec__.loader
-        if not isinstance(loader, _Unrun):
-            raise AttributeError(name)
-        self.__class__ = type(sys)
-        self.__spec__.loader = self.__loader__ = loader.loader
-        loader.loader.exec_module(self)
+        """A name the module does not have yet: run its code (with its own loader, once,
+        whichever thread asks first), then look the name up again."""
+        with _UNRUN_LOCK:
+            loader = self.__spec__.loader
+            if isinstance(loader, _Unrun):
+                self.__class__ = type(sys)
+                self.__spec__.loader = self.__loader__ = loader.loader
+                loader.loader.exec_module(self)
+            elif type(self) is _UnrunModule:
+                raise AttributeError(name)
         return getattr(self, name)
