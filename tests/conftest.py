@@ -115,7 +115,7 @@ def pytest_collection_modifyitems(config, items):
 def prefect_harness():
     """One Prefect test server for the whole session (DESIGN.md: about 10-13 s). Its new
     database is a copy of the migrated empty one swathflow keeps, as a run's is
-    (flows/prefectdb.py), not migrated again (30-45 s): the harness's temporary folder
+    (flows/prefectdb.py), not migrated again (25-45 s): the harness's temporary folder
     is given it (Prefect's harness names its database ``prefect-test.db``; under another
     name the server migrates as before)."""
     import contextlib
