@@ -7,8 +7,10 @@ import tempfile
 
 
 @contextlib.contextmanager
-def atomic_path(path, suffix: str | None = None):
-    """Yield a temporary path in the target's folder; rename it onto ``path`` on success.
+def atomic_path(path, suffix: str | None = None, exclusive: bool = False):
+    """Yield a temporary path in the target's folder; rename it onto ``path`` on success
+    (with ``exclusive``: link it there, never over a file that exists by then, which
+    raises FileExistsError, and remove the temporary name).
 
     On any exception the temporary file is removed and ``path`` keeps its old content.
     """
@@ -24,7 +26,11 @@ def atomic_path(path, suffix: str | None = None):
         yield tmp
         if os.path.exists(tmp):   # mkstemp makes 0600 files: give the usual umask'd mode
             os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
+        if exclusive:
+            os.link(tmp, path)
+            os.remove(tmp)
+        else:
+            os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)

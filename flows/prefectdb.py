@@ -8,8 +8,9 @@ migration is kept as a template in swathflow's cache folder
 named by Prefect's version and its migrations; a database that does not exist yet is a copy
 of it, and the server's own migration on start then finds nothing to do.
 
-Both files are written atomically (a temporary name, then a link or a rename), so an
-interrupted build leaves no template, and a database that exists is never replaced.
+Both files are written atomically (:func:`swathflow.io.atomic_path`: a temporary name, then
+a rename, or a link for the database), so an interrupted build leaves no template, and a
+database that exists is never replaced.
 Only SQLite databases are concerned (PostgreSQL is left to Prefect). Imports Prefect's
 server code: called by the process that serves (:mod:`swathflow.flows.standby`).
 """
@@ -18,6 +19,8 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
+
+from swathflow.io import atomic_path
 
 _SQLITE = "sqlite+aiosqlite:///"
 
@@ -57,6 +60,7 @@ def seed(path: Path | None = None) -> bool:
     copy of the template when it does not exist yet, building the template first when
     there is none. True when it copied; False when the database exists, is not SQLite, or
     the template cannot be made (the server then migrates as usual)."""
+    import shutil
     path = Path(path) if path is not None else database_path()
     if path is None or path.exists():
         return False
@@ -64,15 +68,8 @@ def seed(path: Path | None = None) -> bool:
         template = template_path()
         if not template.exists():
             _build(template)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = _temporary(path)
-        tmp.write_bytes(template.read_bytes())
-        try:
-            os.link(tmp, path)      # never over a database made meanwhile
-        except FileExistsError:
-            return False
-        finally:
-            tmp.unlink()
+        with atomic_path(path, exclusive=True) as tmp:   # never over one made meanwhile
+            shutil.copyfile(template, tmp)
     except Exception:  # noqa: BLE001 - any failure: the server migrates as it would have
         return False
     return True
@@ -86,40 +83,20 @@ def _build(template: Path) -> None:
     from prefect.server.database import provide_database_interface
     from prefect.server.database.dependencies import temporary_database_interface
     from prefect.settings import PREFECT_SERVER_DATABASE_CONNECTION_URL, temporary_settings
-    template.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temporary(template)
 
     async def migrate():
         db = provide_database_interface()
         await db.create_db()
         await (await db.engine()).dispose()    # closes its connections: the log is checkpointed
 
-    try:
-        with temporary_settings({PREFECT_SERVER_DATABASE_CONNECTION_URL: _SQLITE + str(tmp)}), \
-                temporary_database_interface():
-            asyncio.run(migrate())
-        if Path(f"{tmp}-wal").exists() and Path(f"{tmp}-wal").stat().st_size:
-            raise OSError(f"{tmp}: its write-ahead log was not checkpointed")
-        os.replace(tmp, template)
-    finally:
-        for extra in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
-            extra.unlink(missing_ok=True)
-
-
-def _temporary(path: Path) -> Path:
-    """This process's temporary name for ``path``; those of processes that ended (an
-    interrupted copy or build) are removed."""
-    for leftover in path.parent.glob(f".{path.name}.*.tmp*"):
-        if not _alive(leftover.name[len(path.name) + 2:].split(".")[0]):
-            leftover.unlink(missing_ok=True)
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
-
-
-def _alive(pid: str) -> bool:
-    try:
-        os.kill(int(pid), 0)
-    except (ValueError, ProcessLookupError):
-        return False
-    except PermissionError:
-        return True
-    return True
+    with atomic_path(template) as tmp:     # an empty file: SQLite makes it a new database
+        wal = Path(f"{tmp}-wal")
+        try:
+            with temporary_settings({PREFECT_SERVER_DATABASE_CONNECTION_URL: _SQLITE + tmp}), \
+                    temporary_database_interface():
+                asyncio.run(migrate())
+            if wal.exists() and wal.stat().st_size:
+                raise OSError(f"{tmp}: its write-ahead log was not checkpointed")
+        finally:
+            wal.unlink(missing_ok=True)
+            Path(f"{tmp}-shm").unlink(missing_ok=True)

@@ -1,6 +1,7 @@
 """Atomic writes: nothing half-written, the old content kept on failure, usual permissions."""
 import os
 import stat
+from pathlib import Path
 
 import pytest
 
@@ -17,6 +18,22 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_temp(tmp_path):
             raise RuntimeError("interrupted")
     assert target.read_text() == "old"
     assert os.listdir(tmp_path) == ["out.txt"]
+
+
+def test_exclusive_write_never_replaces_a_file_made_meanwhile(tmp_path):
+    """``exclusive``: the new file is linked into place; a file that appeared at the target
+    while it was written is kept, the write fails, and no temporary is left."""
+    target = tmp_path / "db"
+    with atomic_path(target, exclusive=True) as tmp:
+        Path(tmp).write_text("ours")
+    assert target.read_text() == "ours" and os.listdir(tmp_path) == ["db"]
+    other = tmp_path / "other"
+    with pytest.raises(FileExistsError):
+        with atomic_path(other, exclusive=True) as tmp:
+            Path(tmp).write_text("ours")
+            other.write_text("theirs")          # made by another process meanwhile
+    assert other.read_text() == "theirs"
+    assert sorted(os.listdir(tmp_path)) == ["db", "other"]
 
 
 def test_written_files_get_the_umask_mode(tmp_path):
