@@ -267,13 +267,24 @@ def _basis(nodes, n) -> np.ndarray:
     return ratio.prod(axis=-1)
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _frame_height(r, cl, ga, gc, ge, gf, dem, a, b, c, d, e, f, det, h_const):
+    """The terrain's height under pixel (r, cl): the constant, or the DEM's (as
+    Grid.xy, then DEM.height_xy)."""
+    if not dem.size:
+        return h_const
+    x, y = gc + ga * (cl + 0.5), gf + ge * (r + 0.5)
+    return bilinear_one(dem, (-d * (x - c) + a * (y - f)) / det - 0.5,
+                        (e * (x - c) - b * (y - f)) / det - 0.5)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _frame_ecef(nodes, b_rows, b_cols, rows, cols, heights, origin, out):
     """``origin + sum_kl B_row[r, k] B_col[c, l] (P[k, l] + h U[k, l])`` a point, ``h``
     the constant height or the DEM's (``heights``: the grid's a, c, e, f; the DEM's
-    data, or an empty array, and transform; the constant). The sums over ``k`` are kept
-    from one point to the next of the same row (points in row order, as a tile's pixels
-    come: 30 products a point instead of 150)."""
+    data, or an empty array, and transform; the constant). Where points come in row order
+    (a tile's pixels) the sums over ``k`` are kept along the row (30 products a point
+    instead of 150); a point alone on its row (the lattice's nodes) takes the double sum."""
     (ga, gc, ge, gf), dem, (a, b, c, d, e, f), h_const = heights
     det = a * e - b * d
     nk, nm = nodes.shape[0], nodes.shape[1]
@@ -281,6 +292,23 @@ def _frame_ecef(nodes, b_rows, b_cols, rows, cols, heights, origin, out):
     row = -1
     for i in range(rows.shape[0]):
         r, cl = rows[i], cols[i]
+        if r != row and (i + 1 == rows.shape[0] or rows[i + 1] != r):
+            # a point alone on its row (the lattice's order): the double sum directly
+            x = y = z = 0.0
+            hi = _frame_height(r, cl, ga, gc, ge, gf, dem, a, b, c, d, e, f, det, h_const)
+            for k in range(nk):
+                px = py = pz = 0.0
+                for m in range(nm):
+                    w = b_cols[cl, m]
+                    px += w * (nodes[k, m, 0] + hi * nodes[k, m, 3])
+                    py += w * (nodes[k, m, 1] + hi * nodes[k, m, 4])
+                    pz += w * (nodes[k, m, 2] + hi * nodes[k, m, 5])
+                w = b_rows[r, k]
+                x += w * px
+                y += w * py
+                z += w * pz
+            out[i, 0], out[i, 1], out[i, 2] = origin[0] + x, origin[1] + y, origin[2] + z
+            continue
         if r != row:                 # the row's polynomials in the column
             row = r
             for m in range(nm):
@@ -289,11 +317,7 @@ def _frame_ecef(nodes, b_rows, b_cols, rows, cols, heights, origin, out):
                     for k in range(nk):
                         s += b_rows[r, k] * nodes[k, m, j]
                     q[m, j] = s
-        hi = h_const
-        if dem.size:                 # as Grid.xy, then DEM.height_xy
-            x, y = gc + ga * (cl + 0.5), gf + ge * (r + 0.5)
-            hi = bilinear_one(dem, (-d * (x - c) + a * (y - f)) / det - 0.5,
-                              (e * (x - c) - b * (y - f)) / det - 0.5)
+        hi = _frame_height(r, cl, ga, gc, ge, gf, dem, a, b, c, d, e, f, det, h_const)
         x = y = z = 0.0
         for m in range(nm):
             w = b_cols[cl, m]
