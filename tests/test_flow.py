@@ -314,3 +314,26 @@ def test_mosaic_control_prepared_while_the_workers_rectify(tiny_mission, tmp_pat
     os.utime(cal, ns=(cal.stat().st_atime_ns, cal.stat().st_mtime_ns + 10**9))
     stages.mosaic_control(str(tiny_mission), str(cal))
     assert list(stages._CONTROL) != [key], "a changed calibration file used the old offsets"
+
+
+def test_mission_memo_follows_every_file_of_the_folder(tmp_path):
+    """The loaded mission's memo key stamps the files ``Path.rglob`` finds (files in
+    subfolders, symbolic links to files; not links to folders, not broken links), and
+    changes when any of them changes size or time."""
+    import os
+
+    from swathflow.tasks import swings
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "L1.tif").write_bytes(b"x")
+    (tmp_path / "mission.toml").write_text("a")
+    os.symlink(tmp_path / "mission.toml", tmp_path / "linked.toml")
+    os.symlink(tmp_path / "images", tmp_path / "linked-folder")
+    os.symlink(tmp_path / "missing", tmp_path / "broken")
+    ref = sorted((str(p), p.stat().st_mtime_ns, p.stat().st_size)
+                 for p in tmp_path.rglob("*") if p.is_file())
+    assert sorted(swings._file_stamps(str(tmp_path))) == ref
+    assert {os.path.basename(r[0]) for r in ref} == {"L1.tif", "mission.toml", "linked.toml"}
+    before = swings.mission_stamp(tmp_path)
+    assert swings.mission_stamp(tmp_path) == before
+    (tmp_path / "images" / "L1.tif").write_bytes(b"xy")
+    assert swings.mission_stamp(tmp_path) != before
