@@ -77,6 +77,7 @@ def main(argv=None) -> int:
         dem = DEM.open(path)
         timed("image_to_ground, DEM (10 m grid, 5-35 m hills)",
               lambda s: m.image_to_ground(img[s], dem))
+        _tile_ground_points(rows, dem, crs, x0 + 100, y1 - 100, n, args.repeat)
 
     print(f"swathflow geometry benchmark: {n:,} points, pendulum model, "
           f"{args.threads} thread(s), {os.cpu_count()} cores on this machine")
@@ -89,6 +90,45 @@ def main(argv=None) -> int:
     print(f"reproduce: python benchmarks/bench_geometry.py --points {n} --threads {args.threads}"
           f" --repeat {args.repeat}")
     return 0
+
+
+def _tile_ground_points(rows, dem, crs, x0, y1, n, repeat) -> None:
+    """ECEF of a 257 x 257 window of 2 m pixels on the DEM (a rectify tile's exact
+    evaluations): the tile's frame (``tile_frame(...).ecef``, the pixels in row order as a
+    tile evaluated at every pixel gives them, and in a random order as the lattice's
+    nodes come) and pyproj (``Grid.to_ecef``); rows as ``timed`` adds them."""
+    import time
+    import warnings
+
+    import numpy as np
+    from affine import Affine
+
+    from swathflow.geometry.grid import Grid, tile_frame
+    grid = Grid(str(crs), Affine(2.0, 0, x0, 0, -2.0, y1), (256, 256))
+    rr, cc = np.indices((257, 257))
+    rr, cc = rr.ravel(), cc.ravel()
+    perm = np.random.default_rng(1).permutation(rr.size)
+    frame = tile_frame(grid, dem, 257, 257)
+    calls = max(1, n // rr.size)
+
+    def pyproj_ecef(r, c):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return grid.to_ecef(*grid.xy(r, c), dem)
+    for label, fn, r, c in (
+            ("tile ground points, frame, row order", frame.ecef, rr, cc),
+            ("tile ground points, frame, random order", frame.ecef, rr[perm], cc[perm]),
+            ("tile ground points, pyproj (Grid.to_ecef)", pyproj_ecef, rr, cc)):
+        fn(r[:100], c[:100])                                    # warm-up
+        runs = []
+        for _ in range(repeat):
+            t, cpu = time.perf_counter(), time.process_time()
+            for _ in range(calls):
+                fn(r, c)
+            runs.append((time.perf_counter() - t, time.process_time() - cpu))
+        (dt, dc), best = runs[0], min(runs)
+        k = calls * rr.size
+        rows.append((label, k / dt, dt, k / dc, k / best[1]))
 
 
 if __name__ == "__main__":
