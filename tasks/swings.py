@@ -33,8 +33,8 @@ def _file_stamps(folder: str):
     while stack:
         try:
             entries = os.scandir(stack.pop())
-        except PermissionError:        # rglob passes over a folder it may not read
-            continue
+        except (PermissionError, FileNotFoundError, NotADirectoryError):
+            continue        # as rglob: nothing there (the mission's check then says why)
         with entries:
             for e in entries:
                 if e.is_dir(follow_symlinks=False):

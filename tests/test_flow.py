@@ -337,3 +337,8 @@ def test_mission_memo_follows_every_file_of_the_folder(tmp_path):
     assert swings.mission_stamp(tmp_path) == before
     (tmp_path / "images" / "L1.tif").write_bytes(b"xy")
     assert swings.mission_stamp(tmp_path) != before
+    # no folder there: no files, and loading it says what is wrong
+    from swathflow.errors import SwathflowError
+    assert list(swings._file_stamps(str(tmp_path / "missing"))) == []
+    with pytest.raises(SwathflowError, match="mission folder not found"):
+        swings.load(tmp_path / "missing")
