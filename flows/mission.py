@@ -17,9 +17,7 @@ from pathlib import Path
 
 from swathflow.flows import standby  # noqa: E402  (no Prefect there)
 
-QUIET_PREFECT = standby.QUIET_PREFECT
-for _k, _v in QUIET_PREFECT.items():
-    os.environ.setdefault(_k, _v)
+standby.quiet_defaults()
 if "dask" in sys.modules:   # dask read the environment before these defaults (the mission
     import dask             # check imports it): read it again, or distributed, imported
     dask.config.refresh()   # later, logs its INFO lines (the cluster's start and close)
@@ -210,99 +208,14 @@ def _quietly(fn, *args) -> None:
         pass
 
 
-#: this process's temporary Prefect server: {"process": Popen, "url": API url}
-_SERVER: dict = {}
-
-
-def _server_command(port: int) -> list[str]:
-    """The command line Prefect's own ``SubprocessASGIServer`` runs its temporary server
-    with (prefect 3.8), for ``port``."""
-    import sys
-
-    import prefect
-    return [sys.executable, "-m", "uvicorn", "--app-dir", str(prefect.__module_path__.parent),
-            "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1",
-            "--port", str(port), "--log-level", "error", "--lifespan", "on"]
-
-
-def _free_port() -> int:
-    import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _launch_server() -> None:
-    """Start Prefect's temporary server as Prefect's ``SubprocessASGIServer`` does (same
-    command, same environment), without importing the server's code in this process
-    (about 3 CPU-s that the flow never uses); stopped when this process exits, like
-    Prefect's. The process that imported the server's code while the mission was checked
-    (:mod:`swathflow.flows.standby`) serves, when there is one. Returns at once;
-    :func:`_server_ready` waits for it."""
-    import atexit
-
-    from prefect.settings import get_current_settings
-    proc = _SERVER.get("process")
-    if proc is not None and proc.poll() is None:
-        return
-    port = _free_port()
-    settings = get_current_settings().to_environment_variables(exclude_unset=True)
-    env = {**os.environ, **standby.SERVER_ENV, **settings}
-    proc = standby.claim(port, settings, env)   # its code imported during the check
-    if proc is None:
-        proc = standby.spawn(_server_command(port), env)
-    _SERVER.update(process=proc, url=f"http://127.0.0.1:{port}/api", env=env, ready=False)
-    if not _SERVER.get("atexit"):
-        atexit.register(_stop_server)
-        _SERVER["atexit"] = True
-
-
-def _server_ready() -> str:
-    """Wait until the temporary server answers its health check (a port taken meanwhile:
-    started again on another, as Prefect does); its API url."""
-    import time
-    import urllib.error
-    import urllib.request
-
-    from prefect.settings import PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS
-    limit = time.monotonic() + float(PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS.value())
-    while not _SERVER.get("ready"):
-        proc = _SERVER["process"]
-        if proc.poll() in (3, standby.STALE):   # uvicorn: the port is taken; or a
-            # standby spawned with other Prefect settings than the ones in force now
-            port = _free_port()
-            _SERVER.update(process=standby.spawn(_server_command(port), _SERVER["env"]),
-                           url=f"http://127.0.0.1:{port}/api")
-            continue
-        if proc.poll() is not None:
-            tail = standby.output_tail(proc)
-            raise RuntimeError(f"Prefect's temporary server exited with code "
-                               f"{proc.returncode} before it was ready"
-                               + (f"; it printed:\n{tail}" if tail else ""))
-        if time.monotonic() > limit:
-            raise RuntimeError("timed out while waiting for Prefect's temporary server")
-        try:
-            with urllib.request.urlopen(_SERVER["url"] + "/health", timeout=2) as r:
-                _SERVER["ready"] = r.status == 200
-        except (OSError, urllib.error.URLError):
-            pass
-        if not _SERVER.get("ready"):
-            time.sleep(0.05)
-    return _SERVER["url"]
-
-
-def _stop_server() -> None:
-    import subprocess
-    proc = _SERVER.pop("process", None)
-    _SERVER["ready"] = False
-    if proc is None or proc.poll() is not None:
-        return
-    proc.terminate()
-    try:
-        proc.wait(timeout=5)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+def _engine_modules() -> None:
+    """What Prefect imports when a flow is first called (its flow engine, FastAPI's JSON
+    encoder for the parameters, Starlette, graphviz: 0.5-0.9 CPU-s here), imported while
+    the temporary server starts instead of between the flow run's first requests, where
+    the workers wait for it."""
+    import fastapi.encoders  # noqa: F401
+    import prefect.flow_engine  # noqa: F401
+    import prefect.utilities.visualization  # noqa: F401  (Flow.__call__: graphviz)
 
 
 @contextlib.contextmanager
@@ -316,12 +229,7 @@ def _started(mission, dask_address, cluster, workers):
     for the flow (None: the flow connects as asked) and the temporary server's API url
     (None: Prefect's configured one). A failure here other than the server's is left to
     the flow to report."""
-    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
-    own_server = not PREFECT_API_URL.value() and PREFECT_SERVER_EPHEMERAL_ENABLED.value()
-    if own_server:
-        _launch_server()
-    else:
-        standby.discard()   # a server is named (e.g. by a profile): the standby is not needed
+    own_server = standby.serve()     # launched already when `swathflow run` checked
     root = str(Path(mission).resolve())
     with contextlib.ExitStack() as stack:
         address = dask_address
@@ -334,7 +242,8 @@ def _started(mission, dask_address, cluster, workers):
                 workers, preload=(swings.__name__,), fork_setup=swings.warm,
                 worker_setup=functools.partial(swings.warm, root))).scheduler_address
         loader = None if swings.loaded(root) else _beside(swings.load, root)
-        url = _server_ready() if own_server else None
+        _engine_modules()
+        url = standby.ready() if own_server else None
         if loader is not None:
             loader.join()
         yield address, url

@@ -16,6 +16,7 @@ server code: called by the process that serves (:mod:`swathflow.flows.standby`).
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 from pathlib import Path
@@ -73,6 +74,32 @@ def seed(path: Path | None = None) -> bool:
     except Exception:  # noqa: BLE001 - any failure: the server migrates as it would have
         return False
     return True
+
+
+def revisions(path) -> frozenset[str]:
+    """The alembic revisions a SQLite database says it is at (empty: none, or not
+    readable), read without writing to it."""
+    import sqlite3
+    try:
+        uri = Path(path).resolve().as_uri() + "?mode=ro&immutable=1"   # no -wal, -shm made
+        with contextlib.closing(sqlite3.connect(uri, uri=True, timeout=1)) as db:
+            return frozenset(r[0] for r in db.execute("select version_num from alembic_version"))
+    except (sqlite3.Error, OSError, ValueError):
+        return frozenset()
+
+
+def at_head(path: Path | None = None) -> bool:
+    """Whether the database at ``path`` (default: the current settings' SQLite database)
+    is at the revision of this Prefect's migrated template (:func:`template_path`, made
+    by Prefect's own migration): then the server's migration on start has nothing to do
+    but load alembic and its 114 revisions (0.3-0.6 s of the server's start). False
+    when either is missing or unreadable, or not SQLite: Prefect migrates as usual."""
+    path = Path(path) if path is not None else database_path()
+    if path is None or not path.exists():
+        return False
+    template = template_path()
+    head = revisions(template) if template.exists() else frozenset()
+    return bool(head) and revisions(path) == head
 
 
 def _build(template: Path) -> None:

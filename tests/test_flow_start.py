@@ -10,7 +10,7 @@ _SCRIPT = """
 import asyncio, json, sys
 from swathflow.flows.guard import check_run_inputs
 check_run_inputs(sys.argv[1])     # as `swathflow run` does, before the flow's module
-from swathflow.flows import mission as fm
+from swathflow.flows import mission as fm, standby
 result = fm.run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=1)
 server_code = "prefect.server.api.server" in sys.modules
 from prefect.client.orchestration import get_client
@@ -24,10 +24,10 @@ async def recorded():
         return ([(names[f.id], f.state.type.value) for f in flows],
                 [(t.name, t.state.type.value) for t in tasks])
 
-with temporary_settings({PREFECT_API_URL: fm._SERVER["url"]}):
+with temporary_settings({PREFECT_API_URL: standby.SERVER["url"]}):
     flows, tasks = asyncio.run(recorded())
 print("RESULT " + json.dumps({"server_code": server_code, "flows": flows, "tasks": tasks,
-                              "pid": fm._SERVER["process"].pid,
+                              "pid": standby.SERVER["process"].pid,
                               "mosaic": result["mosaic"]}))
 """
 
@@ -73,12 +73,11 @@ except SwathflowError:
 print("BAD", json.dumps({"raised": raised, "left": standby._STANDBY.get("process") is not None}))
 check_run_inputs(mission)
 spawned = standby._STANDBY["process"].pid
-from swathflow.flows import mission as fm
-fm._launch_server()
-url = fm._server_ready()
+standby.launch()
+url = standby.ready()
 with urllib.request.urlopen(url + "/health", timeout=10) as r:
     health = r.status
-print("GOOD", json.dumps({"spawned": spawned, "serving": fm._SERVER["process"].pid,
+print("GOOD", json.dumps({"spawned": spawned, "serving": standby.SERVER["process"].pid,
                           "health": health}))
 """
 
@@ -188,7 +187,6 @@ def test_server_output_kept_off_the_terminal_and_told_when_it_fails_to_start(cap
     ended by SIGTERM stops it) goes to its own file, not the user's terminal; a server
     that exits before it is ready is reported with the end of what it printed."""
     import pytest
-    from swathflow.flows import mission as fm
     from swathflow.flows import standby
     code = "import sys; print('starting'); sys.stderr.write('Traceback: no database\\n'); sys.exit(1)"
     proc = standby.spawn([sys.executable, "-c", code], dict(os.environ))
@@ -196,13 +194,52 @@ def test_server_output_kept_off_the_terminal_and_told_when_it_fails_to_start(cap
     seen = capfd.readouterr()
     assert "Traceback" not in seen.err + seen.out and "starting" not in seen.out
     assert standby.output_tail(proc) == "starting\nTraceback: no database"
-    saved = dict(fm._SERVER)
-    fm._SERVER.clear()
-    fm._SERVER.update(process=proc, url="http://127.0.0.1:9/api", env={}, ready=False)
+    saved = dict(standby.SERVER)
+    standby.SERVER.clear()
+    standby.SERVER.update(process=proc, url="http://127.0.0.1:9/api", env={}, ready=False)
     try:
         with pytest.raises(RuntimeError, match="exited with code 1 before it was ready; "
                                                "it printed:\nstarting\nTraceback: no database"):
-            fm._server_ready()
+            standby.ready()
     finally:
-        fm._SERVER.clear()
-        fm._SERVER.update(saved)
+        standby.SERVER.clear()
+        standby.SERVER.update(saved)
+
+
+def test_server_routes_built_before_the_first_request(monkeypatch):
+    """The standby builds every route's request handling of Prefect's app before it serves
+    (``standby.warm_routes``): FastAPI otherwise builds an included router's routes at the
+    first request that reaches it, which the flow run's first requests waited for. Counted
+    on FastAPI's own builder: a request after the warm-up builds nothing; the same request
+    on an app not warmed does (so the count can tell)."""
+    import asyncio
+
+    import fastapi.routing as routing
+    import httpx
+    from prefect.server.api.server import create_app
+
+    from swathflow.flows import standby
+    built = []
+
+    def version(app) -> int:        # a request in this process, no lifespan: no database
+        async def get():
+            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
+                                         base_url="http://test") as client:
+                return (await client.get("/api/admin/version")).status_code
+        return asyncio.run(get())
+    real = routing._populate_api_route_state
+
+    def counted(*a, **k):
+        built.append(a[1])
+        return real(*a, **k)
+    monkeypatch.setattr(routing, "_populate_api_route_state", counted)
+    cold = create_app(ephemeral=True, ignore_cache=True)
+    assert version(cold) == 200
+    assert "/admin/version" in built      # paths of the app mounted at /api
+    warm = create_app(ephemeral=True, ignore_cache=True)
+    built.clear()
+    assert standby.warm_routes(warm) > 100
+    assert "/admin/version" in built and "/flow_runs/" in built
+    n = len(built)
+    assert version(warm) == 200
+    assert len(built) == n, built[n:]

@@ -53,12 +53,14 @@ def _new_home(tmp_path):
     assert path == tmp_path / "home" / "prefect.db"
     assert prefectdb.seed() is True
     assert _revision(path) == _revision(template) == _head()
+    assert prefectdb.at_head() is True       # the server's migration on start: left out
     assert not any(f.exists() for f in left) and ours.exists()
     assert sorted(p.name for p in (tmp_path / "home").iterdir()) == ["prefect.db"]
     # a database that exists is never replaced, the template is reused as it is
     path.write_bytes(b"the user's runs")
     stamp = template.stat().st_mtime_ns
     assert prefectdb.seed() is False and path.read_bytes() == b"the user's runs"
+    assert prefectdb.at_head() is False      # not a database: Prefect's migration runs
     other = tmp_path / "other" / "prefect.db"
     assert prefectdb.seed(other) is True and template.stat().st_mtime_ns == stamp
     assert other.read_bytes() == template.read_bytes()
@@ -81,3 +83,32 @@ def test_not_sqlite_or_unwritable_is_left_to_prefect(tmp_path, monkeypatch):
     monkeypatch.setenv("SWATHFLOW_CACHE", "/proc/no-such-folder")
     assert prefectdb.seed(tmp_path / "home" / "prefect.db") is False
     assert not (tmp_path / "home" / "prefect.db").exists()
+
+
+def test_database_behind_the_template_is_migrated(tmp_path, monkeypatch):
+    """Only a database at the template's revision skips the migration on start: one at
+    another revision, one without alembic's table, a missing one and a missing template
+    are left to Prefect's migration."""
+    import sqlite3
+    monkeypatch.setenv("SWATHFLOW_CACHE", str(tmp_path / "cache"))
+    template = prefectdb.template_path()
+    template.parent.mkdir()
+
+    def db(path, *revisions):
+        with sqlite3.connect(path) as c:
+            c.execute("create table if not exists t (x)")
+            if revisions:
+                c.execute("create table alembic_version (version_num varchar(32))")
+                c.executemany("insert into alembic_version values (?)",
+                              [(r,) for r in revisions])
+        return path
+    user = db(tmp_path / "user.db", "aaa")
+    assert prefectdb.at_head(user) is False                  # no template yet
+    db(template, "bbb")
+    assert prefectdb.revisions(template) == {"bbb"}
+    assert prefectdb.at_head(user) is False                  # behind (or ahead)
+    assert prefectdb.at_head(db(tmp_path / "head.db", "bbb")) is True
+    assert prefectdb.at_head(db(tmp_path / "two.db", "bbb", "ccc")) is False
+    assert prefectdb.at_head(db(tmp_path / "none.db")) is False
+    assert prefectdb.at_head(tmp_path / "missing.db") is False
+    assert not (tmp_path / "missing.db").exists()

@@ -247,6 +247,7 @@ def run(args) -> int:
     _lean_imports()
     from swathflow.flows.guard import check_run_inputs
     check_run_inputs(args.mission, args.calibration)   # bad input: before Prefect and Dask
+    standby.serve()     # the server starts while the flow's modules are imported
     run_flow = _flow_run()
     _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
                             args.cluster, args.jobs), args)
