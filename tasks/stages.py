@@ -55,7 +55,7 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
     written as ``OUT/pos/<image>.eo.csv`` (a product, and a check that the POS covers every
     line before the heavy stages start)."""
     from swathflow.io import atomic_path
-    from swathflow.formats.pos import interpolate_pos as interp
+    from swathflow.formats.pos import pos_columns
     m = _load(mission_path)
     paths = []
     for iid in m.images:
@@ -63,8 +63,7 @@ def interpolate_pos(mission_path: str, out_dir: str) -> list[str]:
         key = stage_key("pos", _mission_files(m) + [m.images[iid].lines_file])
         if not is_fresh(out, key):
             lines = m.lines(iid)
-            ds = interp(m.trajectory, lines["time"])     # built once with the mission
-            cols = {k: np.asarray(ds[k].values, float) for k in _EO_COLUMNS[2:]}
+            cols = pos_columns(m.trajectory, lines["time"])   # built once with the mission
             with atomic_path(out) as tmp:
                 _write_eo(tmp, np.asarray(lines["time"], float), cols)
             mark_done(out, key)

@@ -141,16 +141,22 @@ class Trajectory:
 
 def interpolate_pos(ds: xr.Dataset | Trajectory, times, max_gap: float = 1.0) -> xr.Dataset:
     """Interpolate a trajectory (a POS Dataset, or a :class:`Trajectory` already built from
-    one, e.g. ``Mission.trajectory``) to ``times``; returns a Dataset over ``time``."""
+    one, e.g. ``Mission.trajectory``) to ``times``; returns a Dataset over ``time``
+    (:func:`pos_columns` wrapped)."""
+    cols = pos_columns(ds, times, max_gap)
+    return _dataset(np.asarray(times, dtype=float), *(cols[k] for k in POS_VARIABLES),
+                    "interpolated", check=False)
+
+
+def pos_columns(ds: xr.Dataset | Trajectory, times, max_gap: float = 1.0) -> dict:
+    """:func:`interpolate_pos` as numpy arrays: ``{name: values}`` of
+    :data:`POS_VARIABLES` at ``times`` (longitude and heading in [-180, 180))."""
     traj = ds if isinstance(ds, Trajectory) else Trajectory.from_dataset(ds, max_gap=max_gap)
-    t = np.asarray(times, dtype=float)
-    r = traj.interpolate(t)
+    r = traj.interpolate(np.asarray(times, dtype=float))
     from swathflow.geometry.geodesy import ecef_to_geodetic
-    h = ecef_to_geodetic(r["ecef"])[..., 2]
-    heading = (r["heading"] + 180.0) % 360.0 - 180.0
-    lon = (r["lon"] + 180.0) % 360.0 - 180.0
-    return _dataset(t, r["lat"], lon, h, r["roll"], r["pitch"], heading, "interpolated",
-                    check=False)
+    return {"lat": r["lat"], "lon": (r["lon"] + 180.0) % 360.0 - 180.0,
+            "h": ecef_to_geodetic(r["ecef"])[..., 2], "roll": r["roll"], "pitch": r["pitch"],
+            "heading": (r["heading"] + 180.0) % 360.0 - 180.0}
 
 
 # the built-in readers, where they have always been importable from
@@ -158,5 +164,5 @@ from swathflow.formats.navigation.csv import read_pos_csv, write_pos_csv  # noqa
 from swathflow.formats.navigation.sbet import SBET_DTYPE, SBET_FIELDS, read_sbet, write_sbet  # noqa: E402
 
 __all__ = ["POS_VARIABLES", "SBET_DTYPE", "SBET_FIELDS", "Trajectory", "check_trajectory",
-           "interpolate_pos", "read_pos", "read_pos_csv", "read_sbet", "write_pos_csv",
-           "write_sbet"]
+           "interpolate_pos", "pos_columns", "read_pos", "read_pos_csv", "read_sbet",
+           "write_pos_csv", "write_sbet"]
