@@ -9,7 +9,8 @@ passed (:func:`launch`), and it is ended unused when the check fails
 (:func:`discard`) or the caller exits. Meanwhile a new Prefect home gets its database, a
 copy of a migrated one (:mod:`swathflow.flows.prefectdb`).
 
-No Prefect here: the check's process must not import it before the check.
+No Prefect at import (its functions that serve import it): the check's process must not
+import it before the check.
 """
 from __future__ import annotations
 
