@@ -221,9 +221,15 @@ def _worker(fd: int, name: int, parent: int,
         os.close(fd)
         if address:
             import asyncio
+            import logging
 
             import dask
             from distributed import Worker
+
+            # as LocalCluster's silence_logs=50 quiets a spawned worker (its handlers at
+            # CRITICAL, set in this process after the fork): a heartbeat in flight as the
+            # scheduler closes printed a CommClosedError traceback after a successful run
+            logging.getLogger("distributed").setLevel(logging.CRITICAL)
 
             async def serve():
                 async with Worker(address.decode(), nthreads=1, name=name,

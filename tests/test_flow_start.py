@@ -121,11 +121,16 @@ def own_child():  # in a worker: child() ran there (waited for: it runs on a thr
         time.sleep(0.01)
     return getattr(mod, "CHILD", None) == os.getpid()
 
+def noise():      # what a worker's heartbeat logs when the scheduler closes first
+    import logging
+    logging.getLogger("distributed.worker").error("WORKER-NOISE %d", os.getpid())
+
 def cluster(forks=True):
     with local_cluster(2, fork_setup=setup, worker_setup=child) as c, Client(c) as client:
         seen = client.run(lambda: getattr(sys.modules["json"], "SET_UP", None))
         own = client.run(own_child) if forks else {}
         pids = list(client.run(os.getpid).values())
+        client.run(noise)
         total = client.submit(sum, range(10)).result()
         ports = sorted(s.getsockname()[1] for s in c.scheduler.http_server._sockets.values())
         codes = []
@@ -175,6 +180,7 @@ def test_local_workers_forked_from_a_one_thread_process(tmp_path):
     assert forked["own"] == [True, True], "worker_setup not run in each forked worker"
     assert doc["in_parent"] is None, "worker_setup ran in the parent"
     assert spawned["seen"] == [None, None], "forked beside another thread"
+    assert "WORKER-NOISE" not in r.stderr + r.stdout, "a worker's Dask logs not silenced"
     for run in (forked, spawned):
         assert run["total"] == 45
         assert run["left"] == [], "a worker process outlived its cluster"
