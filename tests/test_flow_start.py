@@ -169,8 +169,9 @@ def test_local_workers_forked_from_a_one_thread_process(tmp_path):
     runs (they share what ``fork_setup`` prepared, e.g. the checked mission, and import
     nothing again; each ran ``worker_setup`` itself), spawned by Dask's nannies otherwise;
     either way real workers that run tasks, whose processes are gone once the cluster is
-    closed; and the scheduler's HTTP server serves nothing, and not on Dask's dashboard
-    port 8787."""
+    closed and whose Dask log lines are not printed (LocalCluster's ``silence_logs``: an
+    error logged on each is not seen); and the scheduler's HTTP server serves nothing, and
+    not on Dask's dashboard port 8787."""
     r = subprocess.run([sys.executable, "-c", _FORKED], capture_output=True, text=True,
                        timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
