@@ -250,3 +250,36 @@ def test_server_routes_built_before_the_first_request(monkeypatch):
     n = len(built)
     assert version(warm) == 200
     assert len(built) == n, built[n:]
+
+
+_STALE = """
+import json, os, sys, time, urllib.request
+from swathflow.flows import standby
+standby.start()
+spawned = standby._STANDBY["process"]
+os.environ["PREFECT_CLIENT_MAX_RETRIES"] = "7"   # the command's settings, not the standby's
+standby.serve()
+url = standby.ready()
+with urllib.request.urlopen(url + "/admin/version", timeout=30) as r:
+    version = r.status
+print("RESULT", json.dumps({"standby_code": spawned.wait(timeout=60),
+                            "serving": standby.SERVER["process"].pid, "spawned": spawned.pid,
+                            "args": standby.SERVER["process"].args[1:3], "version": version}))
+"""
+
+
+def test_standby_with_other_settings_is_replaced_by_prefects_command(tmp_path):
+    """A standby that sees other Prefect settings than the command's (here a variable the
+    command set after spawning it) does not serve: it exits with ``STALE`` once handed its
+    port, and Prefect's own uvicorn command serves instead."""
+    from swathflow.flows import standby
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
+    env.pop("PREFECT_API_URL", None)
+    env.pop("PREFECT_CLIENT_MAX_RETRIES", None)
+    r = subprocess.run([sys.executable, "-c", _STALE], capture_output=True, text=True,
+                       env=env, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    doc = json.loads(r.stdout.split("RESULT ", 1)[1])
+    assert doc["standby_code"] == standby.STALE
+    assert doc["serving"] != doc["spawned"]
+    assert doc["args"] == ["-m", "uvicorn"] and doc["version"] == 200
