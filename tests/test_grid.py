@@ -100,6 +100,28 @@ def test_footprint_grid_covers_the_image_corners():
     assert y.min() - ymin < 2.0 + 1e-6 and ymax - y.max() < 2.0 + 1e-6
 
 
+def test_footprint_grid_covers_every_pixel_on_hills(tmp_path):
+    """A +-40 degree swing over a DEM with 300 m of relief: the grid traced from the
+    image's border and a coarse interior lattice holds the ground point of every raw pixel
+    (the truth: all of them projected), with at most one output pixel of slack beyond the
+    extreme ones. (16 samples a side miss the western edge by 21 m.)"""
+    from test_rectify import hills_dem, scene_model
+    model = scene_model(n_lines=600, n_elements=192, swing=40.0)
+    dem = hills_dem(tmp_path / "hills.tif", footprint_grid(model, ConstantHeight(5.0), 1.5),
+                    relief=300.0)
+    g = footprint_grid(model, dem, 1.5)
+    nl, ne = model.shape
+    li, ei = np.meshgrid(np.arange(-0.5, nl), np.arange(-0.5, ne), indexing="ij")
+    ground = model.image_to_ground(np.stack([li, ei], axis=-1).reshape(-1, 2), dem)
+    assert np.isfinite(ground).all()
+    x, y, _ = ecef_to_map(ground, g.crs)
+    xmin, ymin, xmax, ymax = g.bounds
+    assert x.min() >= xmin - 1e-6 and x.max() <= xmax + 1e-6
+    assert y.min() >= ymin - 1e-6 and y.max() <= ymax + 1e-6
+    assert x.min() - xmin < 1.5 + 1e-6 and xmax - x.max() < 1.5 + 1e-6
+    assert y.min() - ymin < 1.5 + 1e-6 and ymax - y.max() < 1.5 + 1e-6
+
+
 def test_to_ecef_on_a_dem_in_the_grid_crs_sits_on_the_dem(tmp_path):
     """A DEM in the grid's own CRS (heights read straight from map x, y): the points are
     on the DEM's plane (bilinear interpolation reproduces a plane exactly) and back at

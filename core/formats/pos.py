@@ -129,6 +129,15 @@ class Trajectory:
             object.__setattr__(self, "_table", tab)
         return tab
 
+    def typical_step(self) -> float:
+        """The median interval between epochs (s), made once per trajectory (each image's
+        line-time check asks for it: 0.6 ms a time for the survey's 50 Hz POS)."""
+        step = self.__dict__.get("_step")
+        if step is None:
+            step = float(np.median(np.diff(self.time))) if self.time.size > 1 else 0.0
+            object.__setattr__(self, "_step", step)
+        return step
+
     def to_dataset(self) -> xr.Dataset:
         if self.source is not None:
             return _dataset(self.time, *(self.source[k] for k in POS_VARIABLES), "trajectory")

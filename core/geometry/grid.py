@@ -349,19 +349,31 @@ def ecef_to_map(ground, crs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def footprint_grid(model, terrain, gsd: float, crs="auto-utm", samples: int = 64,
-                   margin: float = 0.0) -> Grid:
+                   margin: float = 0.0, interior: int = 8) -> Grid:
     """The grid (``gsd`` pixels, snapped) covering a sensor model's ground footprint.
 
-    The image border (``samples`` points per side, plus a coarse interior lattice for
-    relief) is projected onto the terrain; ``margin`` metres are added on every side.
+    The image border (``samples`` points per side) and an ``interior`` x ``interior``
+    lattice (its points among those of a ``samples`` x ``samples`` one when
+    ``samples - 1`` is a multiple of ``interior - 1``: 64 and 8 are) are projected onto the
+    terrain; ``margin`` metres are added on every side. The footprint of a swing whose rays
+    all reach the terrain is bounded by the border's image; the interior lattice is for
+    relief that hides parts of it and for border rays that miss the terrain. (The whole
+    64 x 64 lattice gave the same grid on the survey's 240 swings and the demo's 8, in 4.7x
+    the time: 6.5 ms a swing.)
     """
     from swathflow.geometry.terrain import open_terrain
     terrain = open_terrain(terrain)
     nl, ne = model.shape
     lines = np.linspace(-0.5, nl - 0.5, samples)
     elems = np.linspace(-0.5, ne - 0.5, samples)
-    ll, ee = np.meshgrid(lines, elems, indexing="ij")
-    img = np.stack([ll, ee], axis=-1)
+    il, ie = np.meshgrid(np.linspace(-0.5, nl - 0.5, interior)[1:-1],
+                         np.linspace(-0.5, ne - 0.5, interior)[1:-1], indexing="ij")
+    img = np.concatenate([
+        np.stack([lines, np.full(samples, elems[0])], axis=-1),
+        np.stack([lines, np.full(samples, elems[-1])], axis=-1),
+        np.stack([np.full(samples, lines[0]), elems], axis=-1),
+        np.stack([np.full(samples, lines[-1]), elems], axis=-1),
+        np.stack([il.ravel(), ie.ravel()], axis=-1)])
     import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")          # rays off the terrain are NaN

@@ -109,8 +109,7 @@ def line_times(lp, t, traj, c: Collector) -> None:
               "use a POS without gaps here, or raise [pos].max_gap")
         return
     # a gap shorter than max_gap is interpolated across: say so when it is unusual
-    dt = np.diff(traj.time)
-    typical = float(np.median(dt))
+    typical = traj.typical_step()
     odd = gap > max(5 * typical, 0.05)
     if odd.any():
         c.warn(lp, f"column time, file row(s) {first_rows(odd)}",

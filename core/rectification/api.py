@@ -49,12 +49,15 @@ def _parameters(mission: Mission, calibration):
 
 
 def grid_dataarray(data, grid: Grid, name: str, attrs: Mapping | None = None,
-                   nodata=np.nan) -> xr.DataArray:
+                   nodata=np.nan, band_info=None) -> xr.DataArray:
     """A (band, y, x) or (y, x) array over ``grid`` as a georeferenced DataArray: pixel
     centre coordinates, CRS, transform and nodata (None: none) written the rioxarray way
     (its ``spatial_ref`` coordinate, ``grid_mapping`` encoding and ``_FillValue``
     attribute, taken from :func:`_rio_template`: the CRS's CF attributes cost 3-4 ms a
-    call, paid once per CRS, type and nodata rather than once per swing)."""
+    call, paid once per CRS, type and nodata rather than once per swing). ``band_info``
+    (the raw bands' :class:`~swathflow.rectification.rawimage.BandInfo`): their
+    coordinates (:func:`_band_coords`), made with the array (assigned after, xarray's
+    alignment cost 3 ms a swing)."""
     t = grid.transform
     rows, cols = grid.shape
     coords = {"y": t.f + t.e * (np.arange(rows) + 0.5), "x": t.c + t.a * (np.arange(cols) + 0.5)}
@@ -65,6 +68,8 @@ def grid_dataarray(data, grid: Grid, name: str, attrs: Mapping | None = None,
     ref_attrs, fill, encoding = _rio_template(str(grid.crs), np.dtype(data.dtype), nodata)
     ref_attrs = dict(ref_attrs, GeoTransform=" ".join(str(v) for v in t.to_gdal()))
     coords["spatial_ref"] = xr.Variable((), 0, attrs=ref_attrs)
+    if band_info is not None:
+        coords.update(_band_coords(band_info, data.ndim == 3))
     attrs = dict(attrs or {})
     if fill is not None:
         attrs["_FillValue"] = fill
@@ -96,10 +101,10 @@ def _rio_template(crs: str, dtype: np.dtype, nodata):
     return _RIO_TEMPLATES[key]
 
 
-def _band_coords(da: xr.DataArray, infos) -> xr.DataArray:
-    """Band metadata as coordinates on ``band`` (scalars for a 2-D array): ``band`` the
+def _band_coords(infos, banded: bool) -> dict:
+    """Band metadata as coordinates on ``band`` (scalars when not ``banded``): ``band`` the
     1-based band of the raw file, ``description``, ``wavelength``/``fwhm`` where known."""
-    dim = ("band",) if "band" in da.dims else ()
+    dim = ("band",) if banded else ()
 
     def val(v):
         return v if dim else v[0]
@@ -112,7 +117,7 @@ def _band_coords(da: xr.DataArray, infos) -> xr.DataArray:
     if any(b.fwhm is not None for b in infos):
         coords["fwhm"] = (dim, val(np.array([np.nan if b.fwhm is None else b.fwhm
                                              for b in infos])))
-    return da.assign_coords(coords)
+    return coords
 
 
 def _band_infos(da: xr.DataArray):
@@ -188,7 +193,7 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     data = arr[:-1] if use_mask else arr
     if source.count == 1:
         data = data[0]
-    out = _band_coords(grid_dataarray(data, grid, image_id, attrs, nodata), source.band_info)
+    out = grid_dataarray(data, grid, image_id, attrs, nodata, source.band_info)
     if use_mask:
         out = out.assign_coords(mask=(("y", "x"), arr[-1]))
     return out
@@ -267,8 +272,7 @@ def _polynomial(model, source, grid, terrain, attrs) -> xr.DataArray:
                           f"{source.count}: select one (bands) or use the exact method")
     block = dask.delayed(rectify_polynomial, pure=True)(model, source, grid, terrain)
     data = dsa.from_delayed(block, shape=grid.shape, dtype=np.float32)
-    return _band_coords(grid_dataarray(data, grid, attrs["image_id"], attrs),
-                        source.band_info)
+    return grid_dataarray(data, grid, attrs["image_id"], attrs, band_info=source.band_info)
 
 
 def geolocation(mission, image_id: str, calibration=None, product: str = "glt", *,
