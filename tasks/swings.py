@@ -99,6 +99,9 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
     (COG) with the calibration: ``to_cog(rectify(...))`` of the Python API in the raw
     image's dtype, every band or those of ``[rectify] bands``; a finished output whose
     inputs are unchanged is kept."""
+    import numpy as np
+
+    from swathflow.formats.stac import MAX_MASK
     from swathflow.rectification.api import rectify as rectified, to_cog
     from swathflow.rectification.mission import mission_bands
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
@@ -107,23 +110,28 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
     if is_fresh(out, key):
         return str(out)
     t0 = time.perf_counter()
-    to_cog(rectified(mission, image_id, calibration, bands=mission_bands(mission, image_id),
-                     dtype=None), out)
+    da = rectified(mission, image_id, calibration, bands=mission_bands(mission, image_id),
+                   dtype=None)
+    # the valid mask kept as the tiles are written: the footprint is traced from it
+    # instead of read back from the file (3 of 13 ms a survey swing)
+    valid = np.empty(da.shape[-2:], np.uint8) if max(da.shape[-2:]) <= MAX_MASK else None
+    to_cog(da, out, valid=valid)
     seconds = round(time.perf_counter() - t0, 3)
-    mark_done(out, key, seconds=seconds, **catalog_facts(out))
+    mark_done(out, key, seconds=seconds, **catalog_facts(out, valid))
     return str(out)
 
 
-def catalog_facts(path) -> dict:
+def catalog_facts(path, valid=None) -> dict:
     """What the run's STAC catalogue says of the swing just written to ``path`` (its
     footprint traced here, in the worker that wrote it, while the file is in the page
     cache: the catalogue stage would otherwise open and trace every swing again, one after
     the other, at the end of the run), with the file's stamp: ``{"stac": facts,
     "stac_stamp": [size, mtime_ns]}`` for the swing's stage manifest
-    (:func:`recorded_facts` reads it back)."""
+    (:func:`recorded_facts` reads it back). ``valid``: the swing's valid mask as it was
+    written (:func:`~swathflow.formats.stac.valid_footprint`)."""
     from swathflow.formats.stac import raster_facts
     st = Path(path).stat()
-    return {"stac": raster_facts(path), "stac_stamp": [st.st_size, st.st_mtime_ns]}
+    return {"stac": raster_facts(path, valid), "stac_stamp": [st.st_size, st.st_mtime_ns]}
 
 
 def recorded_facts(path) -> dict | None:

@@ -335,3 +335,43 @@ def test_nodata_tiles_compressed_once_a_process(tmp_path, monkeypatch, dtype, no
     assert len(added) == 2 * n                      # zstd's own
     with rasterio.open(tmp_path / "c.tif") as src:
         assert np.array_equal(src.read(1), data, equal_nan=True)
+
+
+@pytest.mark.parametrize("case", ["uint16", "nan", "bands", "mask", "no-nodata"])
+def test_valid_mask_kept_while_writing_is_the_files_dataset_mask(tmp_path, case):
+    """The valid mask the writer fills as the tiles go by (``valid``) is what rasterio's
+    ``dataset_mask`` reads back from the COG: nodata in every band (not in one), NaN, the
+    internal mask band, or no nodata at all; and the footprint traced from it is the one
+    traced from the file."""
+    from swathflow.formats.stac import raster_facts
+    h, w = 300, 420
+    nodata, mask = {"uint16": (0, False), "nan": (float("nan"), False),
+                    "bands": (-32768, False), "mask": (None, True),
+                    "no-nodata": (None, False)}[case]
+    dtype = {"nan": np.float32, "bands": np.int16}.get(case, np.uint16)
+    r, c = np.ogrid[0:h, 0:w]
+    hole = (r - 150) ** 2 + (c - 200) ** 2 < 60 ** 2            # a hole in the middle
+    edge = r > 2 * c                                             # and a cut corner
+    if case == "bands":
+        data = np.stack([(1000 + r + c).astype(dtype)] * 3)
+        data[:, hole | edge] = nodata
+        data[1, :50, :] = nodata                 # one band's nodata alone stays valid
+    elif case == "mask":
+        vals = (1000 + r + c).astype(dtype)
+        plane = np.where(hole | edge, 0, 255).astype(dtype)
+        data = np.stack([vals, plane])
+    else:
+        data = (1000 + r + c).astype(dtype)
+        if nodata is not None:
+            data[hole | edge] = nodata
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 2.0, 2.0), (h, w))
+    valid = np.empty((h, w), np.uint8)
+    path = tmp_path / "v.tif"
+    write_cogs([{"path": path, "array": data, "grid": grid, "nodata": nodata, "mask": mask,
+                 "valid": valid}], blocksize=128)
+    with rasterio.open(path) as src:
+        assert np.array_equal(valid, src.dataset_mask())
+    expect = {"uint16": hole | edge, "nan": hole | edge, "bands": hole | edge,
+              "mask": hole | edge, "no-nodata": np.zeros((h, w), bool)}[case]
+    assert np.array_equal(valid == 0, expect)
+    assert raster_facts(path, valid) == raster_facts(path)

@@ -29,9 +29,12 @@ COG = "image/tiff; application=geotiff; profile=cloud-optimized"
 MAX_MASK = 1024          # footprints are traced on a mask at most this many pixels across
 
 
-def valid_footprint(src, max_size: int = MAX_MASK) -> tuple[dict, float]:
+def valid_footprint(src, max_size: int = MAX_MASK, valid=None) -> tuple[dict, float]:
     """The valid-data polygon(s) of an open rasterio dataset as GeoJSON in EPSG:4326, and
-    the tracing resolution in the dataset's units."""
+    the tracing resolution in the dataset's units. ``valid``: the dataset's mask as its
+    writer made it (``to_cog(valid=...)``; what ``dataset_mask`` would read), used instead
+    of reading it when the dataset is traced at full resolution (at most ``max_size``
+    pixels across)."""
     import shapely
     from affine import Affine
     from rasterio.features import shapes
@@ -40,7 +43,10 @@ def valid_footprint(src, max_size: int = MAX_MASK) -> tuple[dict, float]:
 
     f = max(1, math.ceil(max(src.height, src.width) / max_size))
     oh, ow = math.ceil(src.height / f), math.ceil(src.width / f)
-    mask = src.dataset_mask(out_shape=(oh, ow))
+    if f == 1 and valid is not None and valid.shape == (src.height, src.width):
+        mask = valid
+    else:
+        mask = src.dataset_mask(out_shape=(oh, ow))
     tr = src.transform @ Affine.scale(src.width / ow, src.height / oh)
     polys = [shape(g) for g, v in shapes((mask > 0).astype(np.uint8), mask=mask > 0,
                                          transform=tr) if v == 1]
@@ -95,16 +101,17 @@ def _wavelengths(src, given) -> list | None:
     return found
 
 
-def raster_facts(path) -> dict:
+def raster_facts(path, valid=None) -> dict:
     """What a catalogue item says of a COG, read from the file (JSON-ready): its valid-data
     footprint (:func:`valid_footprint`) and tracing resolution, the projection fields, the
     raster bands, the band wavelengths (band tags), the band count and the product tags.
     The flow's rectify task records them with each swing as it is written
     (:func:`swathflow.tasks.swings.rectify_swing`), so the catalogue need not read the
-    swings again."""
+    swings again. ``valid``: the file's valid mask as written (see
+    :func:`valid_footprint`)."""
     import rasterio
     with rasterio.open(os.fspath(path)) as src:
-        geom, res = valid_footprint(src)
+        geom, res = valid_footprint(src, valid=valid)
         return {"geometry": geom, "resolution": res, "proj": _proj(src),
                 "bands": [b.to_dict() for b in _raster_bands(src)],
                 "wavelengths": _wavelengths(src, None), "count": src.count,

@@ -339,14 +339,17 @@ def local_scheduler(collection):
 
 def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: int = 512,
            compress: str = "deflate", overview_resampling: str = "average",
-           scheduler=None) -> dict:
+           scheduler=None, valid: np.ndarray | None = None) -> dict:
     """Write ``da`` (lazy or not; (y, x) or (band, y, x), or a raw-geometry array without
     CRS) as a Cloud-Optimized GeoTIFF at ``path``, atomically: its blocks are computed on
     the current Dask scheduler and streamed window by window in THIS process (memory
     bounded by the blocks in flight), then laid out by GDAL's COG driver with overviews.
     Keeps the dtype, the nodata value (``da.rio.nodata``) or the ``mask`` coordinate as an
     internal mask band, band descriptions and wavelengths, and the attributes as GDAL
-    tags (with ``tags`` added). Returns a summary (path, grid, bands, dtype, nodata)."""
+    tags (with ``tags`` added). ``valid``: a (rows, cols) uint8 array to fill with the
+    written data's valid mask (255 valid, 0 not: what rasterio's ``dataset_mask`` reads
+    back), e.g. to trace its footprint without reading the file again. Returns a summary
+    (path, grid, bands, dtype, nodata)."""
     import dask.array as dsa
 
     from swathflow.rectification.writing import write_cogs
@@ -371,7 +374,8 @@ def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: in
     if scheduler is None:
         scheduler = local_scheduler(bands)
     write_cogs([{"path": path, "array": bands, "grid": grid, "nodata": nodata,
-                 "tags": out_tags, "mask": use_mask, "bands": _band_infos(da)}],
+                 "tags": out_tags, "mask": use_mask, "bands": _band_infos(da),
+                 "valid": valid}],
                blocksize=blocksize, compress=compress,
                overview_resampling=overview_resampling, scheduler=scheduler)
     nd = "mask band" if use_mask else str(nodata)

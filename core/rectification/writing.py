@@ -52,18 +52,23 @@ CODECS = ("deflate", "zstd")
 
 class _WindowWriter:
     """A ``__setitem__`` target for :func:`.store.store_here` writing windows of a rasterio
-    dataset (2-D: band 1; 3-D: bands)."""
+    dataset (2-D: band 1; 3-D: bands); with ``valid`` (a (rows, cols) uint8 array) the
+    written windows' valid mask filled in as it goes (:func:`valid_mask`)."""
 
-    def __init__(self, dst, bands: int | None = None, mask: bool = False, level1=None):
+    def __init__(self, dst, bands: int | None = None, mask: bool = False, level1=None,
+                 valid=None, nodata=None):
         self.dst = dst
         self.bands = bands
         self.mask = mask
         self.level1 = level1        # the first overview level, reduced tile by tile
+        self.valid, self.nodata = valid, nodata
 
     def __setitem__(self, key, value):
         from rasterio.windows import Window
         if self.level1 is not None:
             self.level1.add(key[-2:], np.asarray(value))
+        if self.valid is not None:
+            self.valid[key[-2:]] = valid_mask(np.asarray(value), self.nodata, self.mask)
         if self.mask:                       # last plane: the mask band (0 / 255)
             _, rs, cs = key
             win = Window(cs.start, rs.start, cs.stop - cs.start, rs.stop - rs.start)
@@ -81,6 +86,23 @@ class _WindowWriter:
             self.dst.write(np.asarray(value), window=Window(cs.start, rs.start,
                                                             cs.stop - cs.start,
                                                             rs.stop - rs.start))
+
+
+def valid_mask(value, nodata, mask_plane: bool = False) -> np.ndarray:
+    """The valid mask (uint8, 255 valid, 0 not) of a window ``value`` (rows, cols) or
+    (bands, rows, cols) as written, as rasterio's ``dataset_mask`` reads it back from the
+    file: with ``mask_plane`` the last plane (the mask band); else valid where any band is
+    not ``nodata`` (not NaN for a NaN nodata); without nodata, everywhere."""
+    if mask_plane:
+        return np.where(value[-1] > 0, np.uint8(255), np.uint8(0))
+    planes = value if value.ndim == 3 else value[None]
+    if nodata is None:
+        return np.full(planes.shape[1:], 255, np.uint8)
+    if isinstance(nodata, float) and math.isnan(nodata):
+        ok = ~np.isnan(planes).all(axis=0)
+    else:
+        ok = (planes != planes.dtype.type(nodata)).any(axis=0)
+    return ok.view(np.uint8) * np.uint8(255)
 
 
 def _band_metadata(dst, infos) -> None:
@@ -203,7 +225,9 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
     """Write several rasters computed in ONE dask graph (shared tiles computed once).
 
     Each output is a dict: ``path``, ``array`` (dask or numpy, 2-D or bands x rows x cols),
-    ``grid`` (None: ungeoreferenced, raw geometry), ``nodata``, ``tags``, ``dtype``. Each
+    ``grid`` (None: ungeoreferenced, raw geometry), ``nodata``, ``tags``, ``dtype``, and
+    optionally ``valid``, a (rows, cols) uint8 array filled with the written data's valid
+    mask (:func:`valid_mask`) as the windows are written. Each
     is streamed into a tiled GeoTIFF beside its target (memory bounded by the tiles in
     flight), then laid out as a COG with internal overviews, atomically.
 
@@ -248,7 +272,8 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                 dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
             _band_metadata(dst, o.get("bands") or ())
             sources.append(arr)
-            targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1))
+            targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1,
+                                         o.get("valid"), o.get("nodata")))
             parts.append((dst, part, final, o["path"], level1, profile))
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
             store_here(sources, targets, scheduler)
