@@ -101,8 +101,18 @@ def valid_mask(value, nodata, mask_plane: bool = False) -> np.ndarray:
     if isinstance(nodata, float) and math.isnan(nodata):
         ok = ~np.isnan(planes).all(axis=0)
     else:
-        ok = (planes != planes.dtype.type(nodata)).any(axis=0)
+        ok = (planes != _as_type(nodata, planes.dtype)).any(axis=0)
     return ok.view(np.uint8) * np.uint8(255)
+
+
+def _as_type(value, dtype):
+    """``value`` in ``dtype`` where it is exactly one of its values (the comparison then
+    stays in the data's type), else as it is (numpy compares by value)."""
+    try:
+        v = dtype.type(value)
+    except (OverflowError, ValueError):
+        return value
+    return v if float(v) == float(value) else value
 
 
 def _band_metadata(dst, infos) -> None:
