@@ -25,18 +25,24 @@ import tempfile
 import time
 from pathlib import Path
 
-# as `swathflow run` (flows/cli/commands.py) does it: Prefect's standby server spawned
-# first, dask.array imported lean, the inputs checked (the mission loaded once, memoised for
-# the flow), the server handed its port, then the flow; with the number of Dask workers the
-# command line leaves to the machine (one per core)
+# as `swathflow run` (flows/cli/commands.py) does it, through its own steps: Prefect's
+# standby server spawned first, dask.array imported lean, the inputs checked (the mission
+# loaded once, memoised for the flow), the server handed its port, then the flow; with the
+# number of Dask workers the command line leaves to the machine (one per core)
 _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
-        "from swathflow.flows import standby\nstandby.start()\n"
-        "from swathflow.flows.cli.commands import _flow_run, _lean_imports\n_lean_imports()\n"
-        "from swathflow.flows.guard import check_run_inputs\n"
-        "check_run_inputs(sys.argv[1], sys.argv[3])\n"
-        "print('CHECKED', time.time())\n"
-        "standby.serve()\n"
-        "run = _flow_run()\n"
+        "from swathflow.flows.cli import commands\n"
+        "if hasattr(commands, '_checked'):\n"
+        "    commands._checked(sys.argv[1], sys.argv[3])\n"
+        "    print('CHECKED', time.time())\n"
+        "    run = commands._served_flow()\n"
+        "else:   # a build before stop 34, its command's steps\n"
+        "    from swathflow.flows import standby\n    standby.start()\n"
+        "    commands._lean_imports()\n"
+        "    from swathflow.flows.guard import check_run_inputs\n"
+        "    check_run_inputs(sys.argv[1], sys.argv[3])\n"
+        "    print('CHECKED', time.time())\n"
+        "    standby.serve()\n"
+        "    run = commands._flow_run()\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
         "import resource\nu = resource.getrusage(resource.RUSAGE_SELF)\n"
         "print('OWN_CPU', u.ru_utime + u.ru_stime)\n"

@@ -242,16 +242,35 @@ def run(args) -> int:
         _echo(args, f"mission {done['mission']}: up to date, nothing to recompute "
               f"(products in {os.path.abspath(args.out)})")
         return 0
-    from swathflow.flows import standby
-    standby.start()     # Prefect's server code imported from now on, on the other core
-    _lean_imports()
-    from swathflow.flows.guard import check_run_inputs
-    check_run_inputs(args.mission, args.calibration)   # bad input: before Prefect and Dask
-    standby.serve()     # the server starts while the flow's modules are imported
-    run_flow = _flow_run()
+    _checked(args.mission, args.calibration)
+    run_flow = _served_flow()
     _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
                             args.cluster, args.jobs), args)
     return 0
+
+
+def _checked(mission, calibration) -> None:
+    """The first steps of ``swathflow run``: Prefect's standby spawned (its server code
+    imported from now on, on the other core), ``dask.array`` imported lean, and the inputs
+    checked (bad input is told here, before Prefect and Dask start)."""
+    from swathflow.flows import standby
+    standby.start()
+    from swathflow.startup import uncollected
+    with uncollected(freeze=False):
+        _lean_imports()
+        from swathflow.flows.guard import check_run_inputs
+        check_run_inputs(mission, calibration)
+
+
+def _served_flow():
+    """After :func:`_checked`: the server handed its port (it starts while the flow's
+    modules are imported) and the flow's ``run``; the objects made until then (the
+    checked mission, Prefect's modules) frozen out of the collector's reach."""
+    from swathflow.flows import standby
+    from swathflow.startup import uncollected
+    with uncollected():
+        standby.serve()
+        return _flow_run()
 
 
 def demo(args) -> int:
