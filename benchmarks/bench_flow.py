@@ -10,7 +10,9 @@ Reproduce:  python benchmarks/bench_flow.py --preset survey --workers 1,2
             workers' idle time)
 The mission is simulated once into --work (default: a temporary folder); the truth
 calibration is passed so every run does the same work (ingest, POS, rectify, mosaic).
-CPU seconds are the run's process and its reaped children (the Dask workers).
+CPU seconds are the run's process and its reaped children (the Dask workers and Prefect's
+temporary server; with --timeline each apart, and the run's CPU divided by the cores: no
+schedule of that work on this machine ends sooner).
 """
 from __future__ import annotations
 
@@ -46,6 +48,11 @@ _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
         "import resource\nu = resource.getrusage(resource.RUSAGE_SELF)\n"
         "print('OWN_CPU', u.ru_utime + u.ru_stime)\n"
+        "from swathflow.flows import standby\n"
+        "p = standby.SERVER.get('process')\n"
+        "if p is not None and p.poll() is None:   # Prefect's server, stopped at exit\n"
+        "    import psutil\n    c = psutil.Process(p.pid).cpu_times()\n"
+        "    print('SERVER_CPU', c.user + c.system)\n"
         "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
 
 
@@ -110,8 +117,14 @@ def main(argv=None) -> int:
             _print_timeline(n, timeline, t0, wall, float(text.split("CHECKED", 1)[1].split()[0]))
             _print_swings(out, t0)
             own = float(text.split("OWN_CPU", 1)[1].split()[0])
-            print(f"  CPU-s: the run's process {own:.1f}, its children (the Dask workers "
-                  f"and Prefect's server) {cpu - own:.1f}")
+            server = (float(text.split("SERVER_CPU", 1)[1].split()[0])
+                      if "SERVER_CPU" in text else None)
+            kids = (f"Prefect's server {server:.1f}, the Dask workers {cpu - own - server:.1f}"
+                    if server is not None else
+                    f"its children (the Dask workers and Prefect's server) {cpu - own:.1f}")
+            print(f"  CPU-s: the run's process {own:.1f}, {kids}; {cpu:.1f} in all: on "
+                  f"{os.cpu_count()} cores no run of this CPU ends in under "
+                  f"{cpu / (os.cpu_count() or 1):.1f} s")
         stages = json.loads(text.split("TIMINGS", 1)[1])
         r_wall, r_cpu, r_text = _timed([cli, "run", str(mission), "--out", str(out),
                                         "--calibration", cal])
