@@ -13,6 +13,8 @@ texture at the output pixel centres) over the whole footprint and per 128-px til
         --baseline /work/main/.venv/bin/swathflow        # output sizes; another build beside
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.05 --timeline
         # ours alone: the serial start (imports, mission, warm-up), then the workers
+    .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.05 --zstd
+        # ours also with --compress zstd, alternated with ours (the codec's share)
     .venv/bin/python benchmarks/bench_rectify.py --startup         # start-up, numba cache warm/cold
     .venv/bin/python benchmarks/bench_rectify.py --startup --command /tmp/m \
         --baseline /work/main/.venv/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
@@ -346,6 +348,8 @@ def main():
     ap.add_argument("--baseline", metavar="EXE",
                     help="another swathflow executable run beside ours in --command")
     ap.add_argument("--no-peers", action="store_true", help="--command without GDAL")
+    ap.add_argument("--zstd", action="store_true",
+                    help="--command: ours also with --compress zstd, alternated with ours")
     ap.add_argument("--timeline", action="store_true",
                     help="--command: ours alone, where its wall time goes (the serial start "
                          "before the workers fork, then the workers)")
@@ -392,7 +396,7 @@ def main():
                     else [None]):
             X.main("command", mission_dir=args.command, preset=args.preset,
                    threads=args.threads, gsd=gsd, baseline=args.baseline,
-                   peers=not args.no_peers, repeat=args.repeat)
+                   peers=not args.no_peers, repeat=args.repeat, zstd=args.zstd)
     elif args.cube:
         for nw in (1, args.threads):
             X.main("cube", bands=args.cube, threads=nw)

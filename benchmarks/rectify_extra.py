@@ -233,13 +233,14 @@ def _peers(rows, grid, mission, model, iid, truth, threads, dtype):
 
 
 def command(mission_dir, preset="demo", threads=2, gsd=None, baseline=None,
-            peers=True, repeat: int = 1) -> dict:
+            peers=True, repeat: int = 1, zstd: bool = False) -> dict:
     """``swathflow rectify`` (a subprocess: start-up, every swing, COG writing) against
     ``gdalwarp -geoloc`` and ``rasterio.warp.reproject`` on the same swings and grids, the
     peers given their geolocation arrays (pixel corners, our model) for free. ``gsd``:
     the output pixel size (default the mission's); ``baseline``: another ``swathflow``
     executable (e.g. main's) run the same way beside ours, the two alternately ``repeat``
-    times (best wall, CPU and idle-machine estimate kept, each run's in ``runs``)."""
+    times (best wall, CPU and idle-machine estimate kept, each run's in ``runs``);
+    ``zstd``: ours also with ``--compress zstd`` (``ours_zstd``), alternated the same way."""
     from swathflow.formats.calibfile import calibration_priors, read_calibration
     from swathflow.formats.raster import read_raster
     from swathflow.geometry.grid import Grid
@@ -250,24 +251,27 @@ def command(mission_dir, preset="demo", threads=2, gsd=None, baseline=None,
     truth = read_raster(m / "truth" / "ortho.tif", masked_to_nan=True)
     out = Path(tempfile.mkdtemp(prefix="bench-rect-"))
     env = dict(os.environ, DASK_NUM_WORKERS=str(threads))
-    runs = {"ours": str(BIN / "swathflow")}
+    runs = {"ours": (str(BIN / "swathflow"), [])}
+    if zstd:
+        runs["ours_zstd"] = (str(BIN / "swathflow"), ["--compress", "zstd"])
     if baseline:
-        runs["baseline"] = baseline
+        runs["baseline"] = (baseline, [])
     rows = {k: dict(wall=0.0, cpu=0.0, idle=0.0, px=0, shifts=[]) for k in
             list(runs) + ["gdalwarp", "rasterio"]}
     rows["rasterio"]["idle"] = float("nan")      # in this process: no command to watch
     seen: dict = {k: [] for k in runs}
     for _ in range(max(repeat, 1)):
-        for k, exe in runs.items():
+        for k, (exe, extra) in runs.items():
             shutil.rmtree(out / k, ignore_errors=True)
             seen[k].append(_run_idle([exe, "rectify", m, "--calibration", cal,
-                                      "--out", out / k], env=env)
+                                      "--out", out / k, *extra], env=env)
                            + (os.getloadavg()[0],))
-    for k, exe in runs.items():
+    for k, (exe, extra) in runs.items():
         rows[k].update(wall=min(t[0] for t in seen[k]), cpu=min(t[1] for t in seen[k]),
                        idle=min(t[2] for t in seen[k]),
                        runs=[[round(v, 2) for v in t] for t in seen[k]],
-                       cmd=f"{exe} rectify {m} --calibration {cal} --out OUT")
+                       cmd=" ".join([exe, "rectify", str(m), "--calibration", str(cal),
+                                     "--out", "OUT", *extra]))
     mission = load_mission(m)
     params = mission.priors.updated(calibration_priors(read_calibration(cal)))
     for iid in mission.image_ids:
@@ -301,13 +305,15 @@ def _table(rows, gsd) -> dict:
             res[k]["runs_wall_cpu_idle_load"] = r["runs"]
         if "cmd" in r:
             res[k]["cmd"] = r["cmd"][:200]
-    o = res.get("ours")
-    for k in ("baseline", "gdalwarp", "rasterio"):
-        if o and k in res:
-            res[f"ours_faster_than_{k}"] = {
-                "wall": round(res[k]["wall_s"] / max(o["wall_s"], 1e-9), 2),
-                "cpu": round(res[k]["cpu_s"] / max(o["cpu_s"], 1e-9), 2),
-                "idle_wall": round(res[k]["idle_wall_s"] / max(o["idle_wall_s"], 1e-9), 2)}
+    for mine in ("ours", "ours_zstd"):
+        o = res.get(mine)
+        for k in ("baseline", "gdalwarp", "rasterio"):
+            if o and k in res and not (mine == "ours_zstd" and k == "baseline"):
+                res[f"{mine}_faster_than_{k}"] = {
+                    "wall": round(res[k]["wall_s"] / max(o["wall_s"], 1e-9), 2),
+                    "cpu": round(res[k]["cpu_s"] / max(o["cpu_s"], 1e-9), 2),
+                    "idle_wall": round(res[k]["idle_wall_s"] / max(o["idle_wall_s"], 1e-9),
+                                       2)}
     return res
 
 
