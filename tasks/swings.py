@@ -101,7 +101,7 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
     inputs are unchanged is kept."""
     import numpy as np
 
-    from swathflow.formats.stac import MAX_MASK
+    from swathflow.formats.stac import traced_whole
     from swathflow.rectification.api import rectify as rectified, to_cog
     from swathflow.rectification.mission import mission_bands
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
@@ -114,7 +114,7 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
                    dtype=None)
     # the valid mask kept as the tiles are written: the footprint is traced from it
     # instead of read back from the file (3 of 13 ms a survey swing)
-    valid = np.empty(da.shape[-2:], np.uint8) if max(da.shape[-2:]) <= MAX_MASK else None
+    valid = np.empty(da.shape[-2:], np.uint8) if traced_whole(*da.shape[-2:]) else None
     to_cog(da, out, valid=valid)
     seconds = round(time.perf_counter() - t0, 3)
     mark_done(out, key, seconds=seconds, **catalog_facts(out, valid))

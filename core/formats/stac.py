@@ -29,6 +29,12 @@ COG = "image/tiff; application=geotiff; profile=cloud-optimized"
 MAX_MASK = 1024          # footprints are traced on a mask at most this many pixels across
 
 
+def traced_whole(height: int, width: int, max_size: int = MAX_MASK) -> bool:
+    """Whether :func:`valid_footprint` traces a raster of this size at full resolution
+    (at most ``max_size`` pixels across), where a writer's kept valid mask is used."""
+    return max(height, width) <= max_size
+
+
 def valid_footprint(src, max_size: int = MAX_MASK, valid=None) -> tuple[dict, float]:
     """The valid-data polygon(s) of an open rasterio dataset as GeoJSON in EPSG:4326, and
     the tracing resolution in the dataset's units. ``valid``: the dataset's mask as its
@@ -43,7 +49,8 @@ def valid_footprint(src, max_size: int = MAX_MASK, valid=None) -> tuple[dict, fl
 
     f = max(1, math.ceil(max(src.height, src.width) / max_size))
     oh, ow = math.ceil(src.height / f), math.ceil(src.width / f)
-    if f == 1 and valid is not None and valid.shape == (src.height, src.width):
+    if traced_whole(src.height, src.width, max_size) and valid is not None and \
+            valid.shape == (src.height, src.width):
         mask = valid
     else:
         mask = src.dataset_mask(out_shape=(oh, ow))
