@@ -30,7 +30,7 @@ _B = _A * (1 - _F)
 _EP2 = (_A * _A - _B * _B) / (_B * _B)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _lat_lon_h(x, y, z):
     """Heikkinen (1982) closed-form ECEF -> geodetic (radians, metres)."""
     p = math.sqrt(x * x + y * y)
@@ -108,7 +108,7 @@ def shell_hits(o, d, h):
 PIECE = 500.0
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _shell(ox, oy, oz, dx, dy, dz, h):
     """Entry ``lam`` of a ray into the inflated ellipsoid (a + h, b + h) (NaN: missed),
     and whether the origin is inside it."""
@@ -195,7 +195,7 @@ def _refine(ta, ga, tb, gb, q, data, max_iter):
     return t
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _t_at_height(q, h):
     """``t`` where the piece's (descending) height is ``h`` (one Newton step from the chord:
     the quadratic term is a curvature of millimetres)."""
@@ -264,7 +264,7 @@ def _march_piece(q, data, blocks, g_prev, max_iter):
     return np.nan, (g_prev if t1 >= 1.0 else _gap(1.0, q, data)[0])
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _quadratic(a0, a1, a2):
     """Coefficients of v(t) = q0 + q1 t + q2 t^2 through (0, a0), (1/2, a1), (1, a2)."""
     return a0, -3 * a0 + 4 * a1 - a2, 2 * a0 - 4 * a1 + 2 * a2

@@ -58,7 +58,7 @@ def pos_epoch(time, table, max_gap, t, k, out):
     return k
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def line_at(line, n):
     """A fractional raw line clamped to the image's ``n`` lines: ``(j, w)``, the line
     below it (at most ``n - 2``) and the weight of the line after (the rays' line
@@ -77,7 +77,7 @@ def nav_trig(pos):
             math.sin(la), math.cos(la), math.sin(lo), math.cos(lo))
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def body_to_ecef(x, y, z, trig):
     """``R_EN R_NB (x, y, z)``: IMU body frame to ECEF (``trig`` from :func:`nav_trig`)."""
     sr, cr, sp, cp, sh, ch, sl, cl, so, co = trig

@@ -15,7 +15,7 @@ def _plane(planes, j, x, y, z):
     return planes[j, 0] * x + planes[j, 1] * y + planes[j, 2] * z + planes[j, 3]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _sgn(v):
     return (v > 0.0) - (v < 0.0)
 

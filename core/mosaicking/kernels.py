@@ -40,6 +40,14 @@ def fill_rows(val, ok):
 
 
 @njit(cache=True, nogil=True)
+def _copy_row(out, src, dst):
+    """Row ``src`` of ``out`` into row ``dst``, element by element (a row assigned to a
+    slice compiles numba's shape-mismatch message: ~5 s a process on a cold cache)."""
+    for j in range(out.shape[1]):
+        out[dst, j] = out[src, j]
+
+
+@njit(cache=True, nogil=True)
 def fill_rows_into(val, ok, out):
     """:func:`fill_rows` into ``out`` (float64, the shape of ``val``)."""
     h, w = val.shape
@@ -71,7 +79,7 @@ def fill_rows_into(val, ok, out):
         if has[i]:
             prev = i
         elif prev >= 0:
-            out[i, :] = out[prev, :]
+            _copy_row(out, prev, i)
     nxt = -1
     for i in range(h - 1, -1, -1):
         if has[i]:
@@ -79,7 +87,7 @@ def fill_rows_into(val, ok, out):
         elif not np.isnan(out[i, 0]) or nxt < 0:
             continue
         else:
-            out[i, :] = out[nxt, :]
+            _copy_row(out, nxt, i)
     if nxt < 0 and prev < 0:
         out[:, :] = 0.0
 

@@ -191,7 +191,12 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     bad = ~good & ~all_nan
     near = np.zeros(k, np.bool_)
     if bad.any() and all_nan.any():   # all-NaN cells touching a refined one: the edge of
-        near[all_nan] = touching(rest[all_nan], rest[bad], H, W)      # the footprint
+        hit = touching(rest[all_nan], rest[bad], H, W)                # the footprint
+        t = 0
+        for i in range(k):         # not ``near[all_nan] = hit``: an array assigned
+            if all_nan[i]:         # through a mask compiles numba's shape-mismatch
+                near[i] = hit[t]   # message (~5 s a process, on a cold cache)
+                t += 1
     split = bad | near | (big & all_nan)     # a big all-NaN cell may hide the footprint
     can_r, can_c = rest[:, 2] >= 2, rest[:, 3] >= 2
     pick_r = (err_r >= half) & (err_c < half / 2)

@@ -31,7 +31,7 @@ def trig_tables(geo) -> tuple:
     return pos_trig, line_trig, epoch, k0
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _sin_cos(a, d, sa, ca):
     """sin and cos of ``a + d`` (radians) from ``sin a``, ``cos a``: the angle sum with
     the Taylor series of a small ``d`` (|d| < 0.02: the terms left out are below 1e-25),
@@ -44,7 +44,7 @@ def _sin_cos(a, d, sa, ca):
     return math.sin(a + d), math.cos(a + d)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _epoch_sin_cos(table, pos, pos_trig, k, kt, c):
     """sin and cos of the interpolated POS angle ``pos[c]`` (degrees; columns 3-7 of the
     table) from those at epoch ``k`` (row ``kt`` of ``pos_trig``, -1: not there). One
@@ -127,12 +127,12 @@ def _frame_vector(r_es, c, j, g, out):
         out[k] = r_es[j, 0, k] * dx + r_es[j, 1, k] * dy + r_es[j, 2, k] * dz
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _sgn(v):
     return (v > 0.0) - (v < 0.0)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _quadratic_root(x0, x2, fj, fj1, l1, f1, rough_line):
     """Inverse quadratic root through (x0, l1, x2), the secant against the far bracket end
     where it leaves the bracket; and whether the two disagree (solve exactly)."""
@@ -246,7 +246,8 @@ def epoch_frames(geo, trig, nvec):
                 and time[k] < cols[a + 1, 0]):
             continue
         le = a + (time[k] - cols[a, 0]) / (cols[a + 1, 0] - cols[a, 0])
-        x[:] = geo[2][k, :3]
+        for j in range(3):         # element by element: an array assigned to a slice
+            x[j] = geo[2][k, j]    # compiles numba's shape-mismatch message (~5 s)
         if not _camera_of(le, x, cols, time, table, max_gap, rig, pos_trig, line_trig,
                           line_epoch, k0, cam0, pos):
             continue
