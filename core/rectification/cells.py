@@ -176,8 +176,43 @@ def _children(cells, split_r, split_c):
 def _inside(cells, h, w):
     """The cells that start inside the tile's ``h`` x ``w`` pixels (the others cover none
     of its pixels)."""
-    keep = (cells[:, 0] <= h - 1) & (cells[:, 1] <= w - 1)
-    return cells[keep] if not keep.all() else cells
+    keep = np.empty(cells.shape[0], np.bool_)
+    every = True
+    for i in range(cells.shape[0]):
+        keep[i] = cells[i, 0] <= h - 1 and cells[i, 1] <= w - 1
+        every = every and keep[i]
+    return cells if every else _rows(cells, keep)
+
+
+@njit(cache=True, nogil=True)
+def _rows(a, keep):
+    """``a[keep]`` of an ``(n, 4)`` int64 array, row by row."""
+    m = 0
+    for i in range(keep.shape[0]):
+        m += keep[i]
+    out = np.empty((m, 4), np.int64)
+    t = 0
+    for i in range(keep.shape[0]):
+        if keep[i]:
+            for q in range(4):
+                out[t, q] = a[i, q]
+            t += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _items(a, keep):
+    """``a[keep]`` of a boolean vector."""
+    m = 0
+    for i in range(keep.shape[0]):
+        m += keep[i]
+    out = np.empty(m, np.bool_)
+    t = 0
+    for i in range(keep.shape[0]):
+        if keep[i]:
+            out[t] = a[i]
+            t += 1
+    return out
 
 
 @njit(cache=True, nogil=True)
