@@ -157,7 +157,6 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     assigned through, a boolean index) is code numba compiles on its own; cell by cell
     this kernel's first compilation on a cold cache took 4.0 CPU-s instead of 6.9, with
     the same leaves."""
-    n = cells.shape[0]
     rest = _rows(cells, _not_unit(cells))
     k = rest.shape[0]
     err_c, err_r, err_m, pts = _cell_tests(rest, v)
@@ -170,33 +169,8 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
         off = _off_image(pts, err, nl, ne)
         for i in range(k):
             good[i] = good[i] or off[i]
-    all_nan = np.ones(k, np.bool_)
-    for i in range(k):
-        for p in range(9):
-            if not (math.isnan(pts[i, p, 0]) and math.isnan(pts[i, p, 1])):
-                all_nan[i] = False
-                break
-    n_leaf = n - k
-    for i in range(k):
-        n_leaf += good[i]
-    leaf = np.empty((n_leaf, 4), np.int64)
-    corners = np.empty((n_leaf, 4, 2))
-    j = 0
-    for i in range(n):             # element by element: a row view (or a slice assigned)
-        if cells[i, 2] == 1 and cells[i, 3] == 1:      # counts references, at every cell
-            r, c = cells[i, 0], cells[i, 1]
-            for q in range(4):
-                leaf[j, q] = cells[i, q]
-            for q in range(2):
-                corners[j, 0, q], corners[j, 1, q] = v[r, c, q], v[r, c + 1, q]
-                corners[j, 2, q], corners[j, 3, q] = v[r + 1, c, q], v[r + 1, c + 1, q]
-            j += 1
-    for i in range(k):
-        if good[i]:
-            for q in range(4):
-                leaf[j, q] = rest[i, q]
-                corners[j, q, 0], corners[j, q, 1] = pts[i, q, 0], pts[i, q, 1]
-            j += 1
+    all_nan = _all_nan(pts)
+    leaf, corners = _leaves_of(cells, rest, good, v, pts)
     bad = np.empty(k, np.bool_)
     any_bad = any_nan = False
     for i in range(k):
@@ -220,6 +194,48 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
 
 
 @njit(cache=True, nogil=True)
+def _all_nan(pts):
+    """Whether every corner and test point ``(k, 9, 2)`` of a cell is NaN."""
+    k = pts.shape[0]
+    out = np.ones(k, np.bool_)
+    for i in range(k):
+        for p in range(9):
+            if not (math.isnan(pts[i, p, 0]) and math.isnan(pts[i, p, 1])):
+                out[i] = False
+                break
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _leaves_of(cells, rest, good, v, pts):
+    """The leaves of a level and their corners: its unit cells (corners from ``v``),
+    then the cells of ``rest`` that pass (corners from their tested points ``pts``)."""
+    n, k = cells.shape[0], rest.shape[0]
+    n_leaf = n - k
+    for i in range(k):
+        n_leaf += good[i]
+    leaf = np.empty((n_leaf, 4), np.int64)
+    corners = np.empty((n_leaf, 4, 2))
+    j = 0
+    for i in range(n):             # element by element: a row view (or a slice assigned)
+        if cells[i, 2] == 1 and cells[i, 3] == 1:      # counts references, at every cell
+            r, c = cells[i, 0], cells[i, 1]
+            for q in range(4):
+                leaf[j, q] = cells[i, q]
+            for q in range(2):
+                corners[j, 0, q], corners[j, 1, q] = v[r, c, q], v[r, c + 1, q]
+                corners[j, 2, q], corners[j, 3, q] = v[r + 1, c, q], v[r + 1, c + 1, q]
+            j += 1
+    for i in range(k):
+        if good[i]:
+            for q in range(4):
+                leaf[j, q] = rest[i, q]
+                corners[j, q, 0], corners[j, q, 1] = pts[i, q, 0], pts[i, q, 1]
+            j += 1
+    return leaf, corners
+
+
+@njit(cache=True, nogil=True)
 def _splits(rest, err, err_r, err_c, bad, near, all_nan, half, tol, smooth, leaf_max):
     """:func:`_level`'s decision for each cell left (``rest``): split across rows,
     across columns, refined further (``go``) or halved into sure leaves."""
@@ -230,15 +246,12 @@ def _splits(rest, err, err_r, err_c, bad, near, all_nan, half, tol, smooth, leaf
         big_r, big_c = rest[i, 2] > leaf_max, rest[i, 3] > leaf_max
         big = big_r or big_c
         split = bad[i] or near[i] or (big and all_nan[i])   # a big all-NaN cell may
-        can_r, can_c = rest[i, 2] >= 2, rest[i, 3] >= 2     # hide the footprint
-        pick_r = err_r[i] >= half and err_c[i] < half / 2
-        pick_c = err_c[i] >= half and err_r[i] < half / 2
-        both = near[i] or not (pick_r or pick_c)
-        if big:
+        if big:                                            # hide the footprint
             split_r[i], split_c[i] = split and big_r, split and big_c
         else:
-            split_r[i] = split and can_r and (pick_r or both or not can_c)
-            split_c[i] = split and can_c and (pick_c or both or not can_r)
+            r, c = _across(rest[i, 2] >= 2, rest[i, 3] >= 2, err_r[i], err_c[i], near[i],
+                           half)
+            split_r[i], split_c[i] = split and r, split and c
         # on a smooth mapping the interpolation error falls with the square of the cell
         # size: children of a cell that missed by less than ``tol`` miss by about a
         # quarter of it, half the acceptance threshold. They are leaves without tests
@@ -246,6 +259,16 @@ def _splits(rest, err, err_r, err_c, bad, near, all_nan, half, tol, smooth, leaf
         sure[i] = smooth and split and err[i] < tol and not big
         go[i] = split and not sure[i]
     return split_r, split_c, go, sure
+
+
+@njit(cache=True, nogil=True)
+def _across(can_r, can_c, err_r, err_c, near, half):
+    """Whether a cell to split is halved across rows, across columns (both where its
+    tests do not single out one, or it borders the footprint's edge)."""
+    pick_r = err_r >= half and err_c < half / 2
+    pick_c = err_c >= half and err_r < half / 2
+    both = near or not (pick_r or pick_c)
+    return can_r and (pick_r or both or not can_c), can_c and (pick_c or both or not can_r)
 
 
 @njit(cache=True, nogil=True)
