@@ -33,7 +33,18 @@ from numba.core.caching import FunctionCache
 
 from swathflow.startup import blas_probe_alone, lean_numba_arrays
 
-__all__ = ["njit"]
+__all__ = ["cached", "njit"]
+
+
+def cached(kernel) -> bool:
+    """Whether numba's on-disk cache holds ``kernel`` (a dispatcher with ``cache=True``):
+    False on the first run after an install or a clone, when numba compiles the kernels
+    (1-2 minutes for a whole run on 2 cores; later runs load them). True where this numba
+    does not say (no cache index path)."""
+    try:
+        return os.path.exists(kernel._cache._cache_file._index_path)
+    except AttributeError:
+        return True
 
 
 class _LightCache(FunctionCache):

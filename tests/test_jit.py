@@ -155,3 +155,20 @@ def test_numbas_runtime_starts_from_its_kept_object_code(tmp_path):
     assert (again["ramp"], again["fresh"], again["built"]) == ([0.0, 0.25, 0.5, 0.75], 7.0, 1)
     after = _fresh(RUN_RUNTIME.format(folder=str(tmp_path)))
     assert after["built"] == 0 and after["fresh"] == 7.0
+
+
+def test_cached_says_whether_numbas_cache_holds_the_kernel(tmp_path):
+    """``cached`` is False before a kernel's first compilation into an empty cache folder
+    (what `swathflow demo` tells a new install about), True after it and in the next
+    process."""
+    code = ("import json, numpy as np\nfrom swathflow.jit import cached\n"
+            "from swathflow.rectification.paint import _by_row\nbefore = cached(_by_row)\n"
+            "order = _by_row(np.array([[2, 0, 1, 1], [0, 0, 1, 1]], np.int64))\n"
+            "print(json.dumps([before, cached(_by_row), order.tolist()]))")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           timeout=300, env=env) for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr
+    first, second = (json.loads(r.stdout.strip().splitlines()[-1]) for r in runs)
+    assert first == [False, True, [1, 0]]
+    assert second == [True, True, [1, 0]]

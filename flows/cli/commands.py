@@ -273,6 +273,17 @@ def _served_flow():
         return _flow_run()
 
 
+def _first_run_notice(args) -> None:
+    """Say so when numba's cache is empty (a new install or clone): the kernels are
+    compiled for this machine during the run, once."""
+    from swathflow.jit import cached
+    from swathflow.rectification.lattice import _level
+    if not cached(_level):
+        _echo(args, "first run of this install: numba compiles swathflow's kernels for this "
+              "machine as they are first called (about 1-2 minutes in all, once; later runs "
+              "load them from its cache)", file=sys.stderr)
+
+
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
     from swathflow.flows import standby
@@ -283,6 +294,7 @@ def demo(args) -> int:
     out = Path(args.out).resolve()
     mission = out / "mission"
     t0 = time.perf_counter()
+    _first_run_notice(args)
     if not (mission / "mission.toml").exists():
         _echo(args, f"simulating the {args.preset} mission into {mission} ...", file=sys.stderr)
         simulate_mission(mission, preset=args.preset, seed=0)
