@@ -362,13 +362,19 @@ def polish(coef, pad, mov, mask, planar, d_start, iterations, tol):
 
 
 @njit(cache=True, nogil=True)
-def _invalid_fraction(m, r0, r1, c0, c1, axis, k):
-    """1 - the valid fraction of row ``k`` (axis 0) or column ``k`` of ``m[r0:r1, c0:c1]``."""
+def _row_invalid(m, k, c0, c1):
+    """1 - the valid fraction of row ``k`` of ``m[:, c0:c1]`` (the bounds as variables:
+    a literal argument would compile a specialisation of its own)."""
     n = 0
-    if axis == 0:
-        for c in range(c0, c1):
-            n += m[k, c]
-        return 1.0 - n / (c1 - c0)
+    for c in range(c0, c1):
+        n += m[k, c]
+    return 1.0 - n / (c1 - c0)
+
+
+@njit(cache=True, nogil=True)
+def _column_invalid(m, k, r0, r1):
+    """1 - the valid fraction of column ``k`` of ``m[r0:r1]``."""
+    n = 0
     for r in range(r0, r1):
         n += m[r, k]
     return 1.0 - n / (r1 - r0)
@@ -382,10 +388,10 @@ def valid_rectangle_bounds(m):
     r0, r1, c0, c1 = 0, m.shape[0], 0, m.shape[1]
     bad = np.empty(4)
     while r1 > r0 and c1 > c0:
-        bad[0] = _invalid_fraction(m, r0, r1, c0, c1, 0, r0)
-        bad[1] = _invalid_fraction(m, r0, r1, c0, c1, 0, r1 - 1)
-        bad[2] = _invalid_fraction(m, r0, r1, c0, c1, 1, c0)
-        bad[3] = _invalid_fraction(m, r0, r1, c0, c1, 1, c1 - 1)
+        bad[0] = _row_invalid(m, r0, c0, c1)
+        bad[1] = _row_invalid(m, r1 - 1, c0, c1)
+        bad[2] = _column_invalid(m, c0, r0, r1)
+        bad[3] = _column_invalid(m, c1 - 1, r0, r1)
         k = 0
         for q in range(1, 4):
             if bad[q] > bad[k]:

@@ -142,6 +142,20 @@ def _by_row(cells):
 
 
 @njit(cache=True, nogil=True)
+def _bisect(a, x, right):
+    """``np.searchsorted(a, x, side="right" if right else "left")`` of a sorted int64
+    vector (numba's compiles for 1-2 CPU-s a process on a cold cache)."""
+    lo, hi = 0, a.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] < x or (right and a[mid] == x):
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True)
 def touching(cells, marked, H, W):
     """For each cell ``(r, c, sr, sc)`` (``(n, 4)``), whether its closed rectangle shares a
     pixel of the ``H`` x ``W`` tile with the closed rectangle of a ``marked`` cell
@@ -162,8 +176,7 @@ def touching(cells, marked, H, W):
     for k in range(n):
         r, c = cells[k, 0], cells[k, 1]
         r1, c1 = min(r + cells[k, 2], H - 1), min(c + cells[k, 3], W - 1)
-        lo = np.searchsorted(first, r - span)
-        hi = np.searchsorted(first, r1, side="right")
+        lo, hi = _bisect(first, r - span, False), _bisect(first, r1, True)
         for t in range(lo, hi):
             j = order[t]
             rb, cb = marked[j, 0], marked[j, 1]
