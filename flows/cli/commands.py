@@ -277,8 +277,8 @@ def _first_run_notice(args) -> None:
     """Say so when numba's cache is empty (a new install or clone): the kernels are
     compiled for this machine during the run, once."""
     from swathflow.jit import cached
-    from swathflow.rectification.paint import touching
-    if not cached(touching):
+    from swathflow.rectification.paint import paint_window    # every run calls it
+    if not cached(paint_window):
         _echo(args, "first run of this install: numba compiles swathflow's kernels for this "
               "machine as they are first called (about 1-2 minutes in all, once; later runs "
               "load them from its cache)", file=sys.stderr)
