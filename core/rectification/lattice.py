@@ -157,7 +157,8 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
     assigned through, a boolean index) is code numba compiles on its own; cell by cell
     this kernel's first compilation on a cold cache took 4.0 CPU-s instead of 6.9, with
     the same leaves."""
-    rest = _rows(cells, _not_unit(cells))
+    larger = _not_unit(cells)
+    rest = _rows(cells, larger)
     k = rest.shape[0]
     err_c, err_r, err_m, pts = _cell_tests(rest, v)
     err = np.empty(k)
@@ -170,7 +171,7 @@ def _level(cells, v, half, tol, nl, ne, smooth, H, W, leaf_max, h, w):
         for i in range(k):
             good[i] = good[i] or off[i]
     all_nan = _all_nan(pts)
-    leaf, corners = _leaves_of(cells, rest, good, v, pts)
+    leaf, corners = _leaves_of(cells, larger, rest, good, v, pts)
     bad = np.empty(k, np.bool_)
     any_bad = any_nan = False
     for i in range(k):
@@ -207,9 +208,10 @@ def _all_nan(pts):
 
 
 @njit(cache=True, nogil=True)
-def _leaves_of(cells, rest, good, v, pts):
-    """The leaves of a level and their corners: its unit cells (corners from ``v``),
-    then the cells of ``rest`` that pass (corners from their tested points ``pts``)."""
+def _leaves_of(cells, larger, rest, good, v, pts):
+    """The leaves of a level and their corners: its unit cells (not ``larger``; corners
+    from ``v``), then the cells of ``rest`` that pass (corners from their tested points
+    ``pts``)."""
     n, k = cells.shape[0], rest.shape[0]
     n_leaf = n - k
     for i in range(k):
@@ -218,7 +220,7 @@ def _leaves_of(cells, rest, good, v, pts):
     corners = np.empty((n_leaf, 4, 2))
     j = 0
     for i in range(n):             # element by element: a row view (or a slice assigned)
-        if cells[i, 2] == 1 and cells[i, 3] == 1:      # counts references, at every cell
+        if not larger[i]:          # counts references, at every cell
             r, c = cells[i, 0], cells[i, 1]
             for q in range(4):
                 leaf[j, q] = cells[i, q]
