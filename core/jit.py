@@ -33,7 +33,7 @@ from numba.core.caching import FunctionCache
 
 from swathflow.startup import blas_probe_alone, lean_numba_arrays
 
-__all__ = ["cached", "njit"]
+__all__ = ["cached", "compiling_alone", "njit"]
 
 
 def cached(kernel) -> bool:
@@ -45,6 +45,45 @@ def cached(kernel) -> bool:
         return os.path.exists(kernel._cache._cache_file._index_path)
     except AttributeError:
         return True
+
+
+@contextlib.contextmanager
+def compiling_alone(kernel, timeout: float = 600.0):
+    """While numba's cache lacks ``kernel`` (a new install): hold an exclusive lock on a
+    file in the folder numba caches it in, so that the processes running the same block
+    (a local cluster's workers warming up) take turns: the first compiles and caches the
+    kernels, the others wait, then load them instead of compiling them again side by side
+    (each the same 25-50 CPU-s). With the cache full, or no lock to be had (no such
+    folder, no ``fcntl``), the block runs at once; after ``timeout`` s of waiting too. The
+    system drops the lock of a process that dies. Yields whether the cache lacked
+    ``kernel`` on entry."""
+    fd = None
+    cold = not cached(kernel)
+    if cold:
+        with contextlib.suppress(Exception):   # noqa: BLE001 - no lock: compile alongside
+            import fcntl
+            path = os.path.join(kernel._cache._cache_path, "swathflow-compile.lock")
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o666)
+            _lock(fd, fcntl, timeout)
+    try:
+        yield cold
+    finally:
+        if fd is not None:
+            os.close(fd)                            # the lock goes with the descriptor
+
+
+def _lock(fd: int, fcntl, timeout: float) -> None:
+    """``flock(fd, LOCK_EX)``, given up after ``timeout`` s (polled)."""
+    import time
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() > end:
+                return
+            time.sleep(0.1)
 
 
 class _LightCache(FunctionCache):

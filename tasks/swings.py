@@ -102,7 +102,7 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
     import numpy as np
 
     from swathflow.formats.stac import traced_whole
-    from swathflow.rectification.api import rectify as rectified, to_cog
+    from swathflow.rectification.api import rectify as rectified, taking_turns, to_cog
     from swathflow.rectification.mission import mission_bands
     out = Path(out_dir) / "rectified" / f"{image_id}.tif"
     key = stage_key("rectify", mission_files(mission) + image_files(mission, image_id)
@@ -110,12 +110,13 @@ def rectify_swing(mission, image_id: str, calibration: str, out_dir: str) -> str
     if is_fresh(out, key):
         return str(out)
     t0 = time.perf_counter()
-    da = rectified(mission, image_id, calibration, bands=mission_bands(mission, image_id),
-                   dtype=None)
-    # the valid mask kept as the tiles are written: the footprint is traced from it
-    # instead of read back from the file (3 of 13 ms a survey swing)
-    valid = np.empty(da.shape[-2:], np.uint8) if traced_whole(*da.shape[-2:]) else None
-    to_cog(da, out, valid=valid)
+    with taking_turns():        # a new install: one worker compiles the kernels at a time
+        da = rectified(mission, image_id, calibration,
+                       bands=mission_bands(mission, image_id), dtype=None)
+        # the valid mask kept as the tiles are written: the footprint is traced from it
+        # instead of read back from the file (3 of 13 ms a survey swing)
+        valid = np.empty(da.shape[-2:], np.uint8) if traced_whole(*da.shape[-2:]) else None
+        to_cog(da, out, valid=valid)
     seconds = round(time.perf_counter() - t0, 3)
     mark_done(out, key, seconds=seconds, **catalog_facts(out, valid))
     return str(out)

@@ -172,3 +172,52 @@ def test_cached_says_whether_numbas_cache_holds_the_kernel(tmp_path):
     first, second = (json.loads(r.stdout.strip().splitlines()[-1]) for r in runs)
     assert first == [False, True, [1, 0]]
     assert second == [True, True, [1, 0]]
+
+
+TURN = """
+import json, sys, time
+sys.path.insert(0, {folder!r})
+import kmod
+from swathflow.jit import compiling_alone
+with compiling_alone(kmod.ramp) as cold:
+    got = time.time()
+    time.sleep({hold})                  # holding the turn before compiling
+    values = kmod.ramp(3, 1.0).tolist()
+    out = time.time()
+print(json.dumps(dict(cold=cold, got=got, out=out, values=values,
+                      misses=sum(kmod.ramp.stats.cache_misses.values()))))
+"""
+
+
+def _start(code: str):
+    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _result(p) -> dict:
+    out, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_processes_take_turns_only_while_the_kernel_is_not_cached(tmp_path):
+    """Two processes in compiling_alone with the kernel not cached: the second (started
+    while the first holds its turn, before the first compiles) enters when the first
+    has left, finds the kernel cached and loads it (no compilation).
+    With it cached, both run the block at once (their intervals overlap)."""
+    import time
+    (tmp_path / "kmod.py").write_text(KERNEL)
+    first = _start(TURN.format(folder=str(tmp_path), hold=2.0))
+    time.sleep(0.5)
+    second = _start(TURN.format(folder=str(tmp_path), hold=0.0))
+    a, b = _result(first), _result(second)
+    assert a["cold"] is True and b["cold"] is True
+    assert b["got"] >= a["out"]                       # waited for the first to leave
+    assert (a["misses"], b["misses"]) == (1, 0)       # compiled once, then loaded
+    assert a["values"] == b["values"] == [0.0, 1.0, 2.0]
+    p = _start(TURN.format(folder=str(tmp_path), hold=3.0))
+    time.sleep(0.5)
+    q = _start(TURN.format(folder=str(tmp_path), hold=0.0))
+    c, d = _result(p), _result(q)
+    assert c["cold"] is False and d["cold"] is False
+    assert d["got"] < c["out"]                        # no turns: inside at the same time

@@ -10,6 +10,7 @@ are ``to_cog(rectify(...))``; :func:`geolocation` gives the GLT and IGM products
 way."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -210,7 +211,9 @@ def warm_up(mission, image_id: str | None = None, calibration=None, *,
     survey swing's first rectification in a forked worker: 0.45 -> 0.16 CPU-s; arguments
     as :func:`rectify`'s exact method), and what writing its COG (``compress``) makes once a
     process (:func:`_warm_writer`). It also keeps freed heap memory in this process and
-    the ones it forks (:func:`~swathflow.rectification.heap.keep_freed_memory`)."""
+    the ones it forks (:func:`~swathflow.rectification.heap.keep_freed_memory`). On a new
+    install the processes warming up together take turns (:func:`taking_turns`), and
+    the grid's corner tile is rectified too (the kernels of a swing's tiles compiled)."""
     from dask.local import get_sync
 
     from swathflow.rectification.heap import keep_freed_memory
@@ -222,14 +225,45 @@ def warm_up(mission, image_id: str | None = None, calibration=None, *,
     keep_freed_memory()
     m = mission if isinstance(mission, Mission) else load_mission(mission)
     iid = image_id if image_id is not None else next(iter(m.images))
-    m, model, terrain, grid, _ = _swing(m, iid, calibration, None, None)
-    src = open_raw_image(m.images[iid].file, bands=bands)
-    dt, nodata, use_mask = output_plan(src, dtype, mask_band)
-    r, c = grid.height // 2, grid.width // 2
-    win = grid.window(slice(max(r - 4, 0), r + 4), slice(max(c - 4, 0), c + 4))
-    rectify_blocks(model, src, win, terrain, kernel, TOLERANCE_PX if tol is None else tol,
-                   tile, dtype=dtype, mask_plane=use_mask).compute(scheduler=get_sync)
-    _warm_writer(grid, dt, nodata, use_mask, tile, compress)
+    with taking_turns() as cold:
+        m, model, terrain, grid, _ = _swing(m, iid, calibration, None, None)
+        src = open_raw_image(m.images[iid].file, bands=bands)
+        dt, nodata, use_mask = output_plan(src, dtype, mask_band)
+        r, c = grid.height // 2, grid.width // 2
+        wins = [grid.window(slice(max(r - 4, 0), r + 4), slice(max(c - 4, 0), c + 4))]
+        if cold:    # a new install: also the corner tile (off the footprint in part: the
+            # lattice refines there), so that a swing's tiles find their kernels compiled
+            wins.append(grid.window(slice(0, min(tile, grid.height)),
+                                    slice(0, min(tile, grid.width))))
+        for win in wins:
+            rectify_blocks(model, src, win, terrain, kernel,
+                           TOLERANCE_PX if tol is None else tol, tile, dtype=dtype,
+                           mask_plane=use_mask).compute(scheduler=get_sync)
+        _warm_writer(grid, dt, nodata, use_mask, tile, compress)
+
+
+#: whether this process has been through :func:`taking_turns`
+_TURN_TAKEN = False
+
+
+@contextlib.contextmanager
+def taking_turns():
+    """A process's rectifications on a new install (numba's cache without the lattice's
+    cell tests, which every tile calls), until one has ended: inside
+    :func:`swathflow.jit.compiling_alone`, so that the processes rectifying together (a
+    local cluster's workers, and the threads of each) take turns: the first compiles the
+    engine's kernels, the others wait and load what it cached instead of compiling them
+    again side by side (25-50 CPU-s each). Afterwards, and with the cache full, the block
+    runs at once. Yields whether the kernels were missing."""
+    global _TURN_TAKEN
+    from swathflow.jit import compiling_alone
+    from swathflow.rectification.cells import _cell_tests
+    if _TURN_TAKEN:
+        yield False
+        return
+    with compiling_alone(_cell_tests) as cold:
+        yield cold
+    _TURN_TAKEN = True
 
 
 def _warm_writer(grid, dt, nodata, use_mask: bool, tile: int, compress: str) -> None:

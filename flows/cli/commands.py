@@ -243,9 +243,12 @@ def run(args) -> int:
               f"(products in {os.path.abspath(args.out)})")
         return 0
     _checked(args.mission, args.calibration)
-    run_flow = _served_flow()
-    _print_summary(run_flow(args.mission, args.out, args.calibration, args.dask_address,
-                            args.cluster, args.jobs), args)
+    from swathflow.tasks.ahead import in_background
+    with in_background():       # a new install: the mosaic's kernels compiled meanwhile
+        run_flow = _served_flow()
+        result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
+                          args.cluster, args.jobs)
+    _print_summary(result, args)
     return 0
 
 
@@ -295,10 +298,13 @@ def demo(args) -> int:
     mission = out / "mission"
     t0 = time.perf_counter()
     _first_run_notice(args)
-    if not (mission / "mission.toml").exists():
-        _echo(args, f"simulating the {args.preset} mission into {mission} ...", file=sys.stderr)
-        simulate_mission(mission, preset=args.preset, seed=0)
-    result = run_flow(mission, out / "products")
+    from swathflow.tasks.ahead import in_background
+    with in_background():       # a new install: the mosaic's kernels compiled meanwhile
+        if not (mission / "mission.toml").exists():
+            _echo(args, f"simulating the {args.preset} mission into {mission} ...",
+                  file=sys.stderr)
+            simulate_mission(mission, preset=args.preset, seed=0)
+        result = run_flow(mission, out / "products")
     _print_summary(result, args)
     _echo(args, f"demo finished in {time.perf_counter() - t0:.0f} s; open "
           f"{result.get('report') or ''}")
