@@ -7,10 +7,11 @@ other core waits. ``swathflow demo`` and ``swathflow run`` start :func:`in_backg
 instead when numba's cache has none of them: a child process mosaics a few small
 synthetic swings (:func:`synthetic_swings`, the demo's uint16 raw type, procedural
 texture) so that numba compiles and caches those kernels while the simulation (one core)
-or the first stages run, at a lower priority (``nice`` 10: the command's own processes
-first); the mosaic stage waits for it (:func:`wait`) and loads them. The child writes
-nothing but numba's cache (its swings and mosaic go to a temporary folder, removed
-afterwards) and is stopped, by its PID, when the command ends.
+or the first stages run; the mosaic stage waits for it (:func:`wait`) and loads them. The
+child runs at the command's own priority: a lower one (``nice`` 10) would leave the mosaic
+stage waiting on a child starved by other work on a loaded machine (a CI runner's other
+tests). It writes nothing but numba's cache (its swings and mosaic go to a temporary
+folder, removed afterwards) and is stopped, by its PID, when the command ends.
 
 ``python -m swathflow.tasks.ahead FOLDER`` is the child's command.
 """
@@ -121,6 +122,4 @@ def in_background():
 
 
 if __name__ == "__main__":          # the child: its failure only leaves the cache cold
-    with contextlib.suppress(OSError):
-        os.nice(10)                 # the command's own processes first
     compile_mosaic_kernels(sys.argv[1])

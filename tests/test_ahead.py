@@ -42,6 +42,16 @@ def test_the_child_is_stopped_and_its_folder_removed_when_the_block_ends(monkeyp
     assert child not in ahead._CHILDREN
 
 
+def test_the_mosaic_stage_waits_for_the_child_to_finish_its_work(monkeypatch):
+    """The child's command runs to its end (exit code 0: its synthetic mosaic written and
+    the kernels cached) while the mosaic stage waits for it (ahead.wait)."""
+    monkeypatch.setattr(ahead, "cold", lambda: True)
+    with ahead.in_background() as child:
+        ahead.wait(timeout=600)
+        assert child.returncode == 0
+        assert os.path.exists(os.path.join(child.args[-1], "mosaic.tif"))
+
+
 def test_nothing_starts_when_the_cache_holds_the_kernels(monkeypatch):
     monkeypatch.setattr(ahead, "cold", lambda: False)
     with ahead.in_background() as child:

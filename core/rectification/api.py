@@ -242,7 +242,7 @@ def warm_up(mission, image_id: str | None = None, calibration=None, *,
         _warm_writer(grid, dt, nodata, use_mask, tile, compress)
 
 
-#: whether this process has been through :func:`taking_turns`
+#: whether a block of :func:`taking_turns` has ended in this process
 _TURN_TAKEN = False
 
 
