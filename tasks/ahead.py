@@ -7,11 +7,12 @@ other core waits. ``swathflow demo`` and ``swathflow run`` start :func:`in_backg
 instead when numba's cache has none of them: a child process mosaics a few small
 synthetic swings (:func:`synthetic_swings`, the demo's uint16 raw type, procedural
 texture) so that numba compiles and caches those kernels while the simulation (one core)
-or the first stages run; the mosaic stage waits for it (:func:`wait`) and loads them. The
-child runs at the command's own priority: a lower one (``nice`` 10) would leave the mosaic
-stage waiting on a child starved by other work on a loaded machine (a CI runner's other
-tests). It writes nothing but numba's cache (its swings and mosaic go to a temporary
-folder, removed afterwards) and is stopped, by its PID, when the command ends.
+or the first stages run, at a lower priority (``nice`` 10: the simulation evaluates its
+texture on two threads, which the child slowed at the command's own priority, 73 -> 126 s
+for a cold demo in one measurement); the mosaic stage waits for it while it runs
+(:func:`wait`: not on a child starved by other work on a loaded machine) and loads them.
+It writes nothing but numba's cache (its swings and mosaic go to a temporary folder,
+removed afterwards) and is stopped, by its PID, when the command ends.
 
 ``python -m swathflow.tasks.ahead FOLDER`` is the child's command.
 """
@@ -23,6 +24,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 
 import numpy as np
 
@@ -79,13 +81,29 @@ def cold() -> bool:
 _CHILDREN: list = []
 
 
-def wait(timeout: float = 300.0) -> None:
-    """Let a running child of :func:`in_background` finish (at most ``timeout`` s): the
-    mosaic stage calls it first, to load what the child is compiling rather than compile
-    it a second time beside it."""
+def wait(timeout: float = 300.0, starved: float = 0.25) -> None:
+    """Let a running child of :func:`in_background` finish (at most ``timeout`` s) while
+    it gets a share of a core: the mosaic stage calls it first, to load what the child is
+    compiling rather than compile it a second time beside it. A child given less than
+    ``starved`` CPU-s in a second (its low priority on a machine loaded by other work) is
+    not waited for: the stage compiles what is not cached yet."""
+    import psutil               # dask.distributed's own dependency
     for child in list(_CHILDREN):
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            child.wait(timeout)
+        end = time.monotonic() + timeout
+        try:
+            proc = psutil.Process(child.pid)
+            used = sum(proc.cpu_times()[:2])
+            while time.monotonic() < end:
+                try:
+                    child.wait(1.0)
+                    break
+                except subprocess.TimeoutExpired:
+                    now = sum(proc.cpu_times()[:2])
+                    if now - used < starved:
+                        break
+                    used = now
+        except psutil.Error:        # ended meanwhile
+            continue
 
 
 @contextlib.contextmanager
@@ -122,4 +140,6 @@ def in_background():
 
 
 if __name__ == "__main__":          # the child: its failure only leaves the cache cold
+    with contextlib.suppress(OSError):
+        os.nice(10)             # the command's own processes first (the simulation's threads)
     compile_mosaic_kernels(sys.argv[1])

@@ -42,14 +42,34 @@ def test_the_child_is_stopped_and_its_folder_removed_when_the_block_ends(monkeyp
     assert child not in ahead._CHILDREN
 
 
-def test_the_mosaic_stage_waits_for_the_child_to_finish_its_work(monkeypatch):
-    """The child's command runs to its end (exit code 0: its synthetic mosaic written and
-    the kernels cached) while the mosaic stage waits for it (ahead.wait)."""
+def test_the_childs_command_runs_to_its_end(monkeypatch):
+    """The child's command ends with exit code 0, its synthetic mosaic written (the
+    kernels compiled and cached on the way), and :func:`ahead.wait` returns when it
+    ends."""
+    import time
     monkeypatch.setattr(ahead, "cold", lambda: True)
     with ahead.in_background() as child:
-        ahead.wait(timeout=600)
-        assert child.returncode == 0
+        assert child.wait(timeout=600) == 0
         assert os.path.exists(os.path.join(child.args[-1], "mosaic.tif"))
+        t = time.monotonic()
+        ahead.wait(timeout=60)
+        assert time.monotonic() - t < 1
+
+
+def test_a_child_that_gets_no_cpu_is_not_waited_for(monkeypatch):
+    """A child that uses no CPU (here: asleep; in life: starved at its low priority by
+    other work) is left after a second or two, not waited for to the timeout."""
+    import time
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    monkeypatch.setattr(ahead, "_CHILDREN", [child])
+    try:
+        t = time.monotonic()
+        ahead.wait(timeout=60)
+        assert time.monotonic() - t < 10
+        assert child.poll() is None
+    finally:
+        child.kill()
+        child.wait()
 
 
 def test_nothing_starts_when_the_cache_holds_the_kernels(monkeypatch):
