@@ -39,8 +39,8 @@ __all__ = ["cached", "compiling_alone", "njit"]
 def cached(kernel) -> bool:
     """Whether numba's on-disk cache holds ``kernel`` (a dispatcher with ``cache=True``):
     False on the first run after an install or a clone, when numba compiles the kernels
-    (1-2 minutes for a whole run on 2 cores; later runs load them). True where this numba
-    does not say (no cache index path)."""
+    (about a minute more for a whole run on 2 cores; later runs load them). True where
+    this numba does not say (no cache index path)."""
     try:
         return os.path.exists(kernel._cache._cache_file._index_path)
     except AttributeError:

@@ -283,7 +283,7 @@ def _first_run_notice(args) -> None:
     from swathflow.rectification.paint import paint_window    # every run calls it
     if not cached(paint_window):
         _echo(args, "first run of this install: numba compiles swathflow's kernels for this "
-              "machine as they are first called (about 1-2 minutes in all, once; later runs "
+              "machine as they are first called (about a minute more, once; later runs "
               "load them from its cache)", file=sys.stderr)
 
 
