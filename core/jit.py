@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import socket
 import sys
 
 import numba
@@ -50,19 +51,22 @@ def cached(kernel) -> bool:
 @contextlib.contextmanager
 def compiling_alone(kernel, timeout: float = 600.0):
     """While numba's cache lacks ``kernel`` (a new install): hold an exclusive lock on a
-    file in the folder numba caches it in, so that the processes running the same block
-    (a local cluster's workers warming up) take turns: the first compiles and caches the
-    kernels, the others wait, then load them instead of compiling them again side by side
-    (each the same 25-50 CPU-s). With the cache full, or no lock to be had (no such
-    folder, no ``fcntl``), the block runs at once; after ``timeout`` s of waiting too. The
-    system drops the lock of a process that dies. Yields whether the cache lacked
-    ``kernel`` on entry."""
+    file of this host in the folder numba caches it in, so that the processes running the
+    same block on this machine (a local cluster's workers) take turns: the first compiles
+    and caches the kernels, the others wait, then load them instead of compiling them
+    again side by side (each the same 25-50 CPU-s). With the cache full, or no lock to be
+    had (no such folder, no ``fcntl``), the block runs at once; after ``timeout`` s of
+    waiting too. The system drops the lock of a process that dies. Yields whether the
+    cache lacked ``kernel`` on entry."""
     fd = None
     cold = not cached(kernel)
     if cold:
         with contextlib.suppress(Exception):   # noqa: BLE001 - no lock: compile alongside
             import fcntl
-            path = os.path.join(kernel._cache._cache_path, "swathflow-compile.lock")
+            # one lock a host: the processes of one machine (one CPU, one entry of numba's
+            # cache) take turns; those of other hosts sharing the folder do not wait
+            path = os.path.join(kernel._cache._cache_path,
+                                f"swathflow-compile.{socket.gethostname()}.lock")
             fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o666)
             _lock(fd, fcntl, timeout)
     try:

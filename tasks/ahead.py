@@ -8,8 +8,8 @@ instead when numba's cache has none of them: a child process mosaics a few small
 synthetic swings (:func:`synthetic_swings`, the demo's uint16 raw type, procedural
 texture) so that numba compiles and caches those kernels while the simulation (one core)
 or the first stages run, at a lower priority (``nice`` 10: the simulation evaluates its
-texture on two threads, which the child slowed at the command's own priority, 73 -> 126 s
-for a cold demo in one measurement); the mosaic stage waits for it while it runs
+texture on two threads, which the child slowed at the command's own priority: cold demos
+of 126-128 s against 73-80 s with it); the mosaic stage waits for it while it runs
 (:func:`wait`: not on a child starved by other work on a loaded machine) and loads them.
 It writes nothing but numba's cache (its swings and mosaic go to a temporary folder,
 removed afterwards) and is stopped, by its PID, when the command ends.
