@@ -204,10 +204,11 @@ def test_processes_take_turns_only_while_the_kernel_is_not_cached(tmp_path):
     """Two processes in compiling_alone with the kernel not cached: the second (started
     while the first holds its turn, before the first compiles) enters when the first
     has left, finds the kernel cached and loads it (no compilation).
-    With it cached, both run the block at once (their intervals overlap)."""
+    With it cached, both run the block at once (their intervals overlap). The first holds
+    its turn 5 s: the second's start and imports fit in that on a loaded CI machine."""
     import time
     (tmp_path / "kmod.py").write_text(KERNEL)
-    first = _start(TURN.format(folder=str(tmp_path), hold=2.0))
+    first = _start(TURN.format(folder=str(tmp_path), hold=5.0))
     time.sleep(0.5)
     second = _start(TURN.format(folder=str(tmp_path), hold=0.0))
     a, b = _result(first), _result(second)
@@ -215,7 +216,7 @@ def test_processes_take_turns_only_while_the_kernel_is_not_cached(tmp_path):
     assert b["got"] >= a["out"]                       # waited for the first to leave
     assert (a["misses"], b["misses"]) == (1, 0)       # compiled once, then loaded
     assert a["values"] == b["values"] == [0.0, 1.0, 2.0]
-    p = _start(TURN.format(folder=str(tmp_path), hold=3.0))
+    p = _start(TURN.format(folder=str(tmp_path), hold=5.0))
     time.sleep(0.5)
     q = _start(TURN.format(folder=str(tmp_path), hold=0.0))
     c, d = _result(p), _result(q)
