@@ -269,9 +269,11 @@ def taking_turns():
 def _warm_writer(grid, dt, nodata, use_mask: bool, tile: int, compress: str) -> None:
     """What :func:`to_cog` makes once a process for a swing's output (``dt``, ``nodata``,
     ``tile``, ``compress``): rioxarray's attributes (:func:`_rio_template`), the overview
-    kernel of its type, the compressed nodata tile (:mod:`.tifflayout`, imported). In a
-    forked worker they cost 0.02-0.03 CPU-s, each time."""
+    kernel of its type, the compressed nodata tile (:mod:`.tifflayout`, imported), the tile
+    codec (:mod:`.tilecodec`, imported). In a forked worker they cost 0.02-0.03 CPU-s,
+    each time."""
     from swathflow.formats import raster  # noqa: F401  (the writer's CRS, imported)
+    from swathflow.rectification import tilecodec  # noqa: F401  (the writer's codec)
     from swathflow.rectification.tifflayout import nodata_tiles
     from swathflow.rectification.writing import _compression, _Level1
     one = grid_dataarray(np.zeros((1, 1), dt), grid.window(slice(0, 1), slice(0, 1)), "warm",

@@ -30,6 +30,7 @@ import numpy as np
 from swathflow.io import atomic_path
 from swathflow.rectification.halve import halve as _halve
 from swathflow.rectification.store import store_here
+from swathflow.rectification.tilecodec import memory_sink
 
 if TYPE_CHECKING:   # an annotation only: the mosaic's writer does not import pyproj for it
     from swathflow.geometry.grid import Grid
@@ -56,12 +57,13 @@ class _WindowWriter:
     written windows' valid mask filled in as it goes (:func:`valid_mask`)."""
 
     def __init__(self, dst, bands: int | None = None, mask: bool = False, level1=None,
-                 valid=None, nodata=None):
+                 valid=None, nodata=None, sink=None):
         self.dst = dst
         self.bands = bands
         self.mask = mask
         self.level1 = level1        # the first overview level, reduced tile by tile
         self.valid, self.nodata = valid, nodata
+        self.sink = sink            # a TileSink: the tiles compressed here, not by GDAL
 
     def __setitem__(self, key, value):
         from rasterio.windows import Window
@@ -69,6 +71,10 @@ class _WindowWriter:
             self.level1.add(key[-2:], np.asarray(value))
         if self.valid is not None:
             self.valid[key[-2:]] = valid_mask(np.asarray(value), self.nodata, self.mask)
+        if self.sink is not None:
+            rs, cs = key[-2:]
+            self.sink.put(rs.start, cs.start, np.asarray(value))
+            return
         if self.mask:                       # last plane: the mask band (0 / 255)
             _, rs, cs = key
             win = Window(cs.start, rs.start, cs.stop - cs.start, rs.stop - rs.start)
@@ -281,19 +287,22 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             if o.get("tags"):
                 dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
             _band_metadata(dst, o.get("bands") or ())
+            # tiles compressed here (ISA-L) when the .part is in memory: none read back
+            sink = (memory_sink(arr, profile, blocksize, o.get("nodata"))
+                    if _part_in_memory(o, arr, level1, blocksize) else None)
             sources.append(arr)
             targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1,
-                                         o.get("valid"), o.get("nodata")))
-            parts.append((dst, part, final, o["path"], level1, profile))
+                                         o.get("valid"), o.get("nodata"), sink))
+            parts.append((dst, part, final, o["path"], level1, profile, sink))
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True):
             store_here(sources, targets, scheduler)
-        for (dst, part, final, path, level1, profile), o in zip(parts, outputs):
+        for (dst, part, final, path, level1, profile, sink), o in zip(parts, outputs):
             dst.close()
             if o.get("mask"):
                 _to_cog(part, final, blocksize, compress, overview_resampling)
             else:
                 _layout_cog(part, final, os.fspath(path), level1, profile, blocksize,
-                            overview_resampling)
+                            overview_resampling, sink)
 
 
 #: an output's ``.part`` is a GeoTIFF in memory (no file made, renamed, read back and
@@ -365,28 +374,35 @@ def build_overviews(part: str, paths: list[str], blocksize: int, resampling: str
 
 
 def _layout_cog(part, final: str, target: str, level1: _Level1 | None, profile: dict,
-                blocksize: int, resampling: str) -> None:
+                blocksize: int, resampling: str, sink=None) -> None:
     """Write the COG ``final`` from the compressed ``.part`` (a path, or a MemoryFile when
     ``level1`` is given or there are no overviews) and its overviews, each level
     compressed by GDAL into a tiled GeoTIFF: from the first level in memory (``level1``:
     the next levels reduced from it, each in a GeoTIFF in memory), or else built from the
     ``.part`` by :func:`build_overviews` into scratch files beside ``target``. Then
-    :func:`.tifflayout.write_cog_layout` copies every level's compressed tiles."""
+    :func:`.tifflayout.write_cog_layout` copies every level's compressed tiles. With
+    ``sink`` (a :class:`.tilecodec.TileSink`) the full resolution's tiles are the sink's,
+    the ``.part`` giving its tags only; the levels in memory are then compressed here too."""
     from swathflow.rectification.tifflayout import nodata_tiles, read_first_ifd, write_cog_layout
+    from swathflow.rectification.tilecodec import with_tiles
     rows, cols = profile["height"], profile["width"]
     n_levels = len(overview_factors(rows, cols, blocksize))
     compression = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
     with contextlib.ExitStack() as stack:
         if level1 is not None:
-            files = _levels_in_memory(level1, n_levels, profile, compression, blocksize)
+            overviews = _levels_in_memory(level1, n_levels, profile, compression, blocksize,
+                                          here=sink is not None)
         else:
             paths = [stack.enter_context(_scratch(target, f"ovr{k}.tif"))
                      for k in range(n_levels)]
             with _cache_env():
                 build_overviews(part, paths, blocksize, resampling, compression)
             files = [stack.enter_context(open(p, "rb")) for p in paths]
+            overviews = [(read_first_ifd(f), f) for f in files]
         with _opened(part) as src, open(final, "wb") as out:
-            levels = [(read_first_ifd(src), src)] + [(read_first_ifd(f), f) for f in files]
+            first = read_first_ifd(src)
+            levels = [with_tiles(first, sink) if sink is not None else (first, src)]
+            levels += overviews
             left_out = any((i.counts == 0).any() for i, _ in levels)
             empty = nodata_tiles(profile["dtype"], profile.get("nodata"), compression,
                                  blocksize) if left_out else None
@@ -408,13 +424,18 @@ def _cache_env():
 
 
 def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression: dict,
-                      blocksize: int) -> list:
+                      blocksize: int, here: bool = False) -> list:
     """The overview levels from the first one in memory, each reduced from the one above
-    and compressed by GDAL into a tiled GeoTIFF in memory (binary file objects)."""
+    and compressed by GDAL into a tiled GeoTIFF in memory: (IFD, binary file object)
+    pairs. With ``here`` the tiles are compressed by :mod:`.tilecodec` instead (GDAL
+    writes the level's tags alone)."""
     import io
 
     from rasterio.errors import NotGeoreferencedWarning
     from rasterio.io import MemoryFile
+
+    from swathflow.rectification.tifflayout import read_first_ifd
+    from swathflow.rectification.tilecodec import TileSink, with_tiles
     ov_profile = {k: profile[k] for k in ("count", "dtype", "nodata", "interleave")
                   if k in profile}
     ov_profile.update(driver="GTiff", tiled=True, blockxsize=blocksize, blockysize=blocksize,
@@ -429,8 +450,16 @@ def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression
         with MemoryFile() as mem, warnings.catch_warnings():
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with mem.open(width=lv.shape[2], height=lv.shape[1], **ov_profile) as dst:
-                dst.write(lv)
-            files.append(io.BytesIO(mem.read()))
+                if not here:
+                    dst.write(lv)
+            f = io.BytesIO(mem.read())
+        if here:
+            sink = TileSink(io.BytesIO(), lv.shape[0], lv.shape[1], lv.shape[2], blocksize,
+                            int(compression.get("predictor", 1)), profile.get("nodata"))
+            sink.put(0, 0, lv)
+            files.append(with_tiles(read_first_ifd(f), sink))
+        else:
+            files.append((read_first_ifd(f), f))
     return files
 
 
