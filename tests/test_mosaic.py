@@ -194,6 +194,36 @@ def test_tiling_does_not_change_the_result(scene, tmp_path):
     assert np.nanmax(np.abs(a - b)) < 1e-3
 
 
+def test_tiles_compressed_by_the_threads_or_by_gdal_same_cog(scene, tmp_path, monkeypatch):
+    """The mosaic's COG with its tiles compressed by the render threads (ISA-L,
+    swathflow.rectification.tilecodec) or by GDAL (no isal module): the same pixels and
+    overviews, a COG layout both times, other bytes; and the same pixels as the plain
+    GeoTIFF without overviews."""
+    from swathflow.rectification import tilecodec
+    lay = M.scan_inputs(scene["paths"])
+    off = np.repeat(scene["shifts"], 3, axis=0)
+    rad = np.repeat(scene["rads"], 3)
+    M.write_mosaic(lay, tmp_path / "isal.tif", off, rad, tile=256, blocksize=128,
+                   workers=2)
+    M.write_mosaic(lay, tmp_path / "plain.tif", off, rad, tile=256, cog=False)
+    monkeypatch.setattr(tilecodec, "isal_zlib", None)
+    M.write_mosaic(lay, tmp_path / "gdal.tif", off, rad, tile=256, blocksize=128,
+                   workers=2)
+    a, b = tmp_path / "isal.tif", tmp_path / "gdal.tif"
+    assert a.read_bytes() != b.read_bytes()
+    with rasterio.open(a) as x, rasterio.open(b) as y, rasterio.open(tmp_path / "plain.tif") as z:
+        assert x.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" == y.tags(
+            ns="IMAGE_STRUCTURE")["LAYOUT"]
+        assert x.overviews(1) == y.overviews(1) and len(x.overviews(1)) >= 1
+        assert np.isfinite(x.read(1)).any()
+        assert np.array_equal(x.read(), y.read(), equal_nan=True)
+        assert np.array_equal(x.read(), z.read(), equal_nan=True)
+        for k in range(len(x.overviews(1))):
+            with rasterio.open(a, overview_level=k) as u, \
+                    rasterio.open(b, overview_level=k) as v:
+                assert np.array_equal(u.read(), v.read(), equal_nan=True)
+
+
 def test_swings_corrected_first_or_on_demand_same_pixels(scene, tmp_path, monkeypatch):
     """The corrected swings made first on all threads (they fit in the cache) or on demand
     by the tiles (a cache too small for them, evicting): the same pixels."""

@@ -134,10 +134,12 @@ def _tile_swings(layout: Layout, tiles, offsets):
 
 
 def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers,
-                level1=None):
+                level1=None, sink=None):
     """Render ``tiles`` (r0, c0, r1, c1) on ``workers`` threads (the kernels release the
-    GIL) and write each into ``ds`` as it is done (and into ``level1``, the first overview
-    level, when given); at most two tiles per thread are in flight, so memory is bounded by
+    GIL) and write each into ``ds`` as it is done, or compressed by the thread into
+    ``sink`` (a :class:`~swathflow.rectification.tilecodec.TileSink`: ``ds`` then gets
+    the tags alone), and into ``level1``, the first overview level, when given; at most
+    two tiles per thread are in flight, so memory is bounded by
     the threads, not by the mosaic. When every corrected swing fits in the cache they are
     made first, all threads at it, in the order the tiles need them (else the first tiles'
     threads wait on each other's swings: the 48-swing mosaic's first tiles ran on about
@@ -156,6 +158,9 @@ def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers,
         out = _to_dtype(v, dtype, nodata)
         if level1 is not None:
             level1.add((slice(r0, r1), slice(c0, c1)), out)
+        if sink is not None:
+            sink.put(r0, c0, out)
+            return
         with lock:
             ds.write(out, 1, window=Window(c0, r0, c1 - c0, r1 - r0))
 
@@ -204,6 +209,23 @@ def _first_level(H, W, tile, blocksize, dtype, nodata):
     if -(-H // 2) * -(-W // 2) * dtype.itemsize > writing.LEVEL1_RAM_BYTES:
         return None
     return writing._Level1(1, H, W, dtype, nodata, "average")
+
+
+def _sink(stack, out: str, profile: dict, tile: int, blocksize: int, nodata, cog: bool,
+          level1):
+    """A :class:`~swathflow.rectification.tilecodec.TileSink` into a scratch file beside
+    ``out`` for the mosaic's tiles (compressed by the render threads, ISA-L), or None
+    where GDAL compresses them: no COG, overviews built from the ``.part`` (no ``level1``
+    in memory), render tiles off the block grid, or a codec the sink does not take."""
+    from swathflow.rectification import tilecodec, writing
+    H, W = profile["height"], profile["width"]
+    if not cog or tile % blocksize or not tilecodec.can_encode(profile, profile["dtype"]):
+        return None
+    if level1 is None and writing.overview_factors(H, W, blocksize):
+        return None
+    path = stack.enter_context(writing._scratch(out, "tiles"))
+    f = stack.enter_context(open(path, "w+b"))
+    return tilecodec.TileSink(f, 1, H, W, blocksize, int(profile.get("predictor", 1)), nodata)
 
 
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
@@ -255,16 +277,18 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     try:
         with atomic_path(out, suffix=".tif") as final, contextlib.ExitStack() as stack:
             part = stack.enter_context(writing._scratch(out, "part.tif")) if cog else final
+            sink = _sink(stack, out, profile, tile, blocksize, nodata, cog, level1)
             with rasterio.open(part, "w", **profile) as ds:
                 _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n,
-                            level1)
+                            level1, sink)
                 ds.update_tags(product="mosaic", blend=mode, software="swathflow")
             t_render = time.perf_counter() - t0
             del cache       # its corrected swings unmapped before the COG is laid out
             if on_level1 is not None and level1 is not None:
                 on_level1(level1.array[0], nodata)
             if cog:
-                writing._layout_cog(part, final, out, level1, profile, blocksize, "average")
+                writing._layout_cog(part, final, out, level1, profile, blocksize, "average",
+                                    sink)
     finally:
         if own:
             handles.close()
