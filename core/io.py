@@ -37,6 +37,21 @@ def atomic_path(path, suffix: str | None = None, exclusive: bool = False):
         raise
 
 
+@contextlib.contextmanager
+def scratch_path(target, kind: str):
+    """A temporary file beside ``target``, named ``.<target name>.<pid>.<kind>`` (so a
+    killed run's leftovers are cleared by the next :func:`atomic_path` of the target),
+    removed afterwards."""
+    folder, base = os.path.split(os.path.abspath(os.fspath(target)))
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.{os.getpid()}.", suffix=f".{kind}", dir=folder)
+    os.close(fd)
+    try:
+        yield tmp
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+
+
 def _clear_stale(folder: str, base: str) -> None:
     """Remove temporaries of ``base`` left by a process that no longer runs (a run killed
     by SIGKILL or a power cut): their names carry the writer's process id."""

@@ -117,3 +117,27 @@ def test_a_cog_reads_the_same_with_or_without_the_codec(tmp_path, monkeypatch, d
                     rasterio.open(paths[1], overview_level=k) as y:
                 assert np.array_equal(x.read(), y.read(), equal_nan=True)
     assert paths[0].read_bytes() != paths[1].read_bytes()     # the codec was used
+
+
+def test_tiles_go_to_a_scratch_file_beside_a_part_on_disk(tmp_path, monkeypatch):
+    """An output past the in-memory limit: its ``.part`` and its compressed tiles go to
+    scratch files beside the target, removed once the COG is laid out; the same pixels and
+    overviews as the ``.part`` in memory."""
+    data = _pattern((300, 290), "uint16")
+    writing.write_cogs([{"path": tmp_path / "mem.tif", "array": data, "grid": None,
+                         "nodata": 0}], blocksize=BS)
+    made = []
+    real = writing.scratch_path
+
+    def watched(target, kind):
+        made.append(kind)
+        return real(target, kind)
+    monkeypatch.setattr(writing, "scratch_path", watched)
+    monkeypatch.setattr(writing, "PART_RAM_BYTES", 0)
+    writing.write_cogs([{"path": tmp_path / "disk.tif", "array": data, "grid": None,
+                         "nodata": 0}], blocksize=BS)
+    assert made == ["part.tif", "tiles"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["disk.tif", "mem.tif"]
+    assert (tmp_path / "disk.tif").read_bytes() == (tmp_path / "mem.tif").read_bytes()
+    with rasterio.open(tmp_path / "disk.tif") as a:
+        assert np.array_equal(a.read(1), data) and a.overviews(1) == [2, 4, 8]

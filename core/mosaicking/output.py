@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from swathflow.io import atomic_path
+from swathflow.io import atomic_path, scratch_path
 from swathflow.mosaicking.inputs import Layout, _Handles, read_window
 
 __all__ = ["swing_cache", "render_tile", "write_mosaic", "mosaic_array", "quicklook",
@@ -220,12 +220,12 @@ def _sink(stack, out: str, profile: dict, tile: int, blocksize: int, nodata, cog
     from swathflow.rectification import tilecodec, writing
     H, W = profile["height"], profile["width"]
     if not cog or tile % blocksize or not tilecodec.can_encode(profile, profile["dtype"]):
-        return None
+        return None         # (render tiles are whole blocks but at the edges)
     if level1 is None and writing.overview_factors(H, W, blocksize):
         return None
-    path = stack.enter_context(writing._scratch(out, "tiles"))
+    path = stack.enter_context(scratch_path(out, "tiles"))
     f = stack.enter_context(open(path, "w+b"))
-    return tilecodec.TileSink(f, 1, H, W, blocksize, int(profile.get("predictor", 1)), nodata)
+    return tilecodec.TileSink(f, 1, H, W, blocksize, profile.get("predictor"), nodata)
 
 
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
@@ -276,7 +276,7 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     out = os.fspath(out)
     try:
         with atomic_path(out, suffix=".tif") as final, contextlib.ExitStack() as stack:
-            part = stack.enter_context(writing._scratch(out, "part.tif")) if cog else final
+            part = stack.enter_context(scratch_path(out, "part.tif")) if cog else final
             sink = _sink(stack, out, profile, tile, blocksize, nodata, cog, level1)
             with rasterio.open(part, "w", **profile) as ds:
                 _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n,

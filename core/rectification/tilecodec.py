@@ -70,8 +70,8 @@ class TileSink:
     Thread-safe (the mosaic's render threads); compression runs outside the lock."""
 
     def __init__(self, file, bands: int, height: int, width: int, blocksize: int,
-                 predictor: int, nodata=None):
-        self.file, self.blocksize, self.predictor = file, blocksize, predictor
+                 predictor: int | None, nodata=None):
+        self.file, self.blocksize, self.predictor = file, blocksize, int(predictor or 1)
         self.height, self.width = height, width
         self.across, self.down = -(-width // blocksize), -(-height // blocksize)
         n = bands * self.across * self.down
@@ -111,19 +111,12 @@ class TileSink:
         return bool((block == nd).all())
 
 
-def memory_sink(arr, profile: dict, blocksize: int, nodata=None) -> TileSink | None:
-    """A :class:`TileSink` in memory for the full resolution of an output ``arr`` (a dask
-    array, (rows, cols) or (bands, rows, cols)) written with the GTiff creation options
-    ``profile``, or None where GDAL compresses: a codec :func:`can_encode` does not take,
-    or blocks off the tile grid."""
-    import io
-    if not can_encode(profile, arr.dtype):
-        return None
-    if any(c % blocksize for chunks in arr.chunks[-2:] for c in chunks[:-1]):
-        return None
-    bands = arr.shape[0] if arr.ndim == 3 else 1
-    return TileSink(io.BytesIO(), bands, *arr.shape[-2:], blocksize,
-                    int(profile.get("predictor", 1) or 1), nodata)
+def tiles_here(arr, profile: dict, blocksize: int) -> bool:
+    """Whether the tiles of an output ``arr`` (a dask array, (rows, cols) or (bands, rows,
+    cols)) written with the GTiff creation options ``profile`` are compressed here: a
+    codec :func:`can_encode` takes, and its blocks on the tile grid."""
+    return can_encode(profile, arr.dtype) and not any(
+        c % blocksize for chunks in arr.chunks[-2:] for c in chunks[:-1])
 
 
 def with_tiles(ifd, sink: TileSink):

@@ -1,36 +1,35 @@
 """Streaming Cloud-Optimized GeoTIFF writing: memory bounded by the tiles in flight.
 
 Each output is streamed window by window into a tiled GeoTIFF beside its target (the
-``.part``), which GDAL compresses tile by tile as it arrives, with the COG's own codec and
-predictor: each tile is compressed once. The overviews are computed here, each level from
-the one above it (:func:`.halve.halve`: a compiled 2 x 2 reduction, nodata-aware): the first
-level in memory as the tiles arrive (:class:`_Level1`), or, for outputs whose first level
-would not fit in :data:`LEVEL1_RAM_BYTES`, block by block from the ``.part``
-(:func:`build_overviews`); GDAL compresses them into tiled GeoTIFFs too. Then
-:mod:`.tifflayout` copies every compressed tile, unchanged, into the layout of GDAL's COG
-driver, atomically. (Copying through the COG driver decompressed and compressed every
-tile again: 0.5-0.7 CPU-s per 21 Mpx; and GDAL's own overview step re-reads a
-pixel-interleaved source once per band: 135 CPU-s for a 1400 x 1354 x 100-band output.)
-Multi-band outputs are band-interleaved (``PLANARCONFIG=SEPARATE``: a band's tile is
-contiguous) and carry their band descriptions and wavelengths. Integer outputs without a
+``.part``), with the COG's own codec and predictor: each tile is compressed once, by
+:mod:`.tilecodec` (ISA-L) where nothing reads the ``.part``'s pixels back (GDAL then
+writes its tags alone), else by GDAL as it arrives. The overviews are reduced here, each
+level from the one above (:func:`.halve.halve`, nodata-aware): the first in memory as
+the tiles arrive (:class:`_Level1`), or, past :data:`LEVEL1_RAM_BYTES`, block by block
+from the ``.part`` (:func:`build_overviews`). Then :mod:`.tifflayout` copies every
+compressed tile, unchanged, into the layout of GDAL's COG driver, atomically. (Copying
+through the COG driver decompressed and compressed every tile again: 0.5-0.7 CPU-s per 21
+Mpx; its overview step re-read a pixel-interleaved source once per band: 135 CPU-s for a
+1400 x 1354 x 100-band output.) Multi-band outputs are band-interleaved (a band's tile is
+contiguous) with their band descriptions and wavelengths. Integer outputs without a
 nodata value carry an internal mask band (the last plane of the array, 0 / 255): those
 go through GDAL's COG driver, which builds the mask's overviews too.
 """
 from __future__ import annotations
 
 import contextlib
+import io
 import math
 import os
-import tempfile
 import warnings
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
-from swathflow.io import atomic_path
+from swathflow.io import atomic_path, scratch_path
 from swathflow.rectification.halve import halve as _halve
 from swathflow.rectification.store import store_here
-from swathflow.rectification.tilecodec import memory_sink
+from swathflow.rectification.tilecodec import TileSink, tiles_here
 
 if TYPE_CHECKING:   # an annotation only: the mosaic's writer does not import pyproj for it
     from swathflow.geometry.grid import Grid
@@ -279,7 +278,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
             part = stack.enter_context(
                 rasterio.MemoryFile() if _part_in_memory(o, arr, level1, blocksize)
-                else _scratch(os.fspath(o["path"]), "part.tif"))
+                else scratch_path(os.fspath(o["path"]), "part.tif"))
             with warnings.catch_warnings(), rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 dst = stack.enter_context(part.open(**profile) if hasattr(part, "open")
@@ -287,9 +286,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             if o.get("tags"):
                 dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
             _band_metadata(dst, o.get("bands") or ())
-            # tiles compressed here (ISA-L) when the .part is in memory: none read back
-            sink = (memory_sink(arr, profile, blocksize, o.get("nodata"))
-                    if _part_in_memory(o, arr, level1, blocksize) else None)
+            sink = _sink(stack, o, arr, level1, profile, blocksize)
             sources.append(arr)
             targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1,
                                          o.get("valid"), o.get("nodata"), sink))
@@ -303,6 +300,21 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             else:
                 _layout_cog(part, final, os.fspath(path), level1, profile, blocksize,
                             overview_resampling, sink)
+
+
+def _sink(stack, o, arr, level1, profile, blocksize) -> TileSink | None:
+    """Where an output's tiles are compressed here (:mod:`.tilecodec`, ISA-L) rather than
+    by GDAL, their :class:`~.tilecodec.TileSink`: nothing reads the ``.part``'s pixels
+    back (no mask band; the overviews reduced in memory, or none), and
+    :func:`~.tilecodec.tiles_here`. In memory beside a ``.part`` in memory, else in a
+    scratch file beside the target. None: GDAL compresses."""
+    if o.get("mask") or not tiles_here(arr, profile, blocksize) or (
+            level1 is None and overview_factors(*arr.shape[-2:], blocksize)):
+        return None
+    f = io.BytesIO() if _part_in_memory(o, arr, level1, blocksize) else stack.enter_context(
+        open(stack.enter_context(scratch_path(os.fspath(o["path"]), "tiles")), "w+b"))
+    return TileSink(f, arr.shape[0] if arr.ndim == 3 else 1, *arr.shape[-2:], blocksize,
+                    profile.get("predictor"), o.get("nodata"))
 
 
 #: an output's ``.part`` is a GeoTIFF in memory (no file made, renamed, read back and
@@ -393,7 +405,7 @@ def _layout_cog(part, final: str, target: str, level1: _Level1 | None, profile: 
             overviews = _levels_in_memory(level1, n_levels, profile, compression, blocksize,
                                           here=sink is not None)
         else:
-            paths = [stack.enter_context(_scratch(target, f"ovr{k}.tif"))
+            paths = [stack.enter_context(scratch_path(target, f"ovr{k}.tif"))
                      for k in range(n_levels)]
             with _cache_env():
                 build_overviews(part, paths, blocksize, resampling, compression)
@@ -429,8 +441,6 @@ def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression
     and compressed by GDAL into a tiled GeoTIFF in memory: (IFD, binary file object)
     pairs. With ``here`` the tiles are compressed by :mod:`.tilecodec` instead (GDAL
     writes the level's tags alone)."""
-    import io
-
     from rasterio.errors import NotGeoreferencedWarning
     from rasterio.io import MemoryFile
 
@@ -477,18 +487,3 @@ def _to_cog(part: str, final: str, blocksize: int, compress: str,
     with warnings.catch_warnings(), _cache_env():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         rio_copy(part, final, **opts)
-
-
-@contextlib.contextmanager
-def _scratch(target: str, kind: str):
-    """A temporary file beside ``target``, named ``.<target name>.<pid>.<kind>`` (so a
-    killed run's leftovers are cleared by the next write of the target: see
-    :func:`swathflow.io.atomic_path`), removed afterwards."""
-    folder, base = os.path.split(os.path.abspath(target))
-    fd, tmp = tempfile.mkstemp(prefix=f".{base}.{os.getpid()}.", suffix=f".{kind}", dir=folder)
-    os.close(fd)
-    try:
-        yield tmp
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
