@@ -211,23 +211,6 @@ def _first_level(H, W, tile, blocksize, dtype, nodata):
     return writing._Level1(1, H, W, dtype, nodata, "average")
 
 
-def _sink(stack, out: str, profile: dict, tile: int, blocksize: int, nodata, cog: bool,
-          level1):
-    """A :class:`~swathflow.rectification.tilecodec.TileSink` into a scratch file beside
-    ``out`` for the mosaic's tiles (compressed by the render threads, ISA-L), or None
-    where GDAL compresses them: no COG, overviews built from the ``.part`` (no ``level1``
-    in memory), render tiles off the block grid, or a codec the sink does not take."""
-    from swathflow.rectification import tilecodec, writing
-    H, W = profile["height"], profile["width"]
-    if not cog or tile % blocksize or not tilecodec.can_encode(profile, profile["dtype"]):
-        return None         # (render tiles are whole blocks but at the edges)
-    if level1 is None and writing.overview_factors(H, W, blocksize):
-        return None
-    path = stack.enter_context(scratch_path(out, "tiles"))
-    f = stack.enter_context(open(path, "w+b"))
-    return tilecodec.TileSink(f, 1, H, W, blocksize, profile.get("predictor"), nodata)
-
-
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                  mode: str = "feather", tile: int = 1024, workers: int | None = None,
                  dtype=None, nodata=None, cog: bool = True, blocksize: int = 512,
@@ -277,7 +260,9 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     try:
         with atomic_path(out, suffix=".tif") as final, contextlib.ExitStack() as stack:
             part = stack.enter_context(scratch_path(out, "part.tif")) if cog else final
-            sink = _sink(stack, out, profile, tile, blocksize, nodata, cog, level1)
+            # the render threads compress the tiles (ISA-L) when the overviews are in memory
+            sink = writing.tile_sink(stack, out, profile, (H, W), cog and not tile % blocksize,
+                                     level1, nodata)
             with rasterio.open(part, "w", **profile) as ds:
                 _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n,
                             level1, sink)

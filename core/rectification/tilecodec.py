@@ -1,8 +1,9 @@
 """DEFLATE tiles of a COG compressed here, by ISA-L, instead of by GDAL's libdeflate.
 
-The COG writer (:mod:`.writing`) lets GDAL compress each tile as it is streamed, then
-:mod:`.tifflayout` copies the compressed tiles into the COG layout. On the rectify
-command's 0.05 m job, DEFLATE level 1 was about half of every worker's CPU time. ISA-L's
+The COG writer (:mod:`.writing`) streams each output into a tiled ``.part`` GeoTIFF, then
+:mod:`.tifflayout` copies the compressed tiles into the COG layout. When GDAL compressed
+them, DEFLATE level 1 was about half of every worker's CPU time on the rectify command's
+0.05 m job. ISA-L's
 level 1 (Intel's Intelligent Storage Acceleration Library, through the ``isal`` wheel)
 compressed the same predicted uint16 tiles 2.1x faster than libdeflate's level 1, 4 %
 larger (44 against 95 ms for a 12 Mpx swing). Its stream is plain zlib, which every TIFF
@@ -24,10 +25,10 @@ import threading
 
 import numpy as np
 
-try:                                    # a wheel on PyPI for every platform numba has
+try:
     from isal import isal_zlib
-except ImportError:                     # pragma: no cover - isal is a dependency
-    isal_zlib = None
+except ImportError:     # pragma: no cover - a dependency; a platform without its wheel
+    isal_zlib = None    # (or a build without it) has GDAL compress
 
 #: ISA-L's compression level (0-3; 1: 2.1x libdeflate's level 1 on predicted uint16 tiles,
 #: 4 % larger; 0 only 8 % faster than 1 and 11 % larger)
@@ -109,14 +110,6 @@ class TileSink:
         if isinstance(nd, float) and math.isnan(nd):
             return bool(np.isnan(block).all())
         return bool((block == nd).all())
-
-
-def tiles_here(arr, profile: dict, blocksize: int) -> bool:
-    """Whether the tiles of an output ``arr`` (a dask array, (rows, cols) or (bands, rows,
-    cols)) written with the GTiff creation options ``profile`` are compressed here: a
-    codec :func:`can_encode` takes, and its blocks on the tile grid."""
-    return can_encode(profile, arr.dtype) and not any(
-        c % blocksize for chunks in arr.chunks[-2:] for c in chunks[:-1])
 
 
 def with_tiles(ifd, sink: TileSink):

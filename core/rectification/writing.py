@@ -29,7 +29,7 @@ import numpy as np
 from swathflow.io import atomic_path, scratch_path
 from swathflow.rectification.halve import halve as _halve
 from swathflow.rectification.store import store_here
-from swathflow.rectification.tilecodec import TileSink, tiles_here
+from swathflow.rectification.tilecodec import TileSink, can_encode
 
 if TYPE_CHECKING:   # an annotation only: the mosaic's writer does not import pyproj for it
     from swathflow.geometry.grid import Grid
@@ -286,7 +286,9 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             if o.get("tags"):
                 dst.update_tags(**{k: str(v) for k, v in o["tags"].items()})
             _band_metadata(dst, o.get("bands") or ())
-            sink = _sink(stack, o, arr, level1, profile, blocksize)
+            sink = tile_sink(stack, o["path"], profile, arr.shape,
+                             not o.get("mask") and _on_tile_grid(arr, blocksize), level1,
+                             o.get("nodata"), _part_in_memory(o, arr, level1, blocksize))
             sources.append(arr)
             targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1,
                                          o.get("valid"), o.get("nodata"), sink))
@@ -302,19 +304,28 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                             overview_resampling, sink)
 
 
-def _sink(stack, o, arr, level1, profile, blocksize) -> TileSink | None:
+def _on_tile_grid(arr, blocksize: int) -> bool:
+    """Whether every block of the dask array ``arr`` starts on the tile grid."""
+    return not any(c % blocksize for chunks in arr.chunks[-2:] for c in chunks[:-1])
+
+
+def tile_sink(stack, target, profile: dict, shape, aligned: bool, level1, nodata,
+              in_memory: bool = False) -> TileSink | None:
     """Where an output's tiles are compressed here (:mod:`.tilecodec`, ISA-L) rather than
-    by GDAL, their :class:`~.tilecodec.TileSink`: nothing reads the ``.part``'s pixels
-    back (no mask band; the overviews reduced in memory, or none), and
-    :func:`~.tilecodec.tiles_here`. In memory beside a ``.part`` in memory, else in a
-    scratch file beside the target. None: GDAL compresses."""
-    if o.get("mask") or not tiles_here(arr, profile, blocksize) or (
-            level1 is None and overview_factors(*arr.shape[-2:], blocksize)):
+    by GDAL, their :class:`~.tilecodec.TileSink` (entered on ``stack``): the windows
+    written are ``aligned`` on the tile grid, the ``.part``'s GTiff creation options
+    ``profile`` have a codec :func:`~.tilecodec.can_encode` takes, and nothing reads the
+    ``.part``'s pixels back (the overviews reduced in memory, ``level1``, or none). In
+    memory with ``in_memory``, else in a scratch file beside ``target``. None: GDAL
+    compresses the tiles (``shape``: (rows, cols) or (bands, rows, cols))."""
+    blocksize = profile["blockxsize"]
+    if not aligned or not can_encode(profile, profile["dtype"]) or (
+            level1 is None and overview_factors(*shape[-2:], blocksize)):
         return None
-    f = io.BytesIO() if _part_in_memory(o, arr, level1, blocksize) else stack.enter_context(
-        open(stack.enter_context(scratch_path(os.fspath(o["path"]), "tiles")), "w+b"))
-    return TileSink(f, arr.shape[0] if arr.ndim == 3 else 1, *arr.shape[-2:], blocksize,
-                    profile.get("predictor"), o.get("nodata"))
+    f = io.BytesIO() if in_memory else stack.enter_context(
+        open(stack.enter_context(scratch_path(os.fspath(target), "tiles")), "w+b"))
+    return TileSink(f, shape[0] if len(shape) == 3 else 1, *shape[-2:], blocksize,
+                    profile.get("predictor"), nodata)
 
 
 #: an output's ``.part`` is a GeoTIFF in memory (no file made, renamed, read back and
