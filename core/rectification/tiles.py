@@ -175,9 +175,9 @@ def tiled(block, bands: int, chunks, dtype, name: str):
     """A lazy ``(bands, rows, cols)`` dask array whose block ``(0, i, j)`` is
     ``block(r0, r1, c0, c1)`` (its rows and columns in the whole array), one task a tile
     and no dependencies. Built as a graph of its own, not with ``da.map_blocks``: its
-    ``block_info`` dictionaries (every block's location, shape and chunk counts) cost
-    0.4-0.6 ms a tile to build and to parse into tasks, a tenth of a 0.05 m swing's
-    whole rectify-and-write."""
+    ``block_info`` dictionaries (every block's location, shape and chunk counts), built
+    and parsed into tasks, cost about 0.1 ms a tile (the 0.05 m demo job's eight swings,
+    442 tiles, in one process: 2.69-2.70 against 2.73-2.74 CPU-s, two alternated pairs)."""
     import dask.array as da
     from dask.highlevelgraph import HighLevelGraph
     rows, cols = chunks
