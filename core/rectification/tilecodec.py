@@ -5,8 +5,9 @@ The COG writer (:mod:`.writing`) streams each output into a tiled ``.part`` GeoT
 them, DEFLATE level 1 was about 40 % of every worker's CPU time on the rectify command's
 0.05 m job. ISA-L's level 1 (Intel's Intelligent Storage Acceleration Library, through
 the ``isal`` wheel) compressed the same predicted uint16 tiles 2.1x faster than
-libdeflate's level 1, 4 % larger (44 against 95 ms for a 12 Mpx swing). Its stream is plain zlib, which every TIFF
-reader decodes: only the compressed bytes differ, never the pixels.
+libdeflate's level 1, 4 % larger (44 against 95 ms for a 12 Mpx swing). Its stream is
+plain zlib, which every TIFF reader decodes: only the compressed bytes differ, never the
+pixels.
 
 A :class:`TileSink` takes an output level's tiles as they are computed, applies the TIFF
 predictor (2, horizontal differencing, for integers; 3, the floating-point one, for
