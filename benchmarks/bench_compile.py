@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import shlex
 import shutil
 import subprocess
@@ -26,18 +25,19 @@ import sys
 import tempfile
 import time
 
+from cputime import children_cpu  # this folder (the scripts' own)
+
 
 def _run(exe: str, command: str, cache: str, work: str) -> tuple[float, float, int]:
     """Wall and CPU seconds (children included) of ``exe command``; its exit code."""
     out = tempfile.mkdtemp(dir=work)
     env = dict(os.environ, NUMBA_CACHE_DIR=cache, PREFECT_HOME=os.path.join(out, "prefect"))
     argv = [exe, *shlex.split(command.format(out=out)), "-q"]
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    before = children_cpu()
     t = time.perf_counter()
     code = subprocess.run(argv, env=env, stdout=subprocess.DEVNULL).returncode
     wall = time.perf_counter() - t
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    cpu = children_cpu() - before
     shutil.rmtree(out, ignore_errors=True)
     return wall, cpu, code
 

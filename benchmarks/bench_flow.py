@@ -19,13 +19,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from cputime import children_cpu  # this folder (the scripts' own)
 
 # as `swathflow run` (flows/cli/commands.py) does it, through its own steps: Prefect's
 # standby server spawned first, dask.array imported lean, the inputs checked (the mission
@@ -58,16 +59,11 @@ _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
 
 
-def _children_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
 def _timed(cmd: list[str]) -> tuple[float, float, str]:
     """Wall and CPU seconds of a command in a fresh process, and its stdout."""
-    c0, t0 = _children_cpu(), time.perf_counter()
+    c0, t0 = children_cpu(), time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200)
-    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+    wall, cpu = time.perf_counter() - t0, children_cpu() - c0
     if r.returncode:
         sys.exit(f"failed ({r.returncode}): {' '.join(cmd)}\n{r.stdout[-2000:]}{r.stderr[-3000:]}")
     return wall, cpu, r.stdout

@@ -50,6 +50,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
 from bench_regional import fast_texture  # noqa: E402
+from cputime import children_cpu  # noqa: E402
 from mosaic_synth import make_swings, random_shifts  # noqa: E402
 
 SWING_ROWS = 512
@@ -149,7 +150,6 @@ LAST_IDLE = [float("nan")]
 def _measured(argv, env=None):
     """(wall, cpu, peak RSS MB, stdout) of one whole command (rusage of the children);
     its idle-machine wall estimate (:class:`_IdleWall`) goes to ``LAST_IDLE[0]``."""
-    import resource
     # the peak RSS through GNU time: a child forked from this (large) process would report
     # this process's size as its own peak
     timer = "/usr/bin/time" if os.path.exists("/usr/bin/time") else None
@@ -157,7 +157,7 @@ def _measured(argv, env=None):
     os.close(fd)
     if timer:
         argv = [timer, "-f", "%M", "-o", rss_file, *argv]
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    before = children_cpu()
     t0 = time.perf_counter()
     # the command's output goes to files: a pipe could fill while this polls
     fo, fe = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
@@ -186,8 +186,7 @@ def _measured(argv, env=None):
     p.returncode = os.waitstatus_to_exitcode(status)
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(argv[:3])}: {err[-3000:]}")
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    cpu = children_cpu() - before
     return wall, cpu, rss, out
 
 

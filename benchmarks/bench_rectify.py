@@ -30,13 +30,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import resource
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from cputime import children_cpu  # this folder (the scripts' own)
 
 import numpy as np
 
@@ -114,12 +115,11 @@ def _gdalwarp(raw, X, Y, grid, kernel, threads, tmp):
            "-ts", str(grid.width), str(grid.height), "-r", kernel, "-dstnodata", "nan",
            "-ot", "Float32", "-multi", "-wo", f"NUM_THREADS={threads}",
            str(vrt), str(out)]
-    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    c0 = children_cpu()
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)
     dt = time.perf_counter() - t0
-    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
+    cpu = children_cpu() - c0
     with rasterio.open(out) as src:
         arr = src.read(1)
         assert src.transform.almost_equals(grid.transform), (src.transform, grid.transform)
