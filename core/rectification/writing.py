@@ -29,7 +29,7 @@ import numpy as np
 from swathflow.io import atomic_path, scratch_path
 from swathflow.rectification.halve import halve as _halve
 from swathflow.rectification.store import store_here
-from swathflow.rectification.tilecodec import TileSink, can_encode
+from swathflow.rectification.tilecodec import TileSink, can_encode, with_tiles
 
 if TYPE_CHECKING:   # an annotation only: the mosaic's writer does not import pyproj for it
     from swathflow.geometry.grid import Grid
@@ -407,7 +407,6 @@ def _layout_cog(part, final: str, target: str, level1: _Level1 | None, profile: 
     ``sink`` (a :class:`.tilecodec.TileSink`) the full resolution's tiles are the sink's,
     the ``.part`` giving its tags only; the levels in memory are then compressed here too."""
     from swathflow.rectification.tifflayout import nodata_tiles, read_first_ifd, write_cog_layout
-    from swathflow.rectification.tilecodec import with_tiles
     rows, cols = profile["height"], profile["width"]
     n_levels = len(overview_factors(rows, cols, blocksize))
     compression = {k: profile[k] for k in _CODEC_OPTIONS if k in profile}
@@ -456,7 +455,6 @@ def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression
     from rasterio.io import MemoryFile
 
     from swathflow.rectification.tifflayout import read_first_ifd
-    from swathflow.rectification.tilecodec import TileSink, with_tiles
     ov_profile = {k: profile[k] for k in ("count", "dtype", "nodata", "interleave")
                   if k in profile}
     ov_profile.update(driver="GTiff", tiled=True, blockxsize=blocksize, blockysize=blocksize,
@@ -475,8 +473,8 @@ def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression
                     dst.write(lv)
             f = io.BytesIO(mem.read())
         if here:
-            sink = TileSink(io.BytesIO(), lv.shape[0], lv.shape[1], lv.shape[2], blocksize,
-                            int(compression.get("predictor", 1)), profile.get("nodata"))
+            sink = TileSink(io.BytesIO(), *lv.shape, blocksize, compression.get("predictor"),
+                            profile.get("nodata"))
             sink.put(0, 0, lv)
             files.append(with_tiles(read_first_ifd(f), sink))
         else:
