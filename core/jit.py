@@ -13,7 +13,9 @@ kernels do not use).
 :func:`njit` is numba's ``njit``; with ``cache=True`` the dispatcher's cache loads a
 kernel after starting the NRT alone (its functions loaded from object code kept beside
 the cache, not compiled in every process: :func:`_start_runtime`), and without importing
-the numba modules whose functions the kernel was linked with (:func:`_envs_unimported`).
+the numba modules whose functions the kernel was linked with (:func:`_envs_unimported`),
+its LLVM bitcode (kept for inlining into later compilations) left unparsed until one
+links it (:func:`_links_unparsed`).
 On a cache miss numba compiles as usual (its compiler refreshes the contexts itself).
 Where numba's cache does not have the methods this relies on (another numba), the kernel
 keeps numba's own cache.
@@ -30,6 +32,8 @@ import socket
 import sys
 
 import numba
+from llvmlite import binding as ll
+from numba.core import codegen
 from numba.core.caching import FunctionCache
 
 from swathflow.startup import blas_probe_alone, lean_numba_arrays
@@ -97,7 +101,7 @@ class _LightCache(FunctionCache):
         _start_runtime(target_context)         # once a process; the kernels allocate
         cres = None
         # a kernel's environment may name numba's array target (loaded as it unpickles)
-        with blas_probe_alone(), _envs_unimported(), \
+        with blas_probe_alone(), _envs_unimported(), _links_unparsed(), \
                 self._guard_against_spurious_io_errors():
             cres = self._load_overload(sig, target_context)
         if cres is None:        # numba compiles it now, its contexts refreshed by its compiler
@@ -162,6 +166,64 @@ def _runtime_library(ctx):
         with contextlib.suppress(OSError):
             os.remove(tmp)
     return library
+
+
+@contextlib.contextmanager
+def _links_unparsed():
+    """A kernel cached as object code also carries its LLVM bitcode, for inlining into
+    kernels compiled later that call it; numba parses it and lists its symbols as the
+    kernel loads (0.04-0.06 s of the rectify engine's 17 kernels, in every process).
+    Inside this block such a kernel loads as a :class:`_LinkedLater` library: the bitcode
+    is parsed when a compilation first links it (never, with the cache full)."""
+    base = codegen.JITCodeLibrary
+    if "_unserialize" in base.__dict__ or not hasattr(codegen.CPUCodeLibrary, "_unserialize"):
+        yield                                  # another numba: its own way
+        return
+    unserialize = codegen.CPUCodeLibrary._unserialize.__func__
+
+    def unserialize_later(cls, cg, state):
+        name, kind, data = state
+        if cls is not base or kind != "object":
+            return unserialize(cls, cg, state)
+        object_code, bitcode = data
+        lib = cg.create_library(name)
+        lib.__class__ = _LinkedLater
+        lib._bitcode = bitcode
+        lib.enable_object_caching()
+        lib._set_compiled_object(object_code)
+        lib._finalize_final_module()
+        return lib
+
+    base._unserialize = classmethod(unserialize_later)
+    try:
+        yield
+    finally:
+        del base._unserialize
+
+
+class _LinkedLater(codegen.JITCodeLibrary):
+    """A kernel's library loaded from object code (:func:`_links_unparsed`), its bitcode
+    (``_bitcode``) parsed and its symbols listed when first asked for: when a new
+    compilation links it."""
+
+    @property
+    def _shared_module(self):
+        mod = self.__dict__.get("_shared")
+        if mod is None and self.__dict__.get("_bitcode") is not None:
+            mod = ll.parse_bitcode(self.__dict__.pop("_bitcode"))
+            self._codegen._engine._load_defined_symbols(mod)
+            self.__dict__["_shared"] = mod
+        return mod
+
+    @_shared_module.setter
+    def _shared_module(self, mod):
+        self.__dict__["_shared"] = mod
+
+    def get_pointer_to_function(self, name):
+        """The address of ``name`` in the loaded object code (0: not there), without
+        numba's list of the symbols defined."""
+        self._ensure_finalized()
+        return self._codegen._engine.get_function_address(name)
 
 
 def _anchor():

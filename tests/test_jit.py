@@ -116,6 +116,51 @@ def test_a_cached_kernel_loads_without_the_numba_modules_it_was_linked_with(tmp_
     assert out["again"] == np.argsort(np.array([0.5, 7.0, 2.0, -1.0, 3.0])).tolist()
 
 
+CALLEE = """
+import numpy as np
+from swathflow.jit import njit
+
+
+@njit(cache=True, nogil=True)
+def tripled(x):
+    out = np.empty_like(x)
+    for i in range(x.size):
+        out[i] = 3.0 * x[i] + 1.0
+    return out
+"""
+
+RUN_CALLER = """
+import json, sys
+import numpy as np
+sys.path.insert(0, {folder!r})
+import kmod3
+import swathflow.jit as J
+x = np.array([0.0, 1.0, -2.0, 0.25])
+cached = kmod3.tripled(x).tolist()
+lib = kmod3.tripled.overloads[kmod3.tripled.signatures[0]].library
+unparsed = type(lib) is J._LinkedLater and "_bitcode" in lib.__dict__
+import numba
+caller = numba.njit(lambda a: kmod3.tripled(a).sum() + kmod3.tripled(a)[0])  # links it
+print(json.dumps(dict(cached=cached, unparsed=unparsed, linked=float(caller(x)),
+                      parsed="_bitcode" not in lib.__dict__,
+                      hits=sum(kmod3.tripled.stats.cache_hits.values()))))
+"""
+
+
+def test_a_cached_kernel_is_linked_into_a_new_compilation_from_its_bitcode(tmp_path):
+    """A kernel from the cache loads without its bitcode parsed (``_LinkedLater``); a
+    kernel compiled afterwards in the same process that calls it links that bitcode then,
+    and both compute the truth: 3x + 1."""
+    (tmp_path / "kmod3.py").write_text(CALLEE)
+    _fresh(RUN_CALLER.format(folder=str(tmp_path)))           # the cache written
+    out = _fresh(RUN_CALLER.format(folder=str(tmp_path)))
+    x = np.array([0.0, 1.0, -2.0, 0.25])
+    assert out["hits"] == 1 and out["unparsed"] is True
+    assert out["cached"] == (3 * x + 1).tolist()
+    assert out["linked"] == float((3 * x + 1).sum() + 1.0)
+    assert out["parsed"] is True
+
+
 RUN_RUNTIME = """
 import glob, json, os, sys
 import numpy as np
