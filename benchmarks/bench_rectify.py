@@ -37,13 +37,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from cputime import children_cpu  # this folder (the scripts' own)
-
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "benchmarks"))    # also when imported (a slow test)
+
+from cputime import children_cpu  # noqa: E402
 
 from test_rectify import render, scene_model, texture  # noqa: E402
 
