@@ -176,14 +176,17 @@ def _links_unparsed():
     Inside this block such a kernel loads as a :class:`_LinkedLater` library: the bitcode
     is parsed when a compilation first links it (never, with the cache full)."""
     base = codegen.JITCodeLibrary
-    if "_unserialize" in base.__dict__ or not hasattr(codegen.CPUCodeLibrary, "_unserialize"):
-        yield                                  # another numba: its own way
-        return
+    if "_unserialize" in base.__dict__ or not all(hasattr(base, a) for a in (
+            "_unserialize", "enable_object_caching", "_set_compiled_object",
+            "_finalize_final_module", "_ensure_finalized")):
+        yield                # loading already (a numba lock holds loads one at a time),
+        return               # or another numba: its own way
     unserialize = codegen.CPUCodeLibrary._unserialize.__func__
 
     def unserialize_later(cls, cg, state):
         name, kind, data = state
-        if cls is not base or kind != "object":
+        if cls is not base or kind != "object" or not isinstance(data, tuple) \
+                or len(data) != 2:
             return unserialize(cls, cg, state)
         object_code, bitcode = data
         lib = cg.create_library(name)
