@@ -172,7 +172,7 @@ def _runtime_library(ctx):
 def _links_unparsed():
     """A kernel cached as object code also carries its LLVM bitcode, for inlining into
     kernels compiled later that call it; numba parses it and lists its symbols as the
-    kernel loads (0.04-0.06 s of the rectify engine's 17 kernels, in every process).
+    kernel loads (about 0.06 s of the rectify engine's 17 kernels, in every process).
     Inside this block such a kernel loads as a :class:`_LinkedLater` library: the bitcode
     is parsed when a compilation first links it (never, with the cache full)."""
     base = codegen.JITCodeLibrary
