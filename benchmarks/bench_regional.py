@@ -20,7 +20,9 @@ import time
 
 import numpy as np
 
-from mosaic_synth import random_shifts, value_noise
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+
+from mosaic_synth import random_shifts, value_noise  # noqa: E402
 
 SWATH = 2000
 ROWS = 2048
@@ -279,3 +281,9 @@ def bench_regional(work, gpx: float = 1.0, workers: int = 2, at_once: int = 1):
           f"process {max(worst_rss, r['rss_mb']):.0f} MB")
     shutil.rmtree(d, ignore_errors=True)
     return r, same
+
+
+if __name__ == "__main__":
+    sys.exit("bench_regional.py is the regional case of bench_mosaic.py; run it as\n"
+             "    python benchmarks/bench_mosaic.py --regional 1.0 [--work DIR] "
+             "[--quarters-at-once N]")
