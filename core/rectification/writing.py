@@ -276,9 +276,9 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
                 level1 = _Level1(bands or 1, *arr.shape[-2:], dtype, o.get("nodata"),
                                  overview_resampling)
             final = stack.enter_context(atomic_path(o["path"], suffix=".tif"))
-            part = stack.enter_context(
-                rasterio.MemoryFile() if _part_in_memory(o, arr, level1, blocksize)
-                else scratch_path(os.fspath(o["path"]), "part.tif"))
+            in_memory = _part_in_memory(o, arr, level1, blocksize)
+            part = stack.enter_context(rasterio.MemoryFile() if in_memory
+                                       else scratch_path(os.fspath(o["path"]), "part.tif"))
             with warnings.catch_warnings(), rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 dst = stack.enter_context(part.open(**profile) if hasattr(part, "open")
@@ -288,7 +288,7 @@ def write_cogs(outputs, blocksize: int = 512, compress: str = "deflate",
             _band_metadata(dst, o.get("bands") or ())
             sink = tile_sink(stack, o["path"], profile, arr.shape,
                              not o.get("mask") and _on_tile_grid(arr, blocksize), level1,
-                             o.get("nodata"), _part_in_memory(o, arr, level1, blocksize))
+                             o.get("nodata"), in_memory)
             sources.append(arr)
             targets.append(_WindowWriter(dst, bands, bool(o.get("mask")), level1,
                                          o.get("valid"), o.get("nodata"), sink))
@@ -460,7 +460,7 @@ def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression
     ov_profile.update(driver="GTiff", tiled=True, blockxsize=blocksize, blockysize=blocksize,
                       sparse_ok=True, **compression)
     lv = level1.array
-    files = []
+    levels = []
     for k in range(n_levels):
         if k:
             nxt = np.empty((lv.shape[0], -(-lv.shape[1] // 2), -(-lv.shape[2] // 2)), lv.dtype)
@@ -476,10 +476,10 @@ def _levels_in_memory(level1: _Level1, n_levels: int, profile: dict, compression
             sink = TileSink(io.BytesIO(), *lv.shape, blocksize, compression.get("predictor"),
                             profile.get("nodata"))
             sink.put(0, 0, lv)
-            files.append(with_tiles(read_first_ifd(f), sink))
+            levels.append(with_tiles(read_first_ifd(f), sink))
         else:
-            files.append((read_first_ifd(f), f))
-    return files
+            levels.append((read_first_ifd(f), f))
+    return levels
 
 
 def _to_cog(part: str, final: str, blocksize: int, compress: str,
