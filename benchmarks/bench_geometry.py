@@ -29,7 +29,7 @@ def main(argv=None) -> int:
     from rasterio.transform import from_origin
 
     from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
-    from swathflow.sensors.base import CHUNK
+    from swathflow.sensormodel.base import CHUNK
     from swathflow.sensors.pendulum import PendulumModel
     from swathflow.geometry.terrain import DEM
 

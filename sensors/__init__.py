@@ -1,6 +1,5 @@
-"""Sensor models: the interface, the registry and the built-in models."""
-from swathflow.sensors.base import Parameter, ParameterSet, RayMissWarning, SensorModel
-from swathflow.sensors.registry import get_sensor, list_sensors
+"""The built-in sensor plugins: the pendulum whisk-broom scanner and the push-broom camera.
 
-__all__ = ["Parameter", "ParameterSet", "RayMissWarning", "SensorModel", "get_sensor",
-           "list_sensors"]
+They register through the entry-point group ``swathflow.sensors`` like any third-party
+plugin; the interface they implement is :mod:`swathflow.sensormodel`.
+"""

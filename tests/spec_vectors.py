@@ -1,24 +1,22 @@
-"""Loading the shared spec vectors (../shared/spec/vectors) into sensor models."""
+"""The geometry test vectors (tests/data/vectors, docs/geometry.md) loaded into sensor models,
+and the folder of real files the tests use (tests/data/real, PROVENANCE.md beside it)."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("SWATHFLOW_SHARED", ROOT.parent / "shared"))
-VECTORS = SHARED / "spec" / "vectors"
-DATA = SHARED / "data" / "real"
+HERE = Path(__file__).resolve().parent
+VECTORS = HERE / "data" / "vectors"
+DATA = HERE / "data" / "real"
 
 
 def load_cases(name: str) -> list[dict]:
-    path = VECTORS / name
-    if not path.exists():
-        return []
-    return json.loads(path.read_text())["cases"]
+    cases = json.loads((VECTORS / name).read_text())["cases"]
+    assert cases, f"{name} holds no cases"
+    return cases
 
 
 def pos_dataset(pos: dict) -> xr.Dataset:

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-FRAMEWORK = ("core", "tasks", "flows")
+FRAMEWORK = ("swathflow", "tasks", "flows")
 SENSOR_NAMES = ("pendulum", "pushbroom", "push-broom", "push_broom")
 
 
@@ -39,7 +39,7 @@ def _sensor_names_in(path: Path) -> list[str]:
 
 
 def test_no_sensor_name_in_the_framework():
-    """What differs between scanners is asked of the plugin: no code path in core/, tasks/
+    """What differs between scanners is asked of the plugin: no code path in swathflow/, tasks/
     or flows/ names a built-in sensor (docstrings may use them as examples)."""
     found = [f for d in FRAMEWORK for p in sorted((ROOT / d).rglob("*.py"))
              for f in _sensor_names_in(p)]
@@ -56,7 +56,7 @@ def test_the_check_sees_a_sensor_name(tmp_path):
 @pytest.mark.parametrize("hook", ["line_columns", "directions", "check_lines",
                                   "calibration_strategy", "simulator"])
 def test_every_registered_sensor_answers_the_hooks(hook):
-    from swathflow.sensors import list_sensors
+    from swathflow.sensormodel import list_sensors
     for name, cls in list_sensors().items():
         value = getattr(cls, hook)
         if callable(value):

@@ -17,7 +17,7 @@ from swathflow.calibration.control import calibrate
 from swathflow.calibration.partials import image_partials
 from swathflow.calibration.unknowns import CalibrationError
 from swathflow.formats.pos import Trajectory
-from swathflow.sensors.registry import get_sensor
+from swathflow.sensormodel.registry import get_sensor
 
 SENSOR = {"pixel_pitch": 15e-6, "focal_length": 0.16, "n_elements": 1024, "k0": 511.5,
           "y0": 0.0}
@@ -269,7 +269,6 @@ def test_write_outputs(paper_result, tmp_path):
 
 
 def test_cli_on_simulated_paper_mission(tmp_path):
-    pytest.importorskip("swathflow.sensors.pendulum.simulate")
     from swathflow.flows.cli import main
     mission = tmp_path / "paper"
     assert main(["simulate", str(mission), "--preset", "paper", "--seed", "3"]) == 0
@@ -285,7 +284,6 @@ def test_cli_on_simulated_paper_mission(tmp_path):
 
 
 def test_cli_clear_error_without_points(tmp_path, capsys):
-    pytest.importorskip("swathflow.sensors.pendulum.simulate")
     from swathflow.flows.cli import main
     mission = tmp_path / "paper"
     assert main(["simulate", str(mission), "--preset", "tiny", "--seed", "1"]) == 0

@@ -389,7 +389,7 @@ def test_rectify_without_calibration_says_so(base, tmp_path, capsys):
 def _plugin(tmp_path, monkeypatch, body: str):
     from importlib.metadata import EntryPoint
 
-    from swathflow.sensors import registry
+    from swathflow.sensormodel import registry
     mod = tmp_path / "badplugin_mod.py"
     mod.write_text(body)
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -402,7 +402,7 @@ def _plugin(tmp_path, monkeypatch, body: str):
 @pytest.mark.parametrize("body", [
     "import sys\nsys.exit('no licence')\n",
     "class Stop(BaseException):\n    pass\nraise Stop('bye')\n",
-    "from swathflow.sensors import SensorModel\nclass Model(SensorModel):\n    pass\n",
+    "from swathflow.sensormodel import SensorModel\nclass Model(SensorModel):\n    pass\n",
 ])
 def test_broken_plugin_warns_and_is_skipped(tmp_path, monkeypatch, capsys, body):
     sys.modules.pop("badplugin_mod", None)

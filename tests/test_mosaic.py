@@ -322,9 +322,8 @@ def test_network_dense_equals_sparse():
 
 
 def test_real_orthophoto_strips(tmp_path):
-    path = "/work/shared/data/real/autzen/autzen.jpg"
-    if not os.path.exists(path):
-        pytest.skip("real orthophoto not available")
+    from spec_vectors import DATA
+    path = str(DATA / "autzen" / "autzen.jpg")
     truth = ImageTruth(path, rows=700, cols=820, r0=1500, c0=1000)
     shifts, rads = random_shifts(5, seed=7)
     paths, fps, shape = make_swings(tmp_path / "in", n_strips=5, length=600, shifts=shifts,

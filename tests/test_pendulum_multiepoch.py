@@ -259,7 +259,7 @@ def test_image_to_ground_lies_on_the_truth_ray(case):
 def test_numpy_dask_and_xarray_inputs(case):
     """The public ground_to_image takes any array of ``(..., 3)`` ECEF points: a grid, a
     dask array (computed), an xarray DataArray; the same values, in the input's shape."""
-    da = pytest.importorskip("dask.array")
+    import dask.array as da
     truth, lines, model, img, g = case
     n = (len(g) // 20) * 20
     want = model.ground_to_image(g[:n])

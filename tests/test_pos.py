@@ -12,7 +12,6 @@ SBET = DATA / "pdal-sbet" / "2-points.sbet"
 BAD = DATA / "pdal-sbet" / "badfile.sbet"
 
 
-@pytest.mark.skipif(not SBET.exists(), reason="shared real data absent")
 def test_real_sbet_first_record():
     ds = read_pos(SBET)
     assert ds.sizes["time"] == 2
@@ -27,7 +26,6 @@ def test_real_sbet_first_record():
     assert np.allclose(ds["heading"].values, exp)
 
 
-@pytest.mark.skipif(not BAD.exists(), reason="shared real data absent")
 def test_truncated_sbet_is_rejected_clearly():
     with pytest.raises(FormatError) as exc:
         read_pos(BAD)

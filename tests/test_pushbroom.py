@@ -9,7 +9,7 @@ from swathflow.errors import FormatError
 from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef
 from swathflow.formats.pos import Trajectory
 from swathflow.geometry.rotations import r_en
-from swathflow.sensors import get_sensor
+from swathflow.sensormodel import get_sensor
 from swathflow.sensors.pushbroom.model import (PushbroomModel, continuity_matrix,
                                          continuity_residuals, example_sensor, views)
 
@@ -25,7 +25,6 @@ def _vector_model(case):
 
 
 # --- the spec vectors --------------------------------------------------------------------------
-@pytest.mark.skipif(not CASES, reason="shared/spec/vectors/pushbroom-v1.json not found")
 @pytest.mark.parametrize("case", CASES, ids=[c["name"] for c in CASES])
 def test_spec_vectors_image_to_ground(case):
     m = _vector_model(case)
@@ -36,7 +35,6 @@ def test_spec_vectors_image_to_ground(case):
     assert np.linalg.norm(got - want, axis=-1).max() < 1e-3
 
 
-@pytest.mark.skipif(not CASES, reason="shared/spec/vectors/pushbroom-v1.json not found")
 @pytest.mark.parametrize("case", CASES, ids=[c["name"] for c in CASES])
 def test_spec_vectors_ground_to_image(case):
     m = _vector_model(case)
@@ -47,7 +45,6 @@ def test_spec_vectors_ground_to_image(case):
     assert np.abs(got - want).max() < 1e-3
 
 
-@pytest.mark.skipif(not CASES, reason="shared/spec/vectors/pushbroom-v1.json not found")
 def test_vectors_with_fixes_need_the_fixes():
     """The fix corrections matter: without them the vector cases are missed by far."""
     case = next(c for c in CASES if c["fixes"])

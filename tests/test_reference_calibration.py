@@ -17,16 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-if not REAL.exists():                      # a git worktree sits one level deeper
-    REAL = Path("/work/shared/data/real")
+from spec_vectors import DATA as REAL
 AUTZEN = REAL / "autzen" / "autzen.jpg"
-needs_autzen = pytest.mark.skipif(not AUTZEN.exists(), reason="real Autzen ortho not available")
 
 
 def _mission(tmp, seed=3, preset="tiny", factor=2, ref_seed=1, **overrides):
     """A simulated mission without gcp.csv, and its degraded reference (ref.tif)."""
-    pytest.importorskip("swathflow.sensors.pendulum.simulate")
     from swathflow.simulation import simulate
     from swathflow.simulation.reference import degrade_reference
     out = Path(tmp) / f"m{seed}"
@@ -78,8 +74,6 @@ def _rectified_shift(mission, calibration, out):
 
 @pytest.fixture(scope="module")
 def tiny_result(tmp_path_factory):
-    if not AUTZEN.exists():
-        pytest.skip("real Autzen ortho not available")
     from swathflow.calibration.strategy import CalibrationOptions, calibrate_mission
     from swathflow.ingest.mission import load_mission
     mission, info = _mission(tmp_path_factory.mktemp("ref"))
@@ -91,7 +85,6 @@ def tiny_result(tmp_path_factory):
     return mission, info, rc, paths
 
 
-@needs_autzen
 def test_reference_calibration_recovers_truth_within_3_sigma(tiny_result):
     mission, info, rc, _ = tiny_result
     # the reference really is degraded: pixels 2x the nominal raw ground size
@@ -109,7 +102,6 @@ def test_reference_calibration_recovers_truth_within_3_sigma(tiny_result):
     assert 0.5 < rc.sigma0 < 2.0
 
 
-@needs_autzen
 def test_reference_points_agree_with_truth_geometry(tiny_result):
     """Each automatic point's raw (line, element) against the true model's projection of
     its ground coordinates: the accepted points agree to within their sigmas."""
@@ -128,7 +120,6 @@ def test_reference_points_agree_with_truth_geometry(tiny_result):
         assert np.median(np.abs(de)) < 2 * 0.6745 * 2, (iid, np.median(np.abs(de)))
 
 
-@needs_autzen
 def test_reference_report_and_files(tiny_result):
     mission, _, rc, paths = tiny_result
     doc = json.loads(Path(paths["calibration"]).read_text())
@@ -144,7 +135,6 @@ def test_reference_report_and_files(tiny_result):
     assert {"line", "element", "E", "N", "x", "y", "rejected"} <= set(pts.columns)
 
 
-@needs_autzen
 def test_rectified_with_reference_calibration_matches_truth(tiny_result, tmp_path):
     mission, _, _, paths = tiny_result
     work = tmp_path / "m"
@@ -187,7 +177,6 @@ def test_cli_reference_missing_file_exits_2(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@needs_autzen
 def test_reference_calibration_sigmas_are_honest(tmp_path):
     """NEES over several seeds: sum over missions of (x - truth)' C^-1 (x - truth) of the
     data-determined parameters is chi-square with (their number, summed) degrees of freedom

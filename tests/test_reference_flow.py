@@ -10,13 +10,12 @@ import numpy as np
 import pytest
 import rasterio
 
-from test_reference_calibration import _mission, _truth, needs_autzen
+from test_reference_calibration import _mission, _truth
 
 pytestmark = pytest.mark.usefixtures("prefect_harness")
 
 
 @pytest.mark.slow
-@needs_autzen
 def test_flow_calibrates_from_mission_reference(tmp_path):
     from swathflow.flows.mission import run
     from swathflow.ingest.mission import load_mission

@@ -14,13 +14,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from test_reference_calibration import _mission, _truth, _z_scores, needs_autzen
+from test_reference_calibration import _mission, _truth, _z_scores
 
 
 @pytest.mark.slow
-@needs_autzen
 def test_pushbroom_reference_calibration_within_3_sigma(tmp_path):
-    pytest.importorskip("swathflow.sensors.pushbroom.simulate")
     from swathflow.calibration.strategy import CalibrationOptions, calibrate_mission
     from swathflow.ingest.mission import load_mission
     mission, info = _mission(tmp_path, seed=3, preset="pushbroom", factor=2, n_segments=1,

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from test_reference_calibration import AUTZEN, _mission, _truth, _z_scores, needs_autzen
+from test_reference_calibration import AUTZEN, _mission, _truth, _z_scores
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,6 @@ def _true_transfer_error(ties, true_models, terrain):
     return np.array(out)
 
 
-@needs_autzen
 def test_tie_points_agree_with_truth_geometry(overlap_mission):
     """Ties matched with the PRIOR parameters (boresight 2.7 deg off): each pair of
     opposite-direction swings gives tie points, and they agree with the true geometry."""
@@ -77,7 +76,6 @@ def test_tie_points_agree_with_truth_geometry(overlap_mission):
 
 
 @pytest.mark.slow
-@needs_autzen
 def test_false_tie_point_is_rejected_and_reported(overlap_mission):
     """A tie point moved by 4 px in one swing (a false match) is rejected by the robust
     adjustment and listed; the others are kept."""
@@ -101,7 +99,6 @@ def test_false_tie_point_is_rejected_and_reported(overlap_mission):
 
 
 @pytest.mark.slow
-@needs_autzen
 def test_ties_separate_direction_dependent_boresight(overlap_mission, tmp_path):
     """With a 3x coarser reference: the sigmas of the left-minus-right boresight are much
     smaller with tie points, and every parameter (and the L-R difference) is within 3 sigma

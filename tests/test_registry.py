@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from swathflow.sensors import get_sensor, list_sensors
+from swathflow.sensormodel import get_sensor, list_sensors
 from swathflow.errors import SwathflowError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +45,7 @@ def test_unknown_sensor_is_a_clear_error():
 
 
 def test_installed_plugin_is_found_and_broken_ones_warn(plugin_site):
-    r = _run(plugin_site, "import json; from swathflow.sensors import list_sensors;"
+    r = _run(plugin_site, "import json; from swathflow.sensormodel import list_sensors;"
                           "print(json.dumps({k: v.__module__ for k, v in list_sensors().items()}))")
     assert r.returncode == 0, r.stderr
     found = json.loads(r.stdout.strip().splitlines()[-1])

@@ -41,7 +41,6 @@ def chromium():
 @pytest.fixture(scope="module")
 def paper(tmp_path_factory):
     """The simulated paper mission, calibrated: the result and the written files."""
-    pytest.importorskip("swathflow.sensors.pendulum.simulate")
     from swathflow.calibration.control import calibrate
     from swathflow.ingest.mission import load_mission
     from swathflow.sensors.pendulum.simulate import simulate

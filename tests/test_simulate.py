@@ -18,15 +18,14 @@ from swathflow.errors import SwathflowError
 from swathflow.geometry.geodesy import geodetic_to_ecef, transformer
 from swathflow.formats.pos import Trajectory, read_pos
 from swathflow.formats.raster import read_raster
-from swathflow.sensors import get_sensor
+from swathflow.sensormodel import get_sensor
 from swathflow.sensors.pendulum.simulate import preset_config, simulate
 from swathflow.simulation.bundle import footprint_en, spline_en
 
+from spec_vectors import DATA as REAL
+
 pytestmark = pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-if not REAL.exists():
-    REAL = Path("/work/shared/data/real")
 
 # papers.md section 1, Table 4 (typed in from the paper, not from the simulator)
 TABLE4 = {"u_gps": [-0.078, 0.236, 0.911], "u_sen": [-0.066, -0.109, -2.010],
@@ -397,9 +396,6 @@ def test_spline_interpolation_error_far_below_001px(tmp_path, preset):
 
 
 # --------------------------------------------------------------------------------------
-@pytest.mark.skipif(not (REAL / "autzen" / "autzen.jpg").exists()
-                    or not (REAL / "dem" / "jacksboro_fault_dem.tif").exists(),
-                    reason="real texture/DEM not available")
 def test_real_texture_and_dem(tmp_path):
     out = tmp_path / "real"
     simulate(out, "tiny", seed=3, texture=str(REAL / "autzen" / "autzen.jpg"),

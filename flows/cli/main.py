@@ -12,8 +12,8 @@ from importlib import import_module
 
 
 def _sensors(args) -> int:
-    from swathflow.sensors import list_sensors
-    from swathflow.sensors.registry import _registry
+    from swathflow.sensormodel import list_sensors
+    from swathflow.sensormodel.registry import _registry
     reg = _registry()
     if not reg:
         print("no sensor models registered")

@@ -16,7 +16,7 @@ from swathflow.geometry.navkernel import pos_table
 from swathflow.geometry.planesolve import coarse_grid
 from swathflow.geometry.rotations import T, apply, apply_t, r_en, r_nb, r_opk, r_ph
 
-from swathflow.sensors.base import CHUNK, Parameter, ParameterSet, SensorModel
+from swathflow.sensormodel.base import CHUNK, Parameter, ParameterSet, SensorModel
 from swathflow.sensors.pendulum import kernel
 
 #: root estimates (secant, inverse quadratic) further apart than this (lines) mark a

@@ -356,7 +356,7 @@ def _ground_xyz(en, terrain, to_map):
 def simulate(out, preset: str = "tiny", seed: int = 0, texture: str | None = None,
              dem: str | None = None, progress=None, **overrides) -> dict:
     """Write a simulated mission to ``out``; returns the truth summary (truth.json)."""
-    from swathflow.sensors import get_sensor
+    from swathflow.sensormodel import get_sensor
     from swathflow.formats.calibfile import write_calibration
     say = progress or (lambda msg: None)
     clock = time.perf_counter()

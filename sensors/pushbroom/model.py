@@ -22,7 +22,7 @@ import numpy as np
 
 from swathflow.errors import FormatError
 from swathflow.geometry.rotations import T, apply, r_en, r_nb, r_opk
-from swathflow.sensors.base import Parameter, ParameterSet, SensorModel
+from swathflow.sensormodel.base import Parameter, ParameterSet, SensorModel
 from swathflow.sensors.pushbroom.example import example_image, example_sensor, example_trajectory
 from swathflow.sensors.pushbroom.frames import compose
 from swathflow.sensors.pushbroom.partials import Partials

@@ -154,7 +154,7 @@ def _write_terrain(out: Path, cfg: PushbroomConfig, plan, seed: int):
 def _camera(cfg: PushbroomConfig, plan, strips, pos_traj, rng) -> _Camera:
     """Fix times, the ``[sensor]`` table, the true parameters and one true model per CCD
     line and strip."""
-    from swathflow.sensors import get_sensor
+    from swathflow.sensormodel import get_sensor
     n_fix_strip = max(2, int(math.ceil(plan.strip_duration / cfg.fix_interval)) + 1)
     fix_t = np.concatenate([np.linspace(s["t_start"], s["t_start"] + plan.strip_duration,
                                         n_fix_strip) for s in strips])

@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from swathflow.sensors.base import ParameterSet
+from swathflow.sensormodel.base import ParameterSet
 
 #: nominal along-track angles of the three lines of a three-line camera (deg)
 THREE_LINE_VIEWS = {"forward": 25.0, "nadir": 0.0, "backward": -25.0}

@@ -40,7 +40,7 @@ import numpy as np
 from swathflow.errors import FormatError
 from swathflow.geometry.linesolve import bracket_lines, secant_lines
 from swathflow.geometry.rotations import apply, apply_t, r_en, r_nb, r_opk
-from swathflow.sensors.base import Parameter, ParameterSet, SensorModel
+from swathflow.sensormodel.base import Parameter, ParameterSet, SensorModel
 
 
 class RotatingMirrorModel(SensorModel):

@@ -98,7 +98,7 @@ def test_registered_through_the_entry_point():
     eps = {ep.name: ep.value for ep in entry_points(group="swathflow.sensors")}
     if "rotating-mirror" not in eps:
         pytest.skip("plugin not pip-installed (pip install ./plugins/rotating-mirror)")
-    from swathflow.sensors import get_sensor
+    from swathflow.sensormodel import get_sensor
     assert eps["rotating-mirror"] == "swathflow_rotating_mirror:RotatingMirrorModel"
     assert get_sensor("rotating-mirror").__name__ == "RotatingMirrorModel"
 

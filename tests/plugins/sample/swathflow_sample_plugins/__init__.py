@@ -3,7 +3,7 @@ but a lever arm, enough to exercise the registry and the contract suite."""
 import numpy as np
 
 from swathflow.geometry.rotations import apply, apply_t, r_en, r_nb
-from swathflow.sensors.base import Parameter, ParameterSet, SensorModel
+from swathflow.sensormodel.base import Parameter, ParameterSet, SensorModel
 
 
 class SampleNadirModel(SensorModel):

@@ -1,9 +1,10 @@
 """The sensor registry: built-in and third-party models through one entry-point group.
 
-Built-ins register through ``swathflow.sensors`` like any plugin and are also known
-statically, so an editable install never loses them. A plugin that fails to load, is not a
-:class:`SensorModel`, or clashes with a registered name warns and is skipped (the discovery
-is :func:`swathflow.entrypoints.discover`, shared with the navigation formats).
+The built-in models (:mod:`swathflow.sensors`) register through ``swathflow.sensors`` like
+any plugin, and are registered first: a third-party plugin that clashes with one of their
+names warns and is skipped, as does one that fails to load or is not a
+:class:`SensorModel` (the discovery is :func:`swathflow.entrypoints.discover`, shared with
+the navigation formats).
 """
 from __future__ import annotations
 
@@ -13,13 +14,9 @@ from importlib.metadata import entry_points
 from swathflow.entrypoints import discover
 from swathflow.errors import SwathflowError, SwathflowWarning
 
-from swathflow.sensors.base import SensorModel
+from swathflow.sensormodel.base import SensorModel
 
 GROUP = "swathflow.sensors"
-BUILTINS = {
-    "pendulum": "swathflow.sensors.pendulum:PendulumModel",
-    "pushbroom": "swathflow.sensors.pushbroom:PushbroomModel",
-}
 
 
 class SensorPluginWarning(SwathflowWarning):
@@ -38,8 +35,14 @@ def _problem(cls) -> str | None:
 
 @lru_cache(maxsize=1)
 def _registry() -> dict[str, tuple[type[SensorModel], str]]:
-    return discover(BUILTINS, entry_points(group=GROUP), _problem, SensorPluginWarning,
-                    "sensor")
+    points = sorted(entry_points(group=GROUP), key=lambda ep: not _built_in(ep))
+    return discover({}, points, _problem, SensorPluginWarning, "sensor")
+
+
+def _built_in(ep) -> bool:
+    """Whether the entry point is one of swathflow's own (they are registered first)."""
+    dist = getattr(ep, "dist", None)
+    return dist is not None and dist.name == "swathflow"
 
 
 def list_sensors() -> dict[str, type[SensorModel]]:

@@ -9,7 +9,7 @@ from swathflow.errors import SwathflowError
 
 def simulators() -> dict[str, Any]:
     """Preset name -> the simulator of the registered sensor plugin that offers it."""
-    from swathflow.sensors.registry import list_sensors
+    from swathflow.sensormodel.registry import list_sensors
     found: dict[str, Any] = {}
     for cls in list_sensors().values():
         sim = cls.simulator()

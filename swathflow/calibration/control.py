@@ -6,7 +6,7 @@ observations of ground control points by weighted least squares
 pseudo-observation (prior) for every parameter, variance component estimation, robust
 blunder handling and optional time-linear drift of chosen parameter blocks.
 
-It knows sensor models only through :class:`~swathflow.sensors.base.SensorModel`:
+It knows sensor models only through :class:`~swathflow.sensormodel.base.SensorModel`:
 ``ground_to_image``, ``ray``, ``with_vector`` and ``parameters``. The per-direction
 variants (15 vs 12 parameters of the pendulum scanner) are expressed through parameter
 block names ending in ``_L`` / ``_R``: ``shared_boresight`` merges every such pair into

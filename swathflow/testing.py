@@ -179,7 +179,7 @@ def check_model(model) -> None:
 
 def main(argv=None) -> int:
     """Run the suite over every registered model that provides ``example_model()``."""
-    from swathflow.sensors import list_sensors
+    from swathflow.sensormodel import list_sensors
     failed = 0
     for name, cls in list_sensors().items():
         factory = getattr(cls, "example_model", None)

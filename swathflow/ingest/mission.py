@@ -226,7 +226,7 @@ class Mission:
     @property
     def sensor_class(self):
         """The registered sensor-model class (plugin) of the mission's ``[sensor] model``."""
-        from swathflow.sensors import get_sensor
+        from swathflow.sensormodel import get_sensor
         return get_sensor(self.sensor["model"])
 
     def model(self, image_id: str, params=None):

@@ -161,7 +161,7 @@ def _positive(v) -> bool:
 
 
 def check_sensor(cfg: dict, toml: Path, c: Collector, parts: dict) -> None:
-    from swathflow.sensors.registry import _registry
+    from swathflow.sensormodel.registry import _registry
     sensor = cfg.get("sensor")
     cls = None
     if not isinstance(sensor, dict):

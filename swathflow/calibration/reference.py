@@ -17,7 +17,7 @@ does not depend on the current parameters being right; the ground coordinates ar
 sigma in raw pixels is the match's formal sigma, floored, combined with the reference's
 accuracy, and propagated through the local raw-per-reference-pixel Jacobian.
 
-Only the :class:`~swathflow.sensors.base.SensorModel` interface is used (``shape``,
+Only the :class:`~swathflow.sensormodel.base.SensorModel` interface is used (``shape``,
 ``ground_to_image``, ``image_to_ground``), so every sensor plugin gets it.
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Calibration strategies: how a sensor plugin's parameters are estimated for a mission.
 
 The framework never branches on a sensor's name: it asks the plugin
-(:meth:`SensorModel.calibration_strategy <swathflow.sensors.base.SensorModel.calibration_strategy>`)
+(:meth:`SensorModel.calibration_strategy <swathflow.sensormodel.base.SensorModel.calibration_strategy>`)
 and falls back to :data:`CONTROL_POINTS`, the generic control-point adjustment of
 :mod:`swathflow.calibration.control`. A strategy is any object with
 ``calibrate(mission, options) -> result``; the result has ``write(out_dir)`` (returning the
