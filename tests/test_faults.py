@@ -393,7 +393,9 @@ def _plugin(tmp_path, monkeypatch, body: str):
     mod = tmp_path / "badplugin_mod.py"
     mod.write_text(body)
     monkeypatch.syspath_prepend(str(tmp_path))
-    eps = [EntryPoint("broken", "badplugin_mod:Model", registry.GROUP)]
+    # the installed entry points (the built-in sensors among them) and one broken plugin
+    eps = [*registry.entry_points(group=registry.GROUP),
+           EntryPoint("broken", "badplugin_mod:Model", registry.GROUP)]
     monkeypatch.setattr(registry, "entry_points", lambda group: eps)
     registry.refresh()
     return registry
