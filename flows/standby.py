@@ -44,7 +44,7 @@ STALE = 4
 #: database is at the revision of this Prefect's migrated template (flows/prefectdb.py)
 _CODE = r"""
 import json, os, sys
-from swathflow.startup import uncollected
+from swathflow.collector import uncollected
 with uncollected():     # no collector passes over the server's code and app as they are made
     import prefect
     import prefect.server.api.server as server
