@@ -17,7 +17,7 @@ import weakref
 from dataclasses import dataclass
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 
 #: the frame's largest error (m) in position and height, checked when it is fitted
 FRAME_TOL = 1e-6

@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from swathflow.geometry.demframe import BLOCK, dem_frame, poly, poly3, tile_of
-from swathflow.jit import njit
+from numba import njit
 
 _A = 6378137.0
 _F = 1 / 298.257223563

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 from swathflow.rectification.rawimage import _memmap_of, release_pages
 
 
