@@ -79,7 +79,7 @@ def make_trajectory(cfg, plan: Plan, terrain_mean: float, rng):
     On a strip the aircraft flies the planned line at constant ground speed with sway,
     altitude wander, roll/pitch/heading oscillations and a constant crab angle; between
     strips it follows a smooth turn (cubic Hermite in position, banked by its curvature)."""
-    from swathflow.formats.pos import _dataset
+    from swathflow.formats.posdata import pos_dataset
     to_ll = transformer(plan.crs, "EPSG:4326")
     az = math.radians(cfg.heading)
     fwd = np.array([math.sin(az), math.cos(az)])         # E, N unit vector along strip 1
@@ -140,7 +140,7 @@ def make_trajectory(cfg, plan: Plan, terrain_mean: float, rng):
     bank = np.degrees(np.arctan(speed * np.gradient(track, t) / 9.80665))
     heading = np.degrees(track) + crab + dpsi
     heading = (heading + 180.0) % 360.0 - 180.0
-    ds = _dataset(t, lat, lon, h, roll + bank, pitch, heading, source="simulated truth")
+    ds = pos_dataset(t, lat, lon, h, roll + bank, pitch, heading, source="simulated truth")
     return ds, strips
 
 
