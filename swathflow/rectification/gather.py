@@ -21,7 +21,7 @@ import math
 import numpy as np
 from swathflow.jit import njit
 from swathflow.rectification import gather1
-from swathflow.rectification.rawimage import _memmap_of, release_pages
+from swathflow.rectification.pages import memmap_of, release_pages
 from swathflow.rectification.taps import checked_tap, finish, pixel_taps, step_off, taps_1d
 
 
@@ -350,7 +350,7 @@ def gather(raw, coords, nearest: bool, has_nodata: bool, nodata: float, out, out
     clamp = is_int and not (raw_int and lo <= np.iinfo(raw.dtype).min
                             and hi >= np.iinfo(raw.dtype).max)
     check = has_nodata or raw.dtype.kind == "f"
-    mapped = _memmap_of(raw) is not None
+    mapped = memmap_of(raw) is not None
     h, w = coords.shape[1:]
     step = SUBTILE if mapped and flat.nbytes > MAPPED_WINDOW_BYTES else max(h, w, 1)
     for r0 in range(0, h, step):
