@@ -151,13 +151,3 @@ def format_problems(path, problems: list[Problem]) -> str:
     head = (f"mission {os.fspath(path)} has {n} problem(s)"
             + (f" and {w} warning(s)" if w else "") + ":")
     return "\n".join([head] + [f"  - {pr}" for pr in problems])
-
-
-def __getattr__(name):   # moved names, kept importable from here
-    if name in ("GCP_COLUMNS", "GCP_ROLES"):
-        from swathflow.ingest import gcpfile
-        return getattr(gcpfile, name)
-    if name == "image_border":
-        from swathflow.ingest.plausible import image_border
-        return image_border
-    raise AttributeError(name)

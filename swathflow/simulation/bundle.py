@@ -323,7 +323,7 @@ def write_truth_ortho(out: Path, cfg, crs, models, terrain, texture, to_map, say
     ortho (``truth/ortho.tif``: the texture averaged over each output pixel, in expected DN
     ``cfg.offset + cfg.gain * T``)."""
     from swathflow.formats.raster import write_geotiff
-    from swathflow.ingest.mission import image_border
+    from swathflow.ingest.plausible import image_border
     from swathflow.simulation.texture import area_average
     gsd = cfg.gsd
     parts = []
