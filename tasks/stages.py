@@ -182,8 +182,6 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
 def catalog(mission_path: str, rectified: list[str], mosaic_path: str | None, calibration: str,
             out_dir: str) -> str:
     """The STAC catalogue of the run's products: ``OUT/stac/catalog.json``."""
-    import datetime as dt
-
     from swathflow.formats.stac import write_catalog
     m = _load(mission_path)
     out = Path(out_dir) / "stac" / "catalog.json"
@@ -194,21 +192,18 @@ def catalog(mission_path: str, rectified: list[str], mosaic_path: str | None, ca
                          mos.with_suffix(".png")] if mos else []) if p.exists()]
     key = stage_key("catalog", list(rectified) + [mos, cal, report if report.exists() else None]
                     + side + [m.path / "mission.toml"])
-    if is_fresh(out, key):
+    # the manifest sits beside the catalogue's folder (OUT/stac.swathflow.json), not in it
+    if is_fresh(out.parent, key) and out.exists():
         return str(out)
-    date = m.config.get("mission", {}).get("date")
-    acquired = None
-    if date:
-        acquired = dt.datetime.fromisoformat(str(date))
-        if acquired.tzinfo is None:
-            acquired = acquired.replace(tzinfo=dt.UTC)
+    spans = {iid: span for iid in m.image_ids
+             if (span := m.acquisition_span(iid)) is not None}
     html = mos.with_suffix(".html") if mos else None
     path = write_catalog(
         rectified, mos, out.parent, calibration=cal, report=report if report.exists() else None,
         mosaic_report=html if html and html.exists() else (mos.with_suffix(".json") if mos else None),
         quicklook=mos.with_suffix(".png") if mos else None, title=f"swathflow run of {m.name}",
-        catalog_id=f"swathflow-{m.name}", acquired=acquired,
+        catalog_id=f"swathflow-{m.name}", spans=spans,
         facts={Path(p).stem: f for p in rectified
                if (f := swings.recorded_facts(p)) is not None})
-    mark_done(out, key)
+    mark_done(out.parent, key)
     return path

@@ -221,3 +221,47 @@ def test_the_program_keeps_openblas_on_one_thread():
     assert r.stdout.splitlines()[-1].split() == ["1", "1"], r.stdout + r.stderr
     r = _python(code, env=dict(env, OPENBLAS_NUM_THREADS="2"))
     assert r.stdout.splitlines()[-1].split()[0] == "2", r.stdout + r.stderr
+
+
+def test_demo_summary_names_the_products_to_open_first(tmp_path):
+    """The demo's closing lines give the mosaic's HTML report and quicklook and the
+    calibration report with their paths, and leave out what was not written."""
+    from swathflow.flows.cli.commands import demo_products, demo_summary
+    products = tmp_path / "products"
+    (products / "calibration").mkdir(parents=True)
+    for name in ("mosaic.tif", "mosaic.html", "mosaic.png", "calibration/report.html"):
+        (products / name).write_text("x")
+    result = {"mosaic": str(products / "mosaic.tif"),
+              "report": str(products / "calibration" / "report.html")}
+    assert demo_products(result) == [
+        ("mosaic report", str(products / "mosaic.html")),
+        ("mosaic quicklook", str(products / "mosaic.png")),
+        ("calibration report", str(products / "calibration" / "report.html"))]
+    text = demo_summary(result, 61.4)
+    assert text.startswith("demo finished in 61 s")
+    assert all(str(p) in text for p in (products / "mosaic.html", products / "mosaic.png"))
+    (products / "mosaic.png").unlink()
+    assert [w for w, _ in demo_products(result)] == ["mosaic report", "calibration report"]
+    assert demo_products({"mosaic": None, "report": None}) == []
+
+
+def test_demo_folder_inside_a_clone_leaves_git_status_clean(tmp_path):
+    """The demo's folder marks itself ignored by git (what it writes, its lock included);
+    a folder holding a person's own files is left alone."""
+    from swathflow.flows.cli.commands import ignored_by_git
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    demo = tmp_path / "swathflow-demo"
+    demo.mkdir()
+    (demo / ".swathflow.lock").write_text("1\n")
+    ignored_by_git(demo)
+    for name in ("mission/mission.toml", "products/mosaic.tif"):
+        (demo / name).parent.mkdir(exist_ok=True)
+        (demo / name).write_text("x")
+    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"],
+                            cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert status.stdout == ""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    ignored_by_git(mine)
+    assert not (mine / ".gitignore").exists()

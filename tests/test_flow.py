@@ -64,7 +64,7 @@ def _check_catalog(result: dict):
     from shapely.ops import transform
     from stac_schemas import validate_extensions
     cat = pystac.Catalog.from_file(result["catalog"])
-    items = {i.id: i for i in cat.get_items()}
+    items = {i.properties["swathflow:image_id"]: i for i in cat.get_items(recursive=True)}
     products = {Path(p).stem: p for p in result["rectified"]} | {"mosaic": result["mosaic"]}
     assert set(items) == set(products)
     for iid, path in products.items():
@@ -75,6 +75,9 @@ def _check_catalog(result: dict):
             to = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
         area = transform(to.transform, shape(items[iid].geometry)).area
         assert abs(area - valid) < 0.03 * valid, (iid, area, valid)
+        # acquired on the simulated flight's date (GPS seconds of week from Wednesday noon)
+        start = items[iid].common_metadata.start_datetime
+        assert start.date().isoformat() == "2024-06-05" and start.hour in (11, 12), start
 
 
 def _check_same_as_cli_and_api(mission: Path, result: dict, cal: str, out: Path):

@@ -287,14 +287,51 @@ def _first_run_notice(args) -> None:
               "load them from its cache)", file=sys.stderr)
 
 
+#: what ``swathflow demo`` writes into its folder (and the output lock): the folder may be
+#: marked ignored by git only when it holds nothing else
+DEMO_ENTRIES = frozenset({"mission", "products", ".gitignore", ".swathflow.lock"})
+
+
+def ignored_by_git(folder: Path) -> None:
+    """Mark the demo's folder ignored by git (a ``.gitignore`` of ``*``, as pytest marks its
+    cache), so that a demo run inside a clone leaves ``git status`` clean. A folder holding
+    anything the demo does not write (a person's own folder given as ``--out``) is left
+    alone."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if {p.name for p in folder.iterdir()} <= DEMO_ENTRIES and not (folder / ".gitignore").exists():
+        from swathflow.io import write_text
+        write_text(folder / ".gitignore", "# written by 'swathflow demo': ignore this folder\n*\n")
+
+
+def demo_products(result: dict) -> list[tuple[str, str]]:
+    """(what, path) of the products a person opens first after the demo, those that exist:
+    the mosaic's HTML report and quicklook, then the calibration report."""
+    found = []
+    mosaic = result.get("mosaic")
+    if mosaic:
+        stem = os.path.splitext(os.path.abspath(mosaic))[0]
+        found += [("mosaic report", stem + ".html"), ("mosaic quicklook", stem + ".png")]
+    if result.get("report"):
+        found.append(("calibration report", os.path.abspath(result["report"])))
+    return [(what, path) for what, path in found if os.path.exists(path)]
+
+
+def demo_summary(result: dict, seconds: float) -> str:
+    """The demo's closing lines: its time and the products to open first, with paths."""
+    lines = [f"demo finished in {seconds:.0f} s; open these first:"]
+    lines += [f"  {what:<19} {path}" for what, path in demo_products(result)]
+    return "\n".join(lines)
+
+
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
     from swathflow.flows import standby
     standby.start()     # Prefect's server code imported meanwhile, on the other core
+    out = Path(args.out).resolve()
+    ignored_by_git(out)
     _lean_imports()
     run_flow = _flow_run()
     from swathflow.simulation import simulate as simulate_mission
-    out = Path(args.out).resolve()
     mission = out / "mission"
     t0 = time.perf_counter()
     _first_run_notice(args)
@@ -306,6 +343,5 @@ def demo(args) -> int:
             simulate_mission(mission, preset=args.preset, seed=0)
         result = run_flow(mission, out / "products")
     _print_summary(result, args)
-    _echo(args, f"demo finished in {time.perf_counter() - t0:.0f} s; open "
-          f"{result.get('report') or ''}")
+    _echo(args, demo_summary(result, time.perf_counter() - t0))
     return 0

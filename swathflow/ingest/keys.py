@@ -14,7 +14,7 @@ KNOWN_KEYS = {
     "": ("mission", "sensor", "pos", "terrain", "gcp", "images", "calibration", "ties",
          "rectify", "reference"),
     "reference": ("ortho", "dem", "ties"),
-    "mission": ("name", "crs", "gsd", "max_pixels", "description"),
+    "mission": ("name", "crs", "gsd", "max_pixels", "description", "date"),
     "pos": ("file", "format", "max_gap"),
     "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
     "gcp": ("file", "crs"),

@@ -85,6 +85,24 @@ class Mission:
                          image_id=e.id, direction=e.direction, strip=e.strip, **e.attrs)
 
     @property
+    def date(self):
+        """The flight's UTC date (``[mission] date``, a ``datetime.date``), or None."""
+        from swathflow.formats.gpstime import flight_date
+        return flight_date(self.config.get("mission", {}).get("date"))
+
+    def acquisition_span(self, image_id: str):
+        """The UTC times (start, end) of an image's first and last lines, or None without
+        a flight date (line times are GPS seconds of week; see
+        :mod:`swathflow.formats.gpstime`)."""
+        from swathflow.formats.gpstime import gps_seconds_of_week_to_utc
+        day = self.date
+        if day is None:
+            return None
+        t = self.lines(image_id)["time"]
+        return (gps_seconds_of_week_to_utc(float(np.min(t)), day),
+                gps_seconds_of_week_to_utc(float(np.max(t)), day))
+
+    @property
     def image_ids(self) -> list[str]:
         return list(self.images)
 

@@ -85,6 +85,28 @@ def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: 
               "max_pixels = 2e9")
         mp = 2e9
     parts["max_pixels"] = float(mp)
+    parts["date"] = check_date(m.get("date"), toml, c)
+
+
+def check_date(value, toml, c: Collector):
+    """``[mission] date``: the flight's UTC date (a TOML date or an ISO string), or None."""
+    from swathflow.formats.gpstime import flight_date
+    try:
+        return flight_date(value)
+    except ValueError:
+        c.add(toml, "[mission].date", f"must be the flight's UTC date, got {value!r}",
+              "date = 2024-06-05 (the UTC date of the first POS epoch)")
+        return None
+
+
+def check_date_against_pos(date, traj, toml, c: Collector) -> None:
+    """The flight date must hold the POS's first epoch (GPS seconds of week)."""
+    from swathflow.formats.gpstime import date_mismatch
+    why = date_mismatch(float(traj.time[0]), date)
+    if why:
+        c.add(toml, "[mission].date", why,
+              "give the UTC date of the flight's first POS epoch, or remove the date (the "
+              "catalogue then dates the products by their processing time)")
 
 
 def _positive(v) -> bool:
@@ -366,6 +388,8 @@ def inspect(path) -> tuple[list[Problem], dict]:
     check_terrain(cfg, root, toml, c, parts)
     check_images(cfg, root, toml, c, parts)
     traj = parts["trajectory"]
+    if parts.get("date") is not None and traj is not None:
+        check_date_against_pos(parts["date"], traj, toml, c)
     crs = parts["crs"]
     if isinstance(crs, str) and crs.lower() == "auto-utm" and traj is not None:
         from swathflow.geometry.geodesy import utm_crs_for

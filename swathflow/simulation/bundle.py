@@ -69,7 +69,11 @@ class Plan:
     swing_period: float
     strip_duration: float
     strip_length: float
-    t0: float = 302400.0     # GPS seconds of week (Wednesday 12:00)
+    t0: float = 302400.0     # GPS seconds of week (Wednesday 12:00, on FLIGHT_DATE)
+
+
+#: the simulated flights' UTC date ([mission] date): a Wednesday, as Plan.t0 is
+FLIGHT_DATE = "2024-06-05"
 
 
 def make_trajectory(cfg, plan: Plan, terrain_mean: float, rng):
@@ -279,7 +283,8 @@ def write_mission_toml(out, preset, crs, gsd, pos_name, sensor_lines, priors, im
     the [sensor] section's lines, ``images`` (id, file, lines file, ``image_key`` value,
     strip) tuples."""
     L = [f"# simulated by swathflow simulate (preset {preset}); the truth is in truth/", "",
-         "[mission]", f'name = "sim-{preset}"', f'crs = "{crs}"', f"gsd = {gsd!r}", "",
+         "[mission]", f'name = "sim-{preset}"', f'crs = "{crs}"', f"gsd = {gsd!r}",
+         f"date = {FLIGHT_DATE}", "",
          "[sensor]", *sensor_lines]
     L += ["", "[pos]", f'file = "{pos_name}"',
           f'format = "{"sbet" if pos_name.endswith(".sbet") else "csv"}"', "",
