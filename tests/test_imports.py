@@ -184,8 +184,9 @@ def _owner(module: str, groups: list[str]) -> bool:
     return any(module == g or module.startswith(g + ".") for g in groups)
 
 
-def _chain(graph, start: str, targets) -> list[str] | None:
-    """The shortest import chain from ``start`` to a module for which ``targets`` is true."""
+def _chain(graph, start: str, forbidden: list[str], own: list[str]) -> list[str] | None:
+    """The shortest import chain from ``start`` to a module of ``forbidden`` that is not
+    one of ``own``."""
     prev = {start: None}
     todo = deque([start])
     while todo:
@@ -194,7 +195,7 @@ def _chain(graph, start: str, targets) -> list[str] | None:
             if w in prev:
                 continue
             prev[w] = v
-            if targets(w):
+            if _owner(w, forbidden) and not _owner(w, own):
                 chain = [w]
                 while prev[chain[-1]] is not None:
                     chain.append(prev[chain[-1]])
@@ -215,7 +216,7 @@ def layer_violations(graph, contract: list[list[list[str]]]) -> list[str]:
             if not forbidden:
                 continue
             for mod in sorted(m for m in graph if _owner(m, group)):
-                chain = _chain(graph, mod, lambda m: _owner(m, forbidden) and not _owner(m, group))
+                chain = _chain(graph, mod, forbidden, group)
                 if chain:
                     found.append(" -> ".join(chain))
     return found
