@@ -29,7 +29,7 @@ from pathlib import Path
 from cputime import children_cpu  # this folder (the scripts' own)
 
 # as `swathflow run` (flows/cli/commands.py) does it, through its own steps: Prefect's
-# standby server spawned first, dask.array imported lean, the inputs checked (the mission
+# standby server spawned first, the inputs checked (the mission
 # loaded once, memoised for the flow), the server handed its port, then the flow; with the
 # number of Dask workers the command line leaves to the machine (one per core)
 _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"

@@ -324,9 +324,9 @@ marks = []
 def mark(name):
     marks.append((name, time.perf_counter() - t0, time.process_time() - c0))
 import swathflow.flows.cli.commands as C
-lean = C._lean_imports
-def lean_imports():
-    mark("command parsed"); lean(); mark("dask.array")
+command = C.rectify
+def rectify(args):
+    mark("command parsed")
     import swathflow.rectification.mission as M
     mark("engine imported")
     load, warm, run = M.load_mission, M._warm, M._run
@@ -337,7 +337,8 @@ def lean_imports():
     def run_(*a, **k):
         yield from run(*a, **k); mark("workers done")
     M.load_mission, M._warm, M._run = load_, warm_, run_
-C._lean_imports = lean_imports
+    return command(args)
+C.rectify = rectify
 from swathflow.flows.cli import main
 sys.argv = ["swathflow", "rectify", *sys.argv[1:]]
 try:

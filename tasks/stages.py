@@ -15,7 +15,7 @@ from prefect.cache_policies import NO_CACHE
 
 from swathflow.cache import is_fresh, mark_done, stage_key
 from swathflow.errors import SwathflowError
-from swathflow.tasks import ahead, swings
+from swathflow.tasks import swings
 
 
 _load = swings.load
@@ -171,7 +171,6 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
     if is_fresh(out, key):
         return str(out)
     control = mosaic_control(mission_path, calibration) if use_gcp else None
-    ahead.wait()        # a new install: the kernels being compiled ahead, loaded instead
     strips = {iid: e.strip for iid, e in m.images.items()} if m is not None else None
     write_mosaic(list(rectified), out, control=control, strips=strips)
     mark_done(out, key)

@@ -118,9 +118,8 @@ def calibrate(args) -> int:
 def rectify(args) -> int:
     """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image,
     each ``swathflow.to_cog(swathflow.rectify(...))`` (through ``rectify_mission``)."""
-    from swathflow.startup import uncollected
+    from swathflow.collector import uncollected
     with uncollected():
-        _lean_imports()
         from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
     if not args.calibration:
@@ -137,29 +136,9 @@ def rectify(args) -> int:
     return 0
 
 
-def _lean_imports() -> None:
-    """Load ``dask.array`` without the parts it imports for features no rectification
-    uses (``scipy.fftpack``, ``scipy.sparse``, and ``jinja2`` of dask's notebook HTML
-    views: 0.15 CPU-s on the command's serial start, before its workers fork), and
-    without building its docstrings from numpy's (0.16 CPU-s more; see
-    :mod:`swathflow.startup`). Only the process of the command (rectify, run, demo) is
-    concerned; the modules held back stay importable (Prefect imports jinja2 later).
-    numba's compiled kernels load from their cache without its compiler's contexts
-    (:mod:`swathflow.jit`)."""
-    from swathflow.startup import import_without, underived_docstrings
-    held = ("scipy.fftpack", "scipy.sparse", "jinja2")
-    import_without(held, "dask")            # dask.utils, for underived_docstrings
-    with underived_docstrings():
-        import_without(held, "dask.array")
-
-
 def _flow_run():
-    """The flow's ``run``, its module imported with Prefect's notification and webhook
-    block models left unrun until used (``import prefect`` defines them, 0.3-0.7 CPU-s on
-    the run's serial start; a flow run never uses them; see :mod:`swathflow.startup`)."""
-    from swathflow.startup import lazy_modules
-    with lazy_modules(("prefect.blocks.notifications", "prefect.blocks.webhook")):
-        from swathflow.flows.mission import run
+    """The flow's ``run``."""
+    from swathflow.flows.mission import run
     return run
 
 
@@ -243,24 +222,21 @@ def run(args) -> int:
               f"(products in {os.path.abspath(args.out)})")
         return 0
     _checked(args.mission, args.calibration)
-    from swathflow.tasks.ahead import in_background
-    with in_background():       # a new install: the mosaic's kernels compiled meanwhile
-        run_flow = _served_flow()
-        result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
-                          args.cluster, args.jobs)
+    run_flow = _served_flow()
+    result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
+                      args.cluster, args.jobs)
     _print_summary(result, args)
     return 0
 
 
 def _checked(mission, calibration) -> None:
     """The first steps of ``swathflow run``: Prefect's standby spawned (its server code
-    imported from now on, on the other core), ``dask.array`` imported lean, and the inputs
-    checked (bad input is told here, before Prefect and Dask start)."""
+    imported from now on, on the other core) and the inputs checked (bad input is told
+    here, before Prefect and Dask start)."""
     from swathflow.flows import standby
     standby.start()
-    from swathflow.startup import uncollected
+    from swathflow.collector import uncollected
     with uncollected(freeze=False):
-        _lean_imports()
         from swathflow.flows.guard import check_run_inputs
         check_run_inputs(mission, calibration)
 
@@ -270,7 +246,7 @@ def _served_flow():
     modules are imported) and the flow's ``run``; the objects made until then (the
     checked mission, Prefect's modules) frozen out of the collector's reach."""
     from swathflow.flows import standby
-    from swathflow.startup import uncollected
+    from swathflow.collector import uncollected
     with uncollected():
         standby.serve()
         return _flow_run()
@@ -279,7 +255,7 @@ def _served_flow():
 def _first_run_notice(args) -> None:
     """Say so when numba's cache is empty (a new install or clone): the kernels are
     compiled for this machine during the run, once."""
-    from swathflow.jit import cached
+    from swathflow.kernelcache import cached
     from swathflow.rectification.paint import paint_window    # every run calls it
     if not cached(paint_window):
         _echo(args, "first run of this install: numba compiles swathflow's kernels for this "
@@ -329,19 +305,16 @@ def demo(args) -> int:
     standby.start()     # Prefect's server code imported meanwhile, on the other core
     out = Path(args.out).resolve()
     ignored_by_git(out)
-    _lean_imports()
     run_flow = _flow_run()
     from swathflow.simulation import simulate as simulate_mission
     mission = out / "mission"
     t0 = time.perf_counter()
     _first_run_notice(args)
-    from swathflow.tasks.ahead import in_background
-    with in_background():       # a new install: the mosaic's kernels compiled meanwhile
-        if not (mission / "mission.toml").exists():
-            _echo(args, f"simulating the {args.preset} mission into {mission} ...",
-                  file=sys.stderr)
-            simulate_mission(mission, preset=args.preset, seed=0)
-        result = run_flow(mission, out / "products")
+    if not (mission / "mission.toml").exists():
+        _echo(args, f"simulating the {args.preset} mission into {mission} ...",
+              file=sys.stderr)
+        simulate_mission(mission, preset=args.preset, seed=0)
+    result = run_flow(mission, out / "products")
     _print_summary(result, args)
     _echo(args, demo_summary(result, time.perf_counter() - t0))
     return 0

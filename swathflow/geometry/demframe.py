@@ -17,8 +17,8 @@ import weakref
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from swathflow.geometry.geodesy_kernel import geodetic_of_points
-from swathflow.jit import njit
 
 #: the frame's largest error (m) in position and height, checked when it is fitted
 FRAME_TOL = 1e-6

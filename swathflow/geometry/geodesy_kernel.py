@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from swathflow.jit import njit
+from numba import njit
 
 #: WGS84: semi-major axis (m), flattening, first eccentricity squared, semi-minor axis (m),
 #: second eccentricity squared

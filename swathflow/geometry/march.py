@@ -20,9 +20,10 @@ import math
 
 import numpy as np
 
+from numba import njit
+
 from swathflow.geometry.demframe import BLOCK, dem_frame, poly, poly3, tile_of
 from swathflow.geometry.geodesy_kernel import WGS84_A, WGS84_B, lat_lon_h
-from swathflow.jit import njit
 
 @njit(cache=True, nogil=True)
 def shell_hits(o, d, h):

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 from swathflow.rectification import gather1
 from swathflow.rectification.pages import memmap_of, release_pages
 from swathflow.rectification.taps import checked_tap, finish, pixel_taps, step_off, taps_1d

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 from swathflow.rectification.taps import pixel_taps, step_off
 
 

@@ -23,7 +23,7 @@ import sys
 import threading
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 
 #: kernel codes
 NEAREST, BILINEAR, CUBIC = 0, 1, 2

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 
 
 @njit(cache=True, nogil=True, inline="always")
