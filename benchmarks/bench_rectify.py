@@ -4,22 +4,23 @@ same swing, the same output grid and the same kernel, plus the paper's polynomia
 
 All peers get the geolocation arrays our own model computes (pixel CORNER convention for
 GDAL: the array value at [i, j] is the ground position of raw coordinate (i - 0.5, j - 0.5),
-see shared/DESIGN.md). Positional error: subpixel shift against the truth ortho (analytic
+as GDAL documents its geolocation arrays). Positional error: subpixel shift against the truth ortho (analytic
 texture at the output pixel centres) over the whole footprint and per 128-px tile.
 
     .venv/bin/python benchmarks/bench_rectify.py                  # side by side, 5x and 1x grids
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m  # whole command vs GDAL
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.11,0.4 \
-        --baseline /work/main/.venv/bin/swathflow        # output sizes; another build beside
+        --baseline OLD/bin/swathflow        # output sizes; another build beside
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.05 --timeline
         # ours alone: the serial start (imports, mission, warm-up), then the workers
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.05 --zstd
         # ours also with --compress zstd, alternated with ours (the codec's share)
     .venv/bin/python benchmarks/bench_rectify.py --startup         # start-up, numba cache warm/cold
     .venv/bin/python benchmarks/bench_rectify.py --startup --command /tmp/m \
-        --baseline /work/main/.venv/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
+        --baseline OLD/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
     .venv/bin/python benchmarks/bench_rectify.py --cube 100        # 100-band uint16 cube
     .venv/bin/python benchmarks/bench_rectify.py --igm             # image_to_ground on a DEM
+(OLD: the virtual environment of another build, e.g. main's, installed beside this one)
     .venv/bin/python benchmarks/bench_rectify.py --phases --lines 1400 --elements 512
         # ours only, one thread: CPU ms a job of the lattice, the model, paint and gather
     .venv/bin/python benchmarks/bench_rectify.py --memory          # 2048 x 20000 swing, peak RSS
