@@ -1,0 +1,120 @@
+"""Ground errors of the control and check points in metres (east, north, up), and their
+accuracy table in the ASPRS layout (RMSE per axis, horizontal and vertical, mean, max,
+count), beside the image residuals in pixels.
+
+An observation's residual ``r = observed - computed`` (line, element; px) is carried to the
+ground through the model's Jacobian ``J`` (px per metre of east, north, up at the surveyed
+point): the image-derived position minus the surveyed one, ``d``, solves ``J d = r``. A
+point seen in two or more images (left and right swings look from different sides) gets
+``d`` in 3-D by least squares over its rays (a space intersection); a point seen once gets
+east and north at the surveyed height (up is then not observable: NaN).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["JACOBIAN", "enu_basis", "ground_jacobian", "point_errors", "accuracy_table"]
+
+#: the residual table's Jacobian columns: d(line, element) / d(east, north, up), px/m
+JACOBIAN = ("dl_de", "dl_dn", "dl_du", "dp_de", "dp_dn", "dp_du")
+#: NSSDA / ASPRS factors from RMSE to accuracy at 95 % confidence: horizontal (radial,
+#: for RMSE_E ~ RMSE_N) and vertical
+H95, V95 = 1.7308, 1.9600
+#: a multi-ray solution is kept when its weakest direction is at least this fraction of
+#: the strongest (the rays cross at a useful angle)
+MIN_CONDITION = 0.02
+
+
+def enu_basis(lat_deg, lon_deg) -> np.ndarray:
+    """``(..., 3, 3)`` rows: the east, north and up unit vectors in ECEF."""
+    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    z = np.zeros_like(sl)
+    east = np.stack([-so, co, z], -1)
+    north = np.stack([-sl * co, -sl * so, cl], -1)
+    up = np.stack([cl * co, cl * so, sl], -1)
+    return np.stack([east, north, up], -2)
+
+
+def ground_jacobian(model, xyz: np.ndarray, lat, lon, step: float = 0.5) -> np.ndarray:
+    """``(n, 2, 3)``: d(line, element) / d(east, north, up) (px per m) of ``model`` at the
+    ECEF points ``xyz``, by central differences of ``step`` metres."""
+    basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))      # (n, 3, 3)
+    out = np.empty((len(xyz), 2, 3))
+    for k in range(3):
+        d = step * basis[:, k, :]
+        hi = model.ground_to_image(xyz + d, clip=False)
+        lo = model.ground_to_image(xyz - d, clip=False)
+        out[:, :, k] = (hi - lo) / (2 * step)
+    return out
+
+
+def _solve(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(east, north, up) from stacked rays ``J`` (2k, 3) and residuals ``r`` (2k,): 3-D
+    when the rays cross at a useful angle (second return True), else east and north with
+    up held (up NaN)."""
+    if len(J) >= 4:
+        s = np.linalg.svd(J, compute_uv=False)
+        if s[-1] >= MIN_CONDITION * s[0]:
+            return np.linalg.lstsq(J, r, rcond=None)[0], True
+    en = np.linalg.lstsq(J[:, :2], r, rcond=None)[0]
+    return np.array([en[0], en[1], np.nan]), False
+
+
+def point_errors(res: pd.DataFrame) -> pd.DataFrame:
+    """One row per stage, role and point: the ground error ``east``, ``north``, ``up`` (m,
+    image-derived minus surveyed), ``horizontal`` (m), the number of ``rays`` (images)
+    and whether ``up`` was observed, from the residual table's rows with the Jacobian
+    columns (:data:`JACOBIAN`)."""
+    need = {"gcp_id", "stage", "role", "x", "y", *JACOBIAN}
+    cols = ["stage", "role", "gcp_id", "rays", "east", "north", "up", "horizontal"]
+    if not need <= set(res.columns):
+        return pd.DataFrame(columns=cols)
+    ok = res[list(("x", "y") + JACOBIAN)].notna().all(axis=1)
+    rows = []
+    for (stage, role, gid), g in res[ok].groupby(["stage", "role", "gcp_id"], sort=False):
+        J = np.stack([g[list(JACOBIAN[:3])].to_numpy(float),
+                      g[list(JACOBIAN[3:])].to_numpy(float)], 1).reshape(-1, 3)
+        r = np.stack([g["y"].to_numpy(float), g["x"].to_numpy(float)], 1).reshape(-1)
+        d, _ = _solve(J, r)
+        rows.append({"stage": stage, "role": role, "gcp_id": gid, "rays": len(g),
+                     "east": d[0], "north": d[1], "up": d[2],
+                     "horizontal": float(np.hypot(d[0], d[1]))})
+    return pd.DataFrame(rows, columns=cols)
+
+
+def _rmse(v: np.ndarray) -> float:
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v ** 2))) if v.size else np.nan
+
+
+def _mean(v: np.ndarray) -> float:
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else np.nan
+
+
+def accuracy_table(points: pd.DataFrame, res: pd.DataFrame | None = None) -> pd.DataFrame:
+    """The ASPRS-style table per stage and role from :func:`point_errors`: point count,
+    mean and RMSE of east, north and up (m), RMSE_H = sqrt(RMSE_E^2 + RMSE_N^2), the
+    largest horizontal and vertical error, the NSSDA accuracies at 95 % (1.7308 RMSE_H,
+    1.96 RMSE_U) and, from ``res``, the RMS of the image residuals x and y (px) beside
+    them."""
+    rows = []
+    for (stage, role), g in points.groupby(["stage", "role"], sort=False):
+        e, n, u = (g[c].to_numpy(float) for c in ("east", "north", "up"))
+        rmse_e, rmse_n, rmse_u = _rmse(e), _rmse(n), _rmse(u)
+        rmse_h = float(np.hypot(rmse_e, rmse_n))
+        row = {"stage": stage, "role": role, "points": len(g),
+               "with_up": int(np.isfinite(u).sum()),
+               "mean_E": _mean(e), "mean_N": _mean(n), "mean_U": _mean(u),
+               "RMSE_E": rmse_e, "RMSE_N": rmse_n, "RMSE_H": rmse_h, "RMSE_U": rmse_u,
+               "max_H": float(np.nanmax(np.hypot(e, n))) if len(g) else np.nan,
+               "max_U": float(np.nanmax(np.abs(u))) if np.isfinite(u).any() else np.nan,
+               "H95": H95 * rmse_h, "V95": V95 * rmse_u}
+        if res is not None:
+            q = res[(res["stage"] == stage) & (res["role"] == role)]
+            row["rms_x_px"] = _rmse(q["x"].to_numpy(float))
+            row["rms_y_px"] = _rmse(q["y"].to_numpy(float))
+        rows.append(row)
+    return pd.DataFrame(rows)
