@@ -47,7 +47,11 @@ def svg(fig: Figure) -> str:
     with matplotlib.rc_context(RC):
         fig.savefig(buf, format="svg", metadata={"Date": None, "Creator": None})
     text = buf.getvalue()
-    return text[text.index("<svg"):]
+    text = text[text.index("<svg"):]
+    # inline in HTML: the parser knows the SVG and xlink names; the RDF block says nothing
+    text = text.replace(' xmlns:xlink="http://www.w3.org/1999/xlink"', "", 1)
+    a, b = text.find("<metadata>"), text.find("</metadata>")
+    return text[:a] + text[b + len("</metadata>"):] if 0 <= a < b else text
 
 
 def write_png(fig: Figure, path) -> str:

@@ -6,18 +6,23 @@ An observation's residual ``r = observed - computed`` (line, element; px) is car
 ground through the model's Jacobian ``J`` (px per metre of east, north, up at the surveyed
 point): the image-derived position minus the surveyed one, ``d``, solves ``J d = r``. A
 point seen in two or more images (left and right swings look from different sides) gets
-``d`` in 3-D by least squares over its rays (a space intersection); a point seen once gets
-east and north at the surveyed height (up is then not observable: NaN).
+``d`` in 3-D by least squares over its rays (a space intersection, linearised at the
+surveyed point); a point seen once gets east and north where its ray meets the surveyed
+height (:func:`mono_errors`, iterated to convergence; up is then not observable: NaN).
 """
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 
-__all__ = ["JACOBIAN", "enu_basis", "ground_jacobian", "point_errors", "accuracy_table"]
+__all__ = ["JACOBIAN", "MONO", "enu_basis", "ground_jacobian", "mono_errors", "point_errors",
+           "accuracy_table"]
 
 #: the residual table's Jacobian columns: d(line, element) / d(east, north, up), px/m
 JACOBIAN = ("dl_de", "dl_dn", "dl_du", "dp_de", "dp_dn", "dp_du")
+#: the residual table's ground error of each observation on its own (m, at the surveyed
+#: height: :func:`mono_errors`)
+MONO = ("east_m", "north_m")
 #: NSSDA / ASPRS factors from RMSE to accuracy at 95 % confidence: horizontal (radial,
 #: for RMSE_E ~ RMSE_N) and vertical
 H95, V95 = 1.7308, 1.9600
@@ -50,6 +55,27 @@ def ground_jacobian(model, xyz: np.ndarray, lat, lon, step: float = 0.5) -> np.n
     return out
 
 
+def mono_errors(model, xyz: np.ndarray, lat, lon, image: np.ndarray,
+                iterations: int = 5) -> np.ndarray:
+    """``(n, 2)``: east, north (m) of where each observed ``image`` point (line, element)
+    meets its surveyed point's height, minus the surveyed ECEF point ``xyz``: Gauss-Newton
+    on ``ground_to_image`` in the point's horizontal plane (a pendulum's line coordinate
+    bends strongly near the swing's ends, where one linear step is off by decimetres)."""
+    basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))
+    d = np.zeros((len(xyz), 2))
+    for _ in range(iterations):
+        p = xyz + d[:, :1] * basis[:, 0, :] + d[:, 1:] * basis[:, 1, :]
+        r = image - model.ground_to_image(p, clip=False)
+        J = ground_jacobian(model, p, lat, lon)[:, :, :2]
+        ok = np.isfinite(J).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
+        step = np.full_like(d, np.nan)
+        step[ok] = (np.linalg.pinv(J[ok]) @ r[ok][..., None])[..., 0]
+        d = d + step
+        if np.nanmax(np.abs(step), initial=0.0) < 1e-4:
+            break
+    return d
+
+
 def _solve(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, bool]:
     """(east, north, up) from stacked rays ``J`` (2k, 3) and residuals ``r`` (2k,): 3-D
     when the rays cross at a useful angle (second return True), else east and north with
@@ -78,6 +104,8 @@ def point_errors(res: pd.DataFrame) -> pd.DataFrame:
                       g[list(JACOBIAN[3:])].to_numpy(float)], 1).reshape(-1, 3)
         r = np.stack([g["y"].to_numpy(float), g["x"].to_numpy(float)], 1).reshape(-1)
         d, _ = _solve(J, r)
+        if not np.isfinite(d[2]) and set(MONO) <= set(g.columns):
+            d[:2] = g[list(MONO)].to_numpy(float).mean(axis=0)     # the exact single ray
         rows.append({"stage": stage, "role": role, "gcp_id": gid, "rays": len(g),
                      "east": d[0], "north": d[1], "up": d[2],
                      "horizontal": float(np.hypot(d[0], d[1]))})

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from swathflow.adjustment import Solution
-from swathflow.calibration.accuracy import JACOBIAN, ground_jacobian
+from swathflow.calibration.accuracy import JACOBIAN, MONO, ground_jacobian, mono_errors
 from swathflow.calibration.points import point_context
 from swathflow.calibration.unknowns import Unknowns
 
@@ -27,8 +27,9 @@ def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.D
     """Observed minus computed per observation: x (element), y (line), pixels; with the
     point's context (:func:`~swathflow.calibration.points.point_context`) and the model's
     Jacobian d(line, element) / d(east, north, up) in px per metre at the surveyed point
-    (:data:`~swathflow.calibration.accuracy.JACOBIAN`: the residual in metres on the
-    ground, :func:`~swathflow.calibration.accuracy.point_errors`)."""
+    (:data:`~swathflow.calibration.accuracy.JACOBIAN`) and the observation's own ground
+    error east, north in metres (:data:`~swathflow.calibration.accuracy.MONO`): what
+    :func:`~swathflow.calibration.accuracy.point_errors` makes the ground errors of."""
     out = []
     for iid, grp in obs.groupby("image_id", sort=False):
         m = models[iid].with_vector(vectors[iid])
@@ -36,12 +37,15 @@ def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.D
         comp = m.ground_to_image(xyz, clip=False)
         ctx = point_context(models[iid], grp)
         jac = ground_jacobian(m, xyz, ctx["lat"], ctx["lon"]).reshape(-1, 6)
+        mono = mono_errors(m, xyz, ctx["lat"], ctx["lon"],
+                           grp[["line", "element"]].to_numpy(float))
         out.append(pd.DataFrame({
             "row": grp.index.to_numpy(), "gcp_id": grp["gcp_id"].to_numpy(), "image_id": iid,
             "direction": _direction(models[iid]), "role": grp["role"].to_numpy(),
             "stage": stage, "x": grp["element"].to_numpy(float) - comp[:, 1],
             "y": grp["line"].to_numpy(float) - comp[:, 0],
-            **ctx, **{c: jac[:, k] for k, c in enumerate(JACOBIAN)}}, index=grp.index))
+            **ctx, **{c: jac[:, k] for k, c in enumerate(JACOBIAN)},
+            **{c: mono[:, k] for k, c in enumerate(MONO)}}, index=grp.index))
     if not out:
         return pd.DataFrame(columns=["row", "gcp_id", "image_id", "direction", "role", "stage",
                                      "x", "y"])

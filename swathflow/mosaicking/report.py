@@ -311,7 +311,9 @@ def offsets_panels(ax_off, ax_rad, rep: dict, res_m: float) -> None:
     ax_rad.set_ylabel("radiometric offset removed (data units)")
     ax_rad.set_xlabel("node (strip or image)")
     step = max(1, n // 24)
-    ax_rad.set_xticks(x[::step], [str(nodes[q]["node"]) for q in range(0, n, step)])
+    for ax in (ax_off, ax_rad):
+        ax.set_xticks(x[::step], [str(nodes[q]["node"]) for q in range(0, n, step)])
+        ax.set_xlim(-0.6, n - 0.4)
 
 
 def _fit(shape, w, h):
@@ -351,10 +353,6 @@ def offsets_figure(rep: dict, layout):
     a, b = fig.subplots(1, 2)
     offsets_panels(a, b, rep, _res_m(layout))
     a.set_xlabel("node (strip or image)")
-    nodes = sorted(rep.get("nodes", []), key=lambda n: _node_order(n["node"]))
-    step = max(1, len(nodes) // 24)
-    a.set_xticks(np.arange(len(nodes))[::step], [str(nodes[q]["node"])
-                                                 for q in range(0, len(nodes), step)])
     return fig
 
 
