@@ -104,6 +104,9 @@ def map_frame(ax, crs_name: str, units: str = "m", bar: bool = True) -> None:
     ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel(f"easting ({units}), {crs_name}")
     ax.set_ylabel(f"northing ({units})")
+    from matplotlib.ticker import MaxNLocator
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]))
+    ax.yaxis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 2.5, 5, 10]))
     fmt = FuncFormatter(lambda v, _: f"{v:,.0f}".replace(",", "\u2009"))
     ax.xaxis.set_major_formatter(fmt)
     ax.yaxis.set_major_formatter(fmt)

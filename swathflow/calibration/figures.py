@@ -5,11 +5,11 @@ file.
 - the ground map: each control and check point's ground error (image-derived minus
   surveyed, east and north in metres: :mod:`swathflow.calibration.accuracy`) as a vector on
   a map in the points' UTM zone (coordinates in metres, a scale bar, a north arrow), before
-  and after the adjustment on one extent and one vector scale;
+  and after the adjustment on one extent (each with its vector key);
 - residuals (px) against time and each per-line quantity the sensor records (e.g. the
-  swing angle), per swing direction, before and after on shared axes;
-- per image: the residual vectors (px) over the image, before and after on one extent and
-  one vector scale.
+  swing angle), per swing direction, before and after;
+- per image: the residual vectors (px) over the image, before and after on one extent
+  (each with its vector key).
 """
 from __future__ import annotations
 
@@ -50,19 +50,21 @@ def _quiver_pair(axes, xs, ys, us, vs, colours, checks, key_units: str, box_frac
     panel's upper left corner giving its scale (the errors after the adjustment are often
     a hundredth of those before: one scale would hide them)."""
     width = abs(np.subtract(*axes[0].get_xlim()))
+    height = abs(np.subtract(*axes[0].get_ylim()))
+    room = min(box_frac * width, 0.3 * height)           # the longest arrow, data units
     for ax, x, y, u, v, c, chk in zip(axes, xs, ys, us, vs, colours, checks):
         mag = np.hypot(u, v)
         big = float(np.nanmax(mag)) if np.isfinite(mag).any() else 1.0
         big = big if big > 0 else 1.0
         key = _key_length(big)
         q = ax.quiver(x, y, u, v, color=c, angles="xy", scale_units="xy",
-                      scale=big / (box_frac * width), width=0.004, zorder=3)
+                      scale=big / room, width=0.004, zorder=3)
         ax.scatter(x[~chk], y[~chk], s=9, c="black", marker="o", zorder=4,
                    label="control point")
         if chk.any():
             ax.scatter(x[chk], y[chk], s=30, facecolors="none", edgecolors="black",
                        marker="s", zorder=4, label="check point")
-        ax.quiverkey(q, 0.04, 0.93, key, f"{key:g} {key_units}", labelpos="E",
+        ax.quiverkey(q, 0.10, 0.93, key, f"{key:g} {key_units}", labelpos="E",
                      coordinates="axes", color="#444444",
                      fontproperties={"size": 8})
 
@@ -91,12 +93,13 @@ def map_vectors(res: pd.DataFrame) -> str:
     axes = fig.subplots(1, 2, sharex=True, sharey=True)
     lo_e, hi_e = _pad(place["E"].min(), place["E"].max(), 0.15)
     lo_n, hi_n = _pad(place["N"].min(), place["N"].max(), 0.15)
-    side = max(hi_e - lo_e, hi_n - lo_n)                # square frames: one extent
+    we = max(hi_e - lo_e, 0.6 * (hi_n - lo_n))        # one extent for both panels, not
+    wn = max(hi_n - lo_n, 0.6 * (hi_e - lo_e))        # flatter than 0.6 either way
     ce, cn = (lo_e + hi_e) / 2, (lo_n + hi_n) / 2
     xs, ys, us, vs, cs, chks = [], [], [], [], [], []
     for ax, stage in zip(axes, STAGES):
-        ax.set_xlim(ce - side / 2, ce + side / 2)
-        ax.set_ylim(cn - side / 2, cn + side / 2)
+        ax.set_xlim(ce - we / 2, ce + we / 2)
+        ax.set_ylim(cn - wn / 2, cn + wn / 2)
         q = errs[errs["stage"] == stage]
         p = place.loc[q["gcp_id"]]
         xs.append(p["E"].to_numpy())
@@ -136,13 +139,13 @@ def _legend(fig, ax, direction) -> None:
 
 def image_vectors(res: pd.DataFrame, image_id: str) -> str:
     """Residual vectors (px) over the image, line along, element across; before above
-    after, on one extent (the image) and one vector scale."""
+    after, on one extent (each panel's vector scale in its key)."""
     r = res[res["image_id"] == image_id]
-    fig = figure(10.5, 4.6)
+    fig = figure(10.5, 5.0)
     axes = fig.subplots(2, 1, sharex=True, sharey=True)
     lines, elems = r["line"].to_numpy(float), r["element"].to_numpy(float)
     xlim = _pad(np.nanmin(lines), np.nanmax(lines), 0.04)
-    ylim = _pad(np.nanmin(elems), np.nanmax(elems), 0.12)
+    ylim = _pad(np.nanmin(elems), np.nanmax(elems), 0.25)
     xs, ys, us, vs, cs, chks = [], [], [], [], [], []
     for ax, stage in zip(axes, STAGES):
         ax.set_xlim(*xlim)
@@ -165,9 +168,10 @@ def image_vectors(res: pd.DataFrame, image_id: str) -> str:
 
 def against(res: pd.DataFrame, column: str, label: str) -> str:
     """Residual x and y (px) against ``column`` per direction: rows x, y; columns before,
-    after (shared axes)."""
+    after (one ``column`` axis; each panel's residual axis its own: the residuals after
+    the adjustment are often a hundredth of those before)."""
     fig = figure(10.5, 5.2)
-    axes = fig.subplots(2, 2, sharex=True, sharey="row")
+    axes = fig.subplots(2, 2, sharex=True)
     values = res[column].to_numpy(float)
     origin = float(np.nanmin(values)) if column == "time" else 0.0
     for j, stage in enumerate(STAGES):
@@ -198,7 +202,7 @@ def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:
     caption = ("Ground error of each point (position from the image minus the surveyed "
                "position, east and north in metres; a point seen in two or more images from "
                "their rays' intersection), before and after the adjustment, on one extent "
-               "and one vector scale (see the key); dots: control points, squares: check "
+               "(each panel's vector scale in its key); dots: control points, squares: check "
                "points")
     out = [("map", caption, map_vectors(res))]
     quantities = [("time", "time (s)")] if "time" in res.columns else []
@@ -208,7 +212,8 @@ def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:
                     against(res, col, label)))
     for iid in dict.fromkeys(res["image_id"]):
         out.append(("image", f"Residual vectors (px) over image {iid}, before and after the "
-                    "adjustment on one extent and one vector scale", image_vectors(res, iid)))
+                    "adjustment on one extent (each panel's vector scale in its key)",
+                    image_vectors(res, iid)))
     return out
 
 

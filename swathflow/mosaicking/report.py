@@ -331,8 +331,14 @@ def map_figure(rep: dict, grey, layout):
     ax = fig.add_subplot()
     sm = map_panel(ax, rep, grey, layout)
     ax.set_title("per-overlap residuals on the mosaic: " + _summary(rep), fontsize=9)
-    fig.colorbar(sm, ax=ax, shrink=0.8, label="residual after adjustment (px)")
+    _colour_bar(fig, ax, sm, rep)
     return fig
+
+
+def _colour_bar(fig, ax, sm, rep, shrink=0.8) -> None:
+    """The residual colour bar, when an overlap is coloured by its residual."""
+    if np.isfinite(_scale(rep)[0]).any():
+        fig.colorbar(sm, ax=ax, shrink=shrink, label="residual after adjustment (px)")
 
 
 def graph_figure(rep: dict, layout):
@@ -343,7 +349,7 @@ def graph_figure(rep: dict, layout):
     sm = graph_panel(ax, rep, layout)
     ax.set_title(f"{len(_node_places(rep, layout))} nodes, {len(rep.get('overlaps', []))} "
                  f"overlaps (each an edge between its swings' centres)", fontsize=9)
-    fig.colorbar(sm, ax=ax, shrink=0.8, label="residual after adjustment (px)")
+    _colour_bar(fig, ax, sm, rep)
     return fig
 
 
@@ -371,7 +377,7 @@ def seams_picture(mosaic_path, rep: dict, layout, png_path, grey=None, f=None) -
     grid = fig.add_gridspec(2, 2, width_ratios=[pw + 1.5, 6.0])
     ax = fig.add_subplot(grid[:, 0])
     sm = map_panel(ax, rep, grey, layout)
-    fig.colorbar(sm, ax=ax, shrink=0.6, label="residual after adjustment (px)")
+    _colour_bar(fig, ax, sm, rep, 0.6)
     offsets_panels(fig.add_subplot(grid[0, 1]), fig.add_subplot(grid[1, 1]), rep,
                    _res_m(layout))
     fig.suptitle(f"mosaic {os.path.basename(os.fspath(mosaic_path))}: {layout.shape[0]} x "
