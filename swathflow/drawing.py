@@ -32,11 +32,19 @@ RC = {"svg.hashsalt": "swathflow", "svg.fonttype": "none", "font.size": 9,
 DIRECTION_COLOURS = {"L": "#1f77b4", "R": "#d62728"}
 
 
-def figure(width: float, height: float, **kw) -> Figure:
-    """A figure of ``width`` x ``height`` inches on its own Agg canvas (constrained
-    layout)."""
+def figure(width: float, height: float, margins=None, wspace: float = 0.2,
+           hspace: float = 0.2, **kw) -> Figure:
+    """A figure of ``width`` x ``height`` inches on its own Agg canvas: constrained layout,
+    or with ``margins`` (left, right, bottom, top in inches) fixed margins (half the
+    drawing time: constrained layout measures every tick label again and again)."""
+    layout = None if margins is not None else kw.pop("layout", "constrained")
     with matplotlib.rc_context(RC):
-        fig = Figure(figsize=(width, height), layout=kw.pop("layout", "constrained"), **kw)
+        fig = Figure(figsize=(width, height), layout=layout, **kw)
+    if margins is not None:
+        left, right, bottom, top = margins
+        fig.subplots_adjust(left=left / width, right=1 - right / width,
+                            bottom=bottom / height, top=1 - top / height,
+                            wspace=wspace, hspace=hspace)
     FigureCanvasAgg(fig)
     return fig
 

@@ -23,6 +23,8 @@ __all__ = ["seams_picture", "map_figure", "graph_figure", "offsets_figure", "gra
            "arrow_ends", "node_line", "write_report"]
 
 COLOUR_MAP = "plasma"
+#: a map figure's margins (inches: left, right, bottom, top): tick labels and axis labels
+MAP_MARGINS = (0.85, 0.15, 0.6, 0.35)
 SKIPPED, REJECTED, NODE, ANCHOR = "#888888", "#e00000", "#1f77b4", "#2ca02c"
 
 
@@ -327,7 +329,7 @@ def map_figure(rep: dict, grey, layout):
     """The residual map as a figure (with its colour bar)."""
     from swathflow.drawing import figure
     pw, ph = _fit(layout.shape, 8.0, 7.0)
-    fig = figure(pw + 2.2, ph + 1.2)
+    fig = figure(pw + 2.4, ph + 1.3, margins=MAP_MARGINS)
     ax = fig.add_subplot()
     sm = map_panel(ax, rep, grey, layout)
     ax.set_title("per-overlap residuals on the mosaic: " + _summary(rep), fontsize=9)
@@ -344,7 +346,7 @@ def _colour_bar(fig, ax, sm, rep, shrink=0.8) -> None:
 def graph_figure(rep: dict, layout):
     from swathflow.drawing import figure
     pw, ph = _fit(layout.shape, 8.0, 7.0)
-    fig = figure(pw + 2.2, ph + 1.2)
+    fig = figure(pw + 2.4, ph + 1.3, margins=MAP_MARGINS)
     ax = fig.add_subplot()
     sm = graph_panel(ax, rep, layout)
     ax.set_title(f"{len(_node_places(rep, layout))} nodes, {len(rep.get('overlaps', []))} "
@@ -355,7 +357,7 @@ def graph_figure(rep: dict, layout):
 
 def offsets_figure(rep: dict, layout):
     from swathflow.drawing import figure
-    fig = figure(10.5, 3.6)
+    fig = figure(10.5, 3.6, margins=(0.75, 0.2, 0.6, 0.35), wspace=0.45)
     a, b = fig.subplots(1, 2)
     offsets_panels(a, b, rep, _res_m(layout))
     a.set_xlabel("node (strip or image)")
@@ -373,7 +375,8 @@ def seams_picture(mosaic_path, rep: dict, layout, png_path, grey=None, f=None) -
         data, f = overview(mosaic_path, 900)
         grey = stretch(data)
     pw, ph = _fit(layout.shape, 7.5, 7.5)
-    fig = figure(pw + 7.5, max(ph + 1.0, 7.0))
+    fig = figure(pw + 8.0, max(ph + 1.3, 7.0), margins=(0.85, 0.8, 0.6, 0.6), wspace=0.45,
+                 hspace=0.35)
     grid = fig.add_gridspec(2, 2, width_ratios=[pw + 1.5, 6.0])
     ax = fig.add_subplot(grid[:, 0])
     sm = map_panel(ax, rep, grey, layout)
