@@ -42,37 +42,42 @@ def enu_basis(lat_deg, lon_deg) -> np.ndarray:
     return np.stack([east, north, up], -2)
 
 
-def ground_jacobian(model, xyz: np.ndarray, lat, lon, step: float = 0.5) -> np.ndarray:
+def ground_jacobian(model, xyz: np.ndarray, lat, lon, step: float = 0.5,
+                    at: np.ndarray | None = None) -> np.ndarray:
     """``(n, 2, 3)``: d(line, element) / d(east, north, up) (px per m) of ``model`` at the
-    ECEF points ``xyz``, by central differences of ``step`` metres."""
+    ECEF points ``xyz`` by forward differences of ``step`` metres (``at``: the points'
+    image coordinates, when known)."""
     basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))      # (n, 3, 3)
+    at = model.ground_to_image(xyz, clip=False) if at is None else at
     out = np.empty((len(xyz), 2, 3))
     for k in range(3):
-        d = step * basis[:, k, :]
-        hi = model.ground_to_image(xyz + d, clip=False)
-        lo = model.ground_to_image(xyz - d, clip=False)
-        out[:, :, k] = (hi - lo) / (2 * step)
+        out[:, :, k] = (model.ground_to_image(xyz + step * basis[:, k, :], clip=False)
+                        - at) / step
     return out
 
 
-def mono_errors(model, xyz: np.ndarray, lat, lon, image: np.ndarray,
-                iterations: int = 5) -> np.ndarray:
+def mono_errors(model, xyz: np.ndarray, lat, lon, image: np.ndarray, jac: np.ndarray,
+                computed: np.ndarray, iterations: int = 8) -> np.ndarray:
     """``(n, 2)``: east, north (m) of where each observed ``image`` point (line, element)
-    meets its surveyed point's height, minus the surveyed ECEF point ``xyz``: Gauss-Newton
-    on ``ground_to_image`` in the point's horizontal plane (a pendulum's line coordinate
-    bends strongly near the swing's ends, where one linear step is off by decimetres)."""
+    meets its surveyed point's height, minus the surveyed ECEF point ``xyz``: Newton-chord
+    steps on ``ground_to_image`` in the point's horizontal plane with the Jacobian ``jac``
+    at the surveyed point (``computed``: its image position), one model call a step (a
+    pendulum's line coordinate bends strongly near the swing's ends, where one linear
+    step is off by decimetres)."""
     basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))
+    J = jac[:, :, :2]
+    ok = np.isfinite(J).all(axis=(1, 2)) & np.isfinite(image - computed).all(axis=1)
+    inv = np.full(J.shape, np.nan)
+    inv[ok] = np.linalg.pinv(J[ok])
+    r = image - computed
     d = np.zeros((len(xyz), 2))
     for _ in range(iterations):
+        step = (inv @ r[..., None])[..., 0]
+        d = d + step
+        if not np.nanmax(np.abs(step), initial=0.0) > 1e-4:
+            break
         p = xyz + d[:, :1] * basis[:, 0, :] + d[:, 1:] * basis[:, 1, :]
         r = image - model.ground_to_image(p, clip=False)
-        J = ground_jacobian(model, p, lat, lon)[:, :, :2]
-        ok = np.isfinite(J).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
-        step = np.full_like(d, np.nan)
-        step[ok] = (np.linalg.pinv(J[ok]) @ r[ok][..., None])[..., 0]
-        d = d + step
-        if np.nanmax(np.abs(step), initial=0.0) < 1e-4:
-            break
     return d
 
 

@@ -89,7 +89,7 @@ def map_vectors(res: pd.DataFrame) -> str:
     """Ground errors (m) of the points on a UTM map, before | after: one extent, one vector
     scale; coloured by the swing direction that saw the point (grey: both)."""
     place, errs, direction, crs_name = _points_on_map(res)
-    fig = figure(10.5, 5.4)
+    fig = figure(10.5, 5.4, margins=(0.85, 0.15, 0.95, 0.3), wspace=0.12)
     axes = fig.subplots(1, 2, sharex=True, sharey=True)
     lo_e, hi_e = _pad(place["E"].min(), place["E"].max(), 0.15)
     lo_n, hi_n = _pad(place["N"].min(), place["N"].max(), 0.15)
@@ -133,15 +133,14 @@ def _legend(fig, ax, direction) -> None:
     if not any(d in seen for d in list(DIRECTION_COLOURS) + ["both"]) and len(seen):
         handles.append(Line2D([], [], color=OTHER, lw=2))
         labels.append("ground error")
-    fig.legend(handles, labels, loc="outside lower center", ncols=len(handles),
-               frameon=False)
+    fig.legend(handles, labels, loc="lower center", ncols=len(handles), frameon=False)
 
 
 def image_vectors(res: pd.DataFrame, image_id: str) -> str:
     """Residual vectors (px) over the image, line along, element across; before above
     after, on one extent (each panel's vector scale in its key)."""
     r = res[res["image_id"] == image_id]
-    fig = figure(10.5, 5.0)
+    fig = figure(10.5, 5.0, margins=(0.8, 1.45, 0.55, 0.3), hspace=0.3)
     axes = fig.subplots(2, 1, sharex=True, sharey=True)
     lines, elems = r["line"].to_numpy(float), r["element"].to_numpy(float)
     xlim = _pad(np.nanmin(lines), np.nanmax(lines), 0.04)
@@ -161,8 +160,7 @@ def image_vectors(res: pd.DataFrame, image_id: str) -> str:
         ax.set_ylabel("element (px)")
     axes[1].set_xlabel("line (px)")
     _quiver_pair(axes, xs, ys, us, vs, cs, chks, "px", box_frac=0.05)
-    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right upper",
-               frameon=False)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="upper right", frameon=False)
     return svg(fig)
 
 
@@ -170,7 +168,7 @@ def against(res: pd.DataFrame, column: str, label: str) -> str:
     """Residual x and y (px) against ``column`` per direction: rows x, y; columns before,
     after (one ``column`` axis; each panel's residual axis its own: the residuals after
     the adjustment are often a hundredth of those before)."""
-    fig = figure(10.5, 5.2)
+    fig = figure(10.5, 5.2, margins=(0.8, 1.35, 0.55, 0.3), hspace=0.35, wspace=0.15)
     axes = fig.subplots(2, 2, sharex=True)
     values = res[column].to_numpy(float)
     origin = float(np.nanmin(values)) if column == "time" else 0.0
@@ -188,7 +186,7 @@ def against(res: pd.DataFrame, column: str, label: str) -> str:
             if i == 1:
                 ax.set_xlabel(label if column != "time" else f"{label} from {origin:.1f} s")
     if any(_named(d) for d in res["direction"].unique()):
-        fig.legend(*axes[0][0].get_legend_handles_labels(), loc="outside right upper",
+        fig.legend(*axes[0][0].get_legend_handles_labels(), loc="upper right",
                    frameon=False)
     return svg(fig)
 
@@ -210,11 +208,28 @@ def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:
     for col, label in quantities:
         out.append(("against", f"Image residuals (px) against {label}, per swing direction",
                     against(res, col, label)))
-    for iid in dict.fromkeys(res["image_id"]):
+    for iid in _worst_images(res):
         out.append(("image", f"Residual vectors (px) over image {iid}, before and after the "
                     "adjustment on one extent (each panel's vector scale in its key)",
                     image_vectors(res, iid)))
     return out
+
+
+#: most images drawn one by one (a survey has hundreds: their statistics are in the tables)
+MAX_IMAGES = 12
+
+
+def _worst_images(res: pd.DataFrame) -> list:
+    """The images to draw: all of them, or the :data:`MAX_IMAGES` with the largest RMS
+    residual after the adjustment, in their order in the table."""
+    ids = list(dict.fromkeys(res["image_id"]))
+    if len(ids) <= MAX_IMAGES:
+        return ids
+    after = res[res["stage"] == "after"]
+    rms = (after.assign(r2=after["x"] ** 2 + after["y"] ** 2).groupby("image_id")["r2"]
+           .mean().reindex(ids).fillna(np.inf))
+    keep = set(rms.sort_values(ascending=False, kind="stable").index[:MAX_IMAGES])
+    return [i for i in ids if i in keep]
 
 
 def _quantity_label(column: str) -> str:

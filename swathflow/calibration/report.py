@@ -118,8 +118,12 @@ def _accuracy(res: pd.DataFrame) -> dict | None:
 
 def _figures(res: pd.DataFrame) -> list[dict]:
     from swathflow.calibration.figures import report_figures
+    from swathflow.calibration.figures import MAX_IMAGES
+    n = res["image_id"].nunique()
     heads = {"map": "Ground errors on the map", "against": "Residuals against time and "
-             "the per-line quantities", "image": "Residual vectors per image"}
+             "the per-line quantities", "image": "Residual vectors per image"
+             if n <= MAX_IMAGES else f"Residual vectors per image: the {MAX_IMAGES} of {n} "
+             f"images with the largest residuals after the adjustment"}
     out, shown = [], set()
     for section, caption, fig in report_figures(res):
         out.append({"head": heads[section] if section not in shown else None,

@@ -36,9 +36,10 @@ def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.D
         xyz = grp[["X", "Y", "Z"]].to_numpy(float)
         comp = m.ground_to_image(xyz, clip=False)
         ctx = point_context(models[iid], grp)
-        jac = ground_jacobian(m, xyz, ctx["lat"], ctx["lon"]).reshape(-1, 6)
+        jac = ground_jacobian(m, xyz, ctx["lat"], ctx["lon"], at=comp)
         mono = mono_errors(m, xyz, ctx["lat"], ctx["lon"],
-                           grp[["line", "element"]].to_numpy(float))
+                           grp[["line", "element"]].to_numpy(float), jac, comp)
+        jac = jac.reshape(-1, 6)
         out.append(pd.DataFrame({
             "row": grp.index.to_numpy(), "gcp_id": grp["gcp_id"].to_numpy(), "image_id": iid,
             "direction": _direction(models[iid]), "role": grp["role"].to_numpy(),
