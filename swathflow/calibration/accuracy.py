@@ -103,18 +103,31 @@ def point_errors(res: pd.DataFrame) -> pd.DataFrame:
     if not need <= set(res.columns):
         return pd.DataFrame(columns=cols)
     ok = res[list(("x", "y") + JACOBIAN)].notna().all(axis=1)
+    r = res[ok]
+    keys = ["stage", "role", "gcp_id"]
+    rays = r.groupby(keys, sort=False)["x"].transform("size").to_numpy()
+    one = r[rays == 1]                       # most points: one ray, no loop
+    if set(MONO) <= set(one.columns):
+        en = one[list(MONO)].to_numpy(float)
+    else:
+        J = one[list(JACOBIAN)].to_numpy(float).reshape(-1, 2, 3)[:, :, :2]
+        en = np.linalg.solve(J, one[["y", "x"]].to_numpy(float)[..., None])[..., 0]
+    single = pd.DataFrame({"stage": one["stage"].to_numpy(), "role": one["role"].to_numpy(),
+                           "gcp_id": one["gcp_id"].to_numpy(), "rays": 1, "east": en[:, 0],
+                           "north": en[:, 1], "up": np.nan})
     rows = []
-    for (stage, role, gid), g in res[ok].groupby(["stage", "role", "gcp_id"], sort=False):
+    for (stage, role, gid), g in r[rays > 1].groupby(keys, sort=False):
         J = np.stack([g[list(JACOBIAN[:3])].to_numpy(float),
                       g[list(JACOBIAN[3:])].to_numpy(float)], 1).reshape(-1, 3)
-        r = np.stack([g["y"].to_numpy(float), g["x"].to_numpy(float)], 1).reshape(-1)
-        d, _ = _solve(J, r)
+        v = np.stack([g["y"].to_numpy(float), g["x"].to_numpy(float)], 1).reshape(-1)
+        d, _ = _solve(J, v)
         if not np.isfinite(d[2]) and set(MONO) <= set(g.columns):
-            d[:2] = g[list(MONO)].to_numpy(float).mean(axis=0)     # the exact single ray
+            d[:2] = g[list(MONO)].to_numpy(float).mean(axis=0)     # the exact single rays
         rows.append({"stage": stage, "role": role, "gcp_id": gid, "rays": len(g),
-                     "east": d[0], "north": d[1], "up": d[2],
-                     "horizontal": float(np.hypot(d[0], d[1]))})
-    return pd.DataFrame(rows, columns=cols)
+                     "east": d[0], "north": d[1], "up": d[2]})
+    out = pd.concat([single, pd.DataFrame(rows, columns=cols[:-1])], ignore_index=True)
+    out["horizontal"] = np.hypot(out["east"].to_numpy(float), out["north"].to_numpy(float))
+    return out[cols]
 
 
 def _rmse(v: np.ndarray) -> float:

@@ -48,25 +48,23 @@ def _correlations(names, corr, hi=0.9, mid=0.7) -> dict:
     return {"names": list(names), "rows": rows}
 
 
-def _paper_table(summary: pd.DataFrame, image: str) -> dict:
-    """One image in the layout of the paper's Tables 5-6: before | after control | after
-    check (| cross), mean and std of x and y (px), and n."""
-    s = summary[summary["image_id"] == image]
-
-    def cell(stage, role, stat):
-        r = s[(s["stage"] == stage) & (s["role"] == role)]
-        return num(r.iloc[0][stat]) if len(r) else "-"
-
-    cols = [("before", "control"), ("after", "control"), ("after", "check"),
-            ("cross", "control"), ("cross", "check")]
-    cols = [c for c in cols if ((s["stage"] == c[0]) & (s["role"] == c[1])).any()]
-    rows = []
-    for stat in ("mean", "std"):
-        rows.append((f"{stat} (px)", [v for st, ro in cols
-                                      for v in (cell(st, ro, stat + "_x"),
-                                                cell(st, ro, stat + "_y"))]))
-    return {"image": image, "cols": [f"{st} / {ro}" for st, ro in cols],
-            "rows": rows, "n": [cell(st, ro, "n") for st, ro in cols]}
+def _paper_tables(summary: pd.DataFrame) -> list[dict]:
+    """Each image in the layout of the paper's Tables 5-6: before | after control | after
+    check (| cross), mean and std of x and y (px), and n (the summary read once: a
+    survey has hundreds of images)."""
+    rows: dict = {}
+    for r in summary.to_dict(orient="records"):
+        rows.setdefault(r["image_id"], {})[(r["stage"], r["role"])] = r
+    order = [("before", "control"), ("after", "control"), ("after", "check"),
+             ("cross", "control"), ("cross", "check")]
+    out = []
+    for image, cells in rows.items():
+        cols = [c for c in order if c in cells]
+        body = [(f"{stat} (px)", [num(cells[c][f"{stat}_{axis}"]) for c in cols
+                                  for axis in ("x", "y")]) for stat in ("mean", "std")]
+        out.append({"image": image, "cols": [f"{st} / {ro}" for st, ro in cols],
+                    "rows": body, "n": [num(cells[c]["n"]) for c in cols]})
+    return out
 
 
 def _cross(res: pd.DataFrame) -> dict | None:
@@ -170,8 +168,7 @@ def render_report(result) -> str:
         components=_variance_components(result),
         correlations=_correlations(names, result.correlation[np.ix_(free, free)]),
         strong=[(a, b, f"{c:+.4f}") for a, b, c in result.strong_correlations(0.9)[:20]],
-        images=[_paper_table(result.summary, iid)
-                for iid in dict.fromkeys(result.summary["image_id"])],
+        images=_paper_tables(result.summary),
         by_direction=table(summarize_frame(res, ("stage", "direction", "role")), 3,
                            left=("stage", "direction", "role"), units=px),
         cross=_cross(res), rejected=rejected, figures=_figures(res), extra=[])
