@@ -125,7 +125,9 @@ def point_errors(res: pd.DataFrame) -> pd.DataFrame:
             d[:2] = g[list(MONO)].to_numpy(float).mean(axis=0)     # the exact single rays
         rows.append({"stage": stage, "role": role, "gcp_id": gid, "rays": len(g),
                      "east": d[0], "north": d[1], "up": d[2]})
-    out = pd.concat([single, pd.DataFrame(rows, columns=cols[:-1])], ignore_index=True)
+    parts = [single] + ([pd.DataFrame(rows, columns=cols[:-1])] if rows else [])
+    out = pd.concat(parts, ignore_index=True).astype(
+        {"rays": int, "east": float, "north": float, "up": float})
     out["horizontal"] = np.hypot(out["east"].to_numpy(float), out["north"].to_numpy(float))
     return out[cols]
 
