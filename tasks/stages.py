@@ -100,9 +100,32 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
                           note="no control points: the mission's prior values, uncalibrated")
     else:
         from swathflow.calibration.strategy import calibrate_mission
-        calibrate_mission(m).write(out.parent)     # the sensor plugin's strategy
+        result = calibrate_mission(m)             # the sensor plugin's strategy
+        if "report" not in result.write(out.parent):
+            _report_later(result, out.parent / "report.html")
     mark_done(out, key)
     return str(out)
+
+
+#: the calibration reports being written beside the flow (:func:`_report_later`)
+_REPORTS: list = []
+
+
+def _report_later(result, path) -> None:
+    """Write the calibration report off the critical path: on a thread of this process
+    while the flow goes on (rectification); :func:`reports_written` waits for it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from swathflow.calibration.report import write_report
+    ex = ThreadPoolExecutor(1, thread_name_prefix="swathflow-report")
+    _REPORTS.append(ex.submit(write_report, result, path))
+    ex.shutdown(wait=False)
+
+
+def reports_written() -> None:
+    """Wait for the reports started by :func:`_report_later` (their errors raised)."""
+    while _REPORTS:
+        _REPORTS.pop().result()
 
 
 @task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
@@ -181,6 +204,8 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
 def catalog(mission_path: str, rectified: list[str], mosaic_path: str | None, calibration: str,
             out_dir: str) -> str:
     """The STAC catalogue of the run's products: ``OUT/stac/catalog.json``."""
+    reports_written()               # the calibration report is one of the products
+
     from swathflow.formats.stac import write_catalog
     m = _load(mission_path)
     out = Path(out_dir) / "stac" / "catalog.json"

@@ -254,7 +254,9 @@ def test_drift_option_runs_and_finds_no_drift(models, clean_obs, priors):
 
 def test_write_outputs(paper_result, tmp_path):
     from swathflow.formats.calibfile import calibration_priors, read_calibration
+    from swathflow.calibration.report import write_report
     paths = paper_result.write(tmp_path)
+    paths["report"] = write_report(paper_result, tmp_path / "report.html")
     doc = read_calibration(paths["calibration"])
     assert set(doc["parameters"]) == set(ORDER)
     assert doc["sigma0"] == pytest.approx(paper_result.sigma0)

@@ -355,25 +355,23 @@ def test_report_arrows_stay_in_the_map():
     the left edge whose residual points left (the survey's arrow ran past the edge), one
     at the top edge pointing up, and one whose residual is much the smallest, keep their
     direction and stay in."""
-    from swathflow.drawing import Canvas
-    from swathflow.mosaicking.report import map_panel
-    grey = np.zeros((2, 100, 200), np.uint8)
+    from affine import Affine
+
+    from swathflow.mosaicking.inputs import Layout
+    from swathflow.mosaicking.report import arrow_ends
+    layout = Layout(None, Affine(2.0, 0, 1000.0, 0, -2.0, 5000.0), (100, 200))
     ov = [dict(window=[40, 0, 60, 30], residual=[0.0, -0.008], used=True, ok=True),
           dict(window=[10, 150, 30, 200], residual=[0.01, 0.004], used=True, ok=True),
           dict(window=[0, 60, 8, 80], residual=[-0.01, 0.0], used=True, ok=True),
           dict(window=[50, 90, 90, 110], residual=[0.0003, 0.0002], used=True, ok=True)]
-    cv = Canvas(600, 400)
-    box = (10, 40, 410, 240)                  # 2 canvas px per overview px, f = 2
-    map_panel(cv, box, {"overlaps": ov}, grey, 2.0)
-    arrows = [it[1] for it in cv.items if it[0] == "path" and it[2] == "#00bcd4"]
-    assert len(arrows) == 2 * len(ov)          # a shaft and a head each
-    for pts in arrows:
-        for x, y in pts:
-            assert box[0] <= x <= box[2] and box[1] <= y <= box[3], (x, y)
-    shafts = arrows[::2]
-    for (a, b), o in zip(shafts, ov):          # each shaft along its residual
+    ends, gain = arrow_ends({"overlaps": ov}, layout)
+    assert len(ends) == len(ov) and gain > 0
+    x0, x1, y0, y1 = 1000.0, 1400.0, 4800.0, 5000.0          # the grid's map extent
+    for (a, b), o in zip(ends, ov):
+        for x, y in (a, b):
+            assert x0 <= x <= x1 and y0 <= y <= y1, (x, y)
         d = np.array([b[0] - a[0], b[1] - a[1]])
-        r = np.array([o["residual"][1], o["residual"][0]])
+        r = np.array([o["residual"][1], -o["residual"][0]])   # col east, row south
         assert np.linalg.norm(d) > 0
         assert np.dot(d, r) / np.linalg.norm(d) / np.linalg.norm(r) > 0.999
 

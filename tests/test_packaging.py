@@ -47,6 +47,10 @@ def test_wheel_contains_all_source_modules(wheel):
     assert not missing, f"not in the wheel: {missing} (add the subpackage to pyproject.toml)"
     assert any(n.endswith("entry_points.txt") for n in names)
     assert "swathflow/py.typed" in names
+    templates = sorted((ROOT / "swathflow" / "templates").glob("*.html.j2"))
+    assert templates, "no report templates in swathflow/templates"
+    missing = [t.name for t in templates if f"swathflow/templates/{t.name}" not in names]
+    assert not missing, f"templates not in the wheel: {missing} (pyproject package-data)"
 
 
 def _probe(python: str, cwd: Path, env: dict | None = None) -> list[str]:

@@ -47,8 +47,10 @@ def paper(tmp_path_factory):
     root = tmp_path_factory.mktemp("paper")
     simulate(root / "mission", preset="paper", seed=3)
     m = load_mission(root / "mission")
+    from swathflow.calibration.report import write_report
     res = calibrate({i: m.model(i) for i in m.images}, m.gcps, m.priors)
     paths = res.write(root / "cal")
+    paths["report"] = write_report(res, root / "cal" / "report.html")
     return root / "mission", res, paths
 
 

@@ -108,6 +108,9 @@ def calibrate(args) -> int:
         extra={"method": args.method, "max_rounds": args.max_rounds})
     result = calibrate_mission(mission, options, progress=_say(args))
     paths = result.write(args.out)
+    if "report" not in paths:
+        from swathflow.calibration.report import write_report
+        paths["report"] = write_report(result, os.path.join(args.out, "report.html"))
     for line in result.summary_lines():
         _echo(args, line)
     _echo(args, f"wrote {', '.join(paths[k] for k in paths if k != 'report')} and "
@@ -171,9 +174,9 @@ def mosaic(args) -> int:
                   max_shift=args.max_shift, tile=args.tile, workers=workers, strips=strips,
                   log=log)
     if log:
+        from swathflow.mosaicking.report import node_line
         for nd in rep.get("nodes", []):
-            log(f"  node {nd['node']}: offset (row, col) = {nd['offset']} px, "
-                f"sigma {nd['sigma']}, radiometric {nd['radiometric']}")
+            log("  " + node_line(nd, (rep.get("grid") or {}).get("res")))
         log(f"wrote {out} ({rep['shape'][0]} x {rep['shape'][1]} px, {rep['seconds']:.1f} s, "
             f"{rep['mpx_per_s']} Mpx/s), {os.path.splitext(out)[0]}.png and "
             f"{os.path.splitext(out)[0]}.json")

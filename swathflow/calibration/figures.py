@@ -1,117 +1,30 @@
-"""The calibration report's figures, drawn on the reports' one canvas
-(:class:`swathflow.drawing.Canvas`, no matplotlib) and returned as inline SVG for one
-self-contained HTML file.
+"""The calibration report's figures, drawn by matplotlib (:mod:`swathflow.drawing`: a
+Figure on the Agg canvas, no pyplot) and returned as inline SVG for one self-contained HTML
+file.
 
-Residuals are observed minus computed in pixels (x = element, y = line). Figures: residual
-vectors over the image per image, residual vectors over a map of the control points, and
-residuals against time and each per-line quantity the sensor records (e.g. the swing angle),
-per swing direction, before and after the adjustment.
+- the ground map: each control and check point's ground error (image-derived minus
+  surveyed, east and north in metres: :mod:`swathflow.calibration.accuracy`) as a vector on
+  a map in the points' UTM zone (coordinates in metres, a scale bar, a north arrow), before
+  and after the adjustment on one extent (each with its vector key);
+- residuals (px) against time and each per-line quantity the sensor records (e.g. the
+  swing angle), per swing direction, before and after;
+- per image: the residual vectors (px) over the image, before and after on one extent
+  (each with its vector key).
 """
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 
-from swathflow.drawing import Axes, Canvas, legend
+from swathflow.calibration.accuracy import point_errors
+from swathflow.drawing import DIRECTION_COLOURS, figure, map_frame, svg
 
-COLORS = {"L": "#1f77b4", "R": "#d62728"}
 OTHER = "#555555"
 STAGES = ("before", "after")
-M_PER_DEG = 111_320.0
-# panel margins in canvas pixels: left (tick labels and the rotated label), right, top
-# (title and arrow key), bottom (tick labels and the label)
-LEFT, RIGHT, TOP, BOTTOM = 72, 24, 30, 46
 
 
-def _boxes(ncols: int, nrows: int, pw: float, ph: float, gap: float = 40, below: float = 0):
-    """A canvas with ``nrows`` x ``ncols`` plot boxes of ``pw`` x ``ph`` pixels (``below``:
-    more room under each, for a legend)."""
-    cw, ch = LEFT + pw + RIGHT + gap, TOP + ph + BOTTOM + below
-    cv = Canvas(ncols * cw - gap, nrows * ch)
-    return cv, [[(j * cw + LEFT, i * ch + TOP, j * cw + LEFT + pw, i * ch + TOP + ph)
-                 for j in range(ncols)] for i in range(nrows)]
-
-
-def _lim(v: np.ndarray, pad: float = 0.05, include_zero: bool = False) -> tuple[float, float]:
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return -1.0, 1.0
-    lo, hi = float(v.min()), float(v.max())
-    if include_zero:
-        lo, hi = min(lo, 0.0), max(hi, 0.0)
-    d = hi - lo if hi > lo else max(abs(hi), 1.0)
-    return lo - pad * d, hi + pad * d
-
-
-def _key(big: float) -> float:
-    """A round arrow-key length (px) not above the largest residual ``big``."""
-    k = float(10 ** np.floor(np.log10(big)))
-    return next(m * k for m in (5, 2, 1) if m * k <= big)
-
-
-def _fit(x, y, dx, dy, box, equal: bool = False):
-    """Axis limits showing the points (x, y) and the arrow tips ``dx``, ``dy`` canvas pixels
-    away from them inside ``box`` (``equal``: as many data units per pixel on both axes)."""
-    x0, y0, x1, y1 = box
-    xlim, ylim = _lim(x, 0.03), _lim(y, 0.03)
-    for _ in range(6):                                 # the scale grows with the limits
-        if equal:
-            xlim, ylim = _equal(xlim, ylim, box)
-        sx, sy = (xlim[1] - xlim[0]) / (x1 - x0), (ylim[1] - ylim[0]) / (y1 - y0)
-        xlim = _lim(np.concatenate([x, x + dx * sx]), 0.03)
-        ylim = _lim(np.concatenate([y, y + dy * sy]), 0.03)
-    return _equal(xlim, ylim, box) if equal else (xlim, ylim)
-
-
-def _equal(xlim, ylim, box):
-    """Limits widened so that a data unit is as long on both axes of ``box``."""
-    x0, y0, x1, y1 = box
-    s = max((xlim[1] - xlim[0]) / (x1 - x0), (ylim[1] - ylim[0]) / (y1 - y0))
-    cx, cy = sum(xlim) / 2, sum(ylim) / 2
-    return ((cx - s * (x1 - x0) / 2, cx + s * (x1 - x0) / 2),
-            (cy - s * (y1 - y0) / 2, cy + s * (y1 - y0) / 2))
-
-
-def _vectors(cv: Canvas, box, x, y, u, v, q: pd.DataFrame, colors, frac: float,
-             labels: tuple[str, str, str], equal: bool = False) -> None:
-    """A panel of residual arrows (u right, v up, in residual pixels) at the data points
-    (x, y): the longest ``frac`` of the box width, a key above the box's right end, the
-    limits widened to hold every arrow; dots mark control points, open squares check
-    points."""
-    ok = np.isfinite(u) & np.isfinite(v) & np.isfinite(x) & np.isfinite(y)
-    x, y, u, v = x[ok], y[ok], u[ok], v[ok]
-    colors, check = np.asarray(colors, dtype=object)[ok], (q["role"] == "check").to_numpy()[ok]
-    x0, y0, x1, _ = box
-    mag = np.hypot(u, v)
-    big = float(mag.max()) if mag.size and mag.max() > 0 else 1.0
-    gain = frac * (x1 - x0) / big                     # canvas px per residual px
-    xlim, ylim = _fit(x, y, u * gain, v * gain, box, equal)
-    ax = Axes(cv, box, xlim, ylim, *labels, title_left=True)
-    for xi, yi, ui, vi, col, chk in zip(x, y, u, v, colors, check):
-        px, py = ax.x(xi), ax.y(yi)
-        cv.arrow(px, py, px + ui * gain, py - vi * gain, stroke=col, width=1.2)
-        if chk:
-            cv.rect(px - 3.5, py - 3.5, 7, 7, stroke="#000000", width=0.9)
-        else:
-            cv.marker(px, py, 1.8, "#000000")
-    key = _key(big)
-    cv.arrow(x1 - 60 - key * gain, y0 - 12, x1 - 60, y0 - 12, stroke="#444444", width=1.2)
-    cv.text(x1 - 54, y0 - 8, f"{key:g} px", 10)
-
-
-def image_vectors(res: pd.DataFrame, image_id: str) -> str:
-    """Residual vectors over the image, line along, element across (an arrow's horizontal
-    part is the line residual y, its vertical part the element residual x); before above
-    after, each panel with its own scale."""
-    r = res[res["image_id"] == image_id]
-    cv, boxes = _boxes(1, 2, 860, 190)
-    for (box,), stage in zip(boxes, STAGES):
-        q = r[r["stage"] == stage]
-        color = COLORS.get(str(q["direction"].iloc[0]) if len(q) else "", OTHER)
-        _vectors(cv, box, q["line"].to_numpy(float), q["element"].to_numpy(float),
-                 q["y"].to_numpy(float), q["x"].to_numpy(float), q, [color] * len(q), 0.07,
-                 (f"{image_id}: {stage}", "line (px)", "element (px)"))
-    return cv.svg()
+def _colour(direction) -> str:
+    return DIRECTION_COLOURS.get(str(direction), OTHER)
 
 
 def _named(direction) -> bool:
@@ -119,59 +32,163 @@ def _named(direction) -> bool:
     return isinstance(direction, str) and direction not in ("", "nan", "None")
 
 
-def _direction_entries(directions) -> list[tuple[str, str, str]]:
-    return [("line", COLORS[d], f"direction {d}") for d in COLORS if d in set(directions)]
+def _pad(lo: float, hi: float, frac: float = 0.06) -> tuple[float, float]:
+    d = hi - lo if hi > lo else max(abs(hi), 1.0)
+    return lo - frac * d, hi + frac * d
+
+
+def _key_length(big: float) -> float:
+    """A round vector-key length not above the largest vector ``big``."""
+    big = max(big, 1e-9)
+    k = float(10 ** np.floor(np.log10(big)))
+    return next(m * k for m in (5, 2, 1) if m * k <= big)
+
+
+def _quiver_pair(axes, xs, ys, us, vs, colours, checks, key_units: str, box_frac=0.12):
+    """Vectors (u right, v up) at (x, y) on each of ``axes`` (before, after; one extent):
+    on each panel the longest vector ``box_frac`` of the axes' width, and a key in the
+    panel's upper left corner giving its scale (the errors after the adjustment are often
+    a hundredth of those before: one scale would hide them)."""
+    width = abs(np.subtract(*axes[0].get_xlim()))
+    height = abs(np.subtract(*axes[0].get_ylim()))
+    room = min(box_frac * width, 0.3 * height)           # the longest arrow, data units
+    for ax, x, y, u, v, c, chk in zip(axes, xs, ys, us, vs, colours, checks):
+        mag = np.hypot(u, v)
+        big = float(np.nanmax(mag)) if np.isfinite(mag).any() else 1.0
+        big = big if big > 0 else 1.0
+        key = _key_length(big)
+        q = ax.quiver(x, y, u, v, color=c, angles="xy", scale_units="xy",
+                      scale=big / room, width=0.004, zorder=3)
+        ax.scatter(x[~chk], y[~chk], s=9, c="black", marker="o", zorder=4,
+                   label="control point")
+        if chk.any():
+            ax.scatter(x[chk], y[chk], s=30, facecolors="none", edgecolors="black",
+                       marker="s", zorder=4, label="check point")
+        ax.quiverkey(q, 0.10, 0.93, key, f"{key:g} {key_units}", labelpos="E",
+                     coordinates="axes", color="#444444",
+                     fontproperties={"size": 8})
+
+
+def _points_on_map(res: pd.DataFrame):
+    """Per stage: the points' UTM coordinates and ground errors, and the CRS's name."""
+    from swathflow.geometry.geodesy import transformer, utm_crs_for
+    lat0, lon0 = float(np.nanmean(res["lat"])), float(np.nanmean(res["lon"]))
+    crs = utm_crs_for(lat0, lon0)
+    tr = transformer("EPSG:4326", crs)
+    pos = (res.groupby("gcp_id", sort=False)[["lon", "lat"]].mean())
+    e, n = tr.transform(pos["lon"].to_numpy(), pos["lat"].to_numpy())
+    place = pd.DataFrame({"E": e, "N": n}, index=pos.index)
+    errs = point_errors(res)
+    direction = (res.groupby("gcp_id")["direction"]
+                 .agg(lambda d: d.iloc[0] if d.nunique() == 1 else "both"))
+    name = f"{crs.name} (EPSG:{crs.to_epsg()})" if crs.to_epsg() else crs.name
+    return place, errs, direction, name
 
 
 def map_vectors(res: pd.DataFrame) -> str:
-    """Residual vectors over a map of the control points (east, north in metres from their
-    centre), coloured by swing direction, before | after."""
-    lat0 = float(np.nanmean(res["lat"]))
-    lon0 = float(np.nanmean(res["lon"]))
-    east = (res["lon"].to_numpy(float) - lon0) * M_PER_DEG * np.cos(np.radians(lat0))
-    north = (res["lat"].to_numpy(float) - lat0) * M_PER_DEG
-    res = res.assign(_e=east, _n=north)
-    cv, boxes = _boxes(2, 1, 420, 340, below=18)
-    for box, stage in zip(boxes[0], STAGES):
-        q = res[res["stage"] == stage]
-        colors = [COLORS.get(str(d), OTHER) for d in q["direction"]]
-        _vectors(cv, box, q["_e"].to_numpy(float), q["_n"].to_numpy(float),
-                 q["x"].to_numpy(float), q["y"].to_numpy(float), q, colors, 0.12,
-                 (f"control points: {stage}", f"east (m) from {lon0:.5f}",
-                  f"north (m) from {lat0:.5f}"), equal=True)
-        entries = [("dot", "#000000", "control")]
-        if (q["role"] == "check").any():
-            entries.append(("square", "#000000", "check"))
-        legend(cv, box[2], box[3] + 54, entries + _direction_entries(q["direction"]),
-               across=True)
-    return cv.svg()
+    """Ground errors (m) of the points on a UTM map, before | after: one extent, one vector
+    scale; coloured by the swing direction that saw the point (grey: both)."""
+    place, errs, direction, crs_name = _points_on_map(res)
+    fig = figure(10.5, 5.4, margins=(0.85, 0.15, 0.95, 0.3), wspace=0.12)
+    axes = fig.subplots(1, 2, sharex=True, sharey=True)
+    lo_e, hi_e = _pad(place["E"].min(), place["E"].max(), 0.15)
+    lo_n, hi_n = _pad(place["N"].min(), place["N"].max(), 0.15)
+    we = max(hi_e - lo_e, 0.6 * (hi_n - lo_n))        # one extent for both panels, not
+    wn = max(hi_n - lo_n, 0.6 * (hi_e - lo_e))        # flatter than 0.6 either way
+    ce, cn = (lo_e + hi_e) / 2, (lo_n + hi_n) / 2
+    xs, ys, us, vs, cs, chks = [], [], [], [], [], []
+    for ax, stage in zip(axes, STAGES):
+        ax.set_xlim(ce - we / 2, ce + we / 2)
+        ax.set_ylim(cn - wn / 2, cn + wn / 2)
+        q = errs[errs["stage"] == stage]
+        p = place.loc[q["gcp_id"]]
+        xs.append(p["E"].to_numpy())
+        ys.append(p["N"].to_numpy())
+        us.append(q["east"].to_numpy(float))
+        vs.append(q["north"].to_numpy(float))
+        cs.append([_colour(direction.get(g)) if direction.get(g) != "both" else "#2ca02c"
+                   for g in q["gcp_id"]])
+        chks.append((q["role"] == "check").to_numpy())
+        ax.set_title(f"ground error, {stage} the adjustment")
+    _quiver_pair(axes, xs, ys, us, vs, cs, chks, "m")
+    for ax in axes:
+        map_frame(ax, crs_name)
+    axes[1].set_ylabel("")
+    _legend(fig, axes[1], direction)
+    return svg(fig)
+
+
+def _legend(fig, ax, direction) -> None:
+    """Point kinds and the colours actually drawn."""
+    from matplotlib.lines import Line2D
+    handles, labels = ax.get_legend_handles_labels()
+    seen = set(direction)
+    for d in DIRECTION_COLOURS:
+        if d in seen:
+            handles.append(Line2D([], [], color=DIRECTION_COLOURS[d], lw=2))
+            labels.append(f"seen in direction {d} only")
+    if "both" in seen:
+        handles.append(Line2D([], [], color="#2ca02c", lw=2))
+        labels.append("seen in both directions")
+    if not any(d in seen for d in list(DIRECTION_COLOURS) + ["both"]) and len(seen):
+        handles.append(Line2D([], [], color=OTHER, lw=2))
+        labels.append("ground error")
+    fig.legend(handles, labels, loc="lower center", ncols=len(handles), frameon=False)
+
+
+def image_vectors(res: pd.DataFrame, image_id: str) -> str:
+    """Residual vectors (px) over the image, line along, element across; before above
+    after, on one extent (each panel's vector scale in its key)."""
+    r = res[res["image_id"] == image_id]
+    fig = figure(10.5, 5.0, margins=(0.8, 1.45, 0.55, 0.3), hspace=0.3)
+    axes = fig.subplots(2, 1, sharex=True, sharey=True)
+    lines, elems = r["line"].to_numpy(float), r["element"].to_numpy(float)
+    xlim = _pad(np.nanmin(lines), np.nanmax(lines), 0.04)
+    ylim = _pad(np.nanmin(elems), np.nanmax(elems), 0.25)
+    xs, ys, us, vs, cs, chks = [], [], [], [], [], []
+    for ax, stage in zip(axes, STAGES):
+        ax.set_xlim(*xlim)
+        ax.set_ylim(*ylim)
+        q = r[r["stage"] == stage]
+        xs.append(q["line"].to_numpy(float))
+        ys.append(q["element"].to_numpy(float))
+        us.append(q["y"].to_numpy(float))
+        vs.append(q["x"].to_numpy(float))
+        cs.append([_colour(d) for d in q["direction"]])
+        chks.append((q["role"] == "check").to_numpy())
+        ax.set_title(f"{image_id}: {stage} the adjustment")
+        ax.set_ylabel("element (px)")
+    axes[1].set_xlabel("line (px)")
+    _quiver_pair(axes, xs, ys, us, vs, cs, chks, "px", box_frac=0.05)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="upper right", frameon=False)
+    return svg(fig)
 
 
 def against(res: pd.DataFrame, column: str, label: str) -> str:
-    """Residual x and y against ``column`` per direction: rows x, y; columns before, after."""
-    cv, boxes = _boxes(2, 2, 420, 170)
+    """Residual x and y (px) against ``column`` per direction: rows x, y; columns before,
+    after (one ``column`` axis; each panel's residual axis its own: the residuals after
+    the adjustment are often a hundredth of those before)."""
+    fig = figure(10.5, 5.2, margins=(0.8, 1.35, 0.55, 0.3), hspace=0.35, wspace=0.15)
+    axes = fig.subplots(2, 2, sharex=True)
     values = res[column].to_numpy(float)
-    origin = np.nanmin(values) if column == "time" else 0.0
-    xlim = _lim(values - origin)
+    origin = float(np.nanmin(values)) if column == "time" else 0.0
     for j, stage in enumerate(STAGES):
         q = res[res["stage"] == stage]
-        directions = list(dict.fromkeys(q["direction"]))
         for i, comp in enumerate(("x", "y")):
-            ax = Axes(cv, boxes[i][j], xlim, _lim(q[comp].to_numpy(float), include_zero=True),
-                      f"{comp} residual, {stage}",
-                      label if column != "time" else f"{label} from {origin:.1f} s",
-                      f"{comp} (px)", title_left=True)
-            x0, y0, x1, _ = ax.box
-            cv.line(x0, ax.y(0.0), x1, ax.y(0.0), stroke="#999999", width=0.8, dash=True)
-            for d in directions:
-                s = q[q["direction"] == d]
-                col = COLORS.get(str(d), OTHER)
-                for xv, yv in zip(s[column].to_numpy(float) - origin, s[comp].to_numpy(float)):
-                    if np.isfinite(xv) and np.isfinite(yv):
-                        cv.marker(ax.x(xv), ax.y(yv), 2.6, col)
-            legend(cv, x1, y0 - 12, [("marker", COLORS.get(str(d), OTHER), f"direction {d}")
-                                     for d in directions if _named(d)], across=True)
-    return cv.svg()
+            ax = axes[i][j]
+            ax.axhline(0.0, color="#999999", lw=0.8, ls="--")
+            for d, s in q.groupby("direction", sort=False):
+                ax.scatter(s[column].to_numpy(float) - origin, s[comp].to_numpy(float), s=10,
+                           color=_colour(d), label=f"direction {d}" if _named(d) else None)
+            ax.set_title(f"{comp} residual, {stage} the adjustment")
+            if j == 0:
+                ax.set_ylabel(f"{comp} ({'element' if comp == 'x' else 'line'}) residual (px)")
+            if i == 1:
+                ax.set_xlabel(label if column != "time" else f"{label} from {origin:.1f} s")
+    if any(_named(d) for d in res["direction"].unique()):
+        fig.legend(*axes[0][0].get_legend_handles_labels(), loc="upper right",
+                   frameon=False)
+    return svg(fig)
 
 
 def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:
@@ -179,18 +196,46 @@ def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:
     need = {"line", "element", "lat", "lon"}
     if not need <= set(res.columns) or not res["stage"].isin(STAGES).any():
         return []
-    res = res[res["role"].isin(["control", "check"])]
-    caption = ("Residual vectors over the control points, before and after the adjustment; "
-               "arrows in image pixels (horizontal part: element residual x, vertical part: line "
-               "residual y; each panel has its own scale, see its key), coloured by swing "
-               "direction; dots are control points, squares check points")
+    res = res[res["role"].isin(["control", "check"]) & res["stage"].isin(STAGES)]
+    caption = ("Ground error of each point (position from the image minus the surveyed "
+               "position, east and north in metres; a point seen in two or more images from "
+               "their rays' intersection), before and after the adjustment, on one extent "
+               "(each panel's vector scale in its key); dots: control points, squares: check "
+               "points")
     out = [("map", caption, map_vectors(res))]
     quantities = [("time", "time (s)")] if "time" in res.columns else []
-    quantities += [(c, c[len("line_"):].replace("_", " ")) for c in res.columns
-                   if c.startswith("line_")]
+    quantities += [(c, _quantity_label(c)) for c in res.columns if c.startswith("line_")]
     for col, label in quantities:
-        out.append(("against", f"Residuals against {label}, per swing direction",
+        out.append(("against", f"Image residuals (px) against {label}, per swing direction",
                     against(res, col, label)))
-    for iid in dict.fromkeys(res["image_id"]):
-        out.append(("image", f"Residual vectors over image {iid}", image_vectors(res, iid)))
+    for iid in _worst_images(res):
+        out.append(("image", f"Residual vectors (px) over image {iid}, before and after the "
+                    "adjustment on one extent (each panel's vector scale in its key)",
+                    image_vectors(res, iid)))
     return out
+
+
+#: most images drawn one by one (a survey has hundreds: their statistics are in the tables)
+MAX_IMAGES = 12
+
+
+def _worst_images(res: pd.DataFrame) -> list:
+    """The images to draw: all of them, or the :data:`MAX_IMAGES` with the largest RMS
+    residual after the adjustment, in their order in the table."""
+    ids = list(dict.fromkeys(res["image_id"]))
+    if len(ids) <= MAX_IMAGES:
+        return ids
+    after = res[res["stage"] == "after"]
+    rms = (after.assign(r2=after["x"] ** 2 + after["y"] ** 2).groupby("image_id")["r2"]
+           .mean().reindex(ids).fillna(np.inf))
+    keep = set(rms.sort_values(ascending=False, kind="stable").index[:MAX_IMAGES])
+    return [i for i in ids if i in keep]
+
+
+def _quantity_label(column: str) -> str:
+    name = column[len("line_"):].replace("_", " ")
+    return f"{name} (deg)" if any(k in name for k in ("swing", "roll", "pitch", "angle",
+                                                        "heading", "yaw")) else name
+
+
+__all__ = ["report_figures", "map_vectors", "image_vectors", "against"]

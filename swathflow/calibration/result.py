@@ -1,5 +1,7 @@
-"""A calibration's result: parameters with sigmas, residuals before/after/cross-applied,
-rejected points; written as calibration.json and report.html."""
+"""A calibration's result: parameters with sigmas, residuals before/after/cross-applied (in
+pixels, with what carries them to the ground in metres), rejected points; written as
+calibration.json (the report, report.html, is :func:`swathflow.calibration.report
+.write_report`: the report depends on the result, never the reverse)."""
 from __future__ import annotations
 
 import math
@@ -11,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from swathflow.adjustment import Solution
+from swathflow.calibration.accuracy import JACOBIAN, MONO, ground_jacobian, mono_errors
 from swathflow.calibration.points import point_context
 from swathflow.calibration.unknowns import Unknowns
 
@@ -21,17 +24,29 @@ def _direction(model) -> str:
 
 def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.DataFrame,
                    stage: str) -> pd.DataFrame:
-    """Observed minus computed per observation: x (element), y (line), pixels."""
+    """Observed minus computed per observation: x (element), y (line), pixels; with the
+    point's context (:func:`~swathflow.calibration.points.point_context`) and the model's
+    Jacobian d(line, element) / d(east, north, up) in px per metre at the surveyed point
+    (:data:`~swathflow.calibration.accuracy.JACOBIAN`) and the observation's own ground
+    error east, north in metres (:data:`~swathflow.calibration.accuracy.MONO`): what
+    :func:`~swathflow.calibration.accuracy.point_errors` makes the ground errors of."""
     out = []
     for iid, grp in obs.groupby("image_id", sort=False):
         m = models[iid].with_vector(vectors[iid])
-        comp = m.ground_to_image(grp[["X", "Y", "Z"]].to_numpy(float), clip=False)
+        xyz = grp[["X", "Y", "Z"]].to_numpy(float)
+        comp = m.ground_to_image(xyz, clip=False)
+        ctx = point_context(models[iid], grp)
+        jac = ground_jacobian(m, xyz, ctx["lat"], ctx["lon"], at=comp)
+        mono = mono_errors(m, xyz, ctx["lat"], ctx["lon"],
+                           grp[["line", "element"]].to_numpy(float), jac, comp)
+        jac = jac.reshape(-1, 6)
         out.append(pd.DataFrame({
             "row": grp.index.to_numpy(), "gcp_id": grp["gcp_id"].to_numpy(), "image_id": iid,
             "direction": _direction(models[iid]), "role": grp["role"].to_numpy(),
             "stage": stage, "x": grp["element"].to_numpy(float) - comp[:, 1],
             "y": grp["line"].to_numpy(float) - comp[:, 0],
-            **point_context(models[iid], grp)}, index=grp.index))
+            **ctx, **{c: jac[:, k] for k, c in enumerate(JACOBIAN)},
+            **{c: mono[:, k] for k, c in enumerate(MONO)}}, index=grp.index))
     if not out:
         return pd.DataFrame(columns=["row", "gcp_id", "image_id", "direction", "role", "stage",
                                      "x", "y"])
@@ -169,14 +184,11 @@ class CalibrationResult:
         return out
 
     def write(self, out_dir) -> dict[str, str]:
-        """Write ``calibration.json`` and ``report.html`` into ``out_dir`` (atomically)."""
+        """Write ``calibration.json`` into ``out_dir`` (atomically); the report is
+        :func:`swathflow.calibration.report.write_report` (made off the critical path)."""
         from swathflow.formats.calibfile import write_calibration
-        from swathflow.calibration.report import write_report
         os.makedirs(out_dir, exist_ok=True)
         doc = self.calibration_document()
         cal = os.path.join(out_dir, "calibration.json")
         write_calibration(cal, doc.pop("sensor"), doc.pop("parameters"), **doc)
-        rep = os.path.join(out_dir, "report.html")
-        write_report(self, rep)
-        return {"calibration": cal, "report": rep}
-
+        return {"calibration": cal}

@@ -165,8 +165,8 @@ def _full_taper(shape, edge: float):
 
 
 def _make_taper(mask, edge: float):
-    from swathflow.mosaicking.block_kernels import gaussian
-    t = gaussian(mask.astype(float), edge / 2.0) * mask
+    from scipy import ndimage
+    t = ndimage.gaussian_filter(mask.astype(float), edge / 2.0) * mask
     h, w = mask.shape
     for axis, n in ((0, h), (1, w)):
         k = max(1, min(int(edge * 2), n // 4))
@@ -323,7 +323,7 @@ def _polish(ref, mov, mask, d0=(0.0, 0.0), iterations: int = 8, tol: float = 1e-
 def texture_measure(img, mask, noise: float) -> float:
     """Gradient in the weakest direction (structure tensor of the sigma=1 smoothed image)
     over ``noise``: small for flat areas and for one-directional texture (aperture problem).
-    Compiled (swathflow.mosaicking.block_kernels.weakest_gradient).
+    (swathflow.mosaicking.block_kernels.weakest_gradient: scipy.ndimage and a compiled tensor).
     """
     from swathflow.mosaicking.block_kernels import weakest_gradient
     lam = weakest_gradient(np.ascontiguousarray(img, float), np.ascontiguousarray(mask, bool))
@@ -345,7 +345,9 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     ``S = max_shift`` (so ``mov[S:S+h, S:S+w]`` is the same ground as ``ref``).
     ``stride``: the integer search over every ``stride``-th row and column only (the
     sub-pixel steps use every pixel): for a small search around a known answer."""
-    from swathflow.mosaicking.block_kernels import erode, noise_texture
+    from scipy import ndimage
+
+    from swathflow.mosaicking.block_kernels import noise_texture
     S = int(max_shift)
     h, w = ref.shape
     s, cost = mmgd_search(ref, ref_ok, mov, mov_ok, S,
@@ -363,7 +365,7 @@ def match_block(ref, ref_ok, mov, mov_ok, max_shift: int, min_texture: float = 1
     m = mov[S + s[0]:S + s[0] + h, S + s[1]:S + s[1] + w]
     m_ok = mov_ok[S + s[0]:S + s[0] + h, S + s[1]:S + s[1] + w]
     joint = ref_ok & m_ok
-    inner = erode(joint, 3)
+    inner = ndimage.binary_erosion(joint, iterations=3)
     if inner.sum() < min_pixels:
         return BlockMatch(False, "too_small", integer=s, n=int(inner.sum()))
     fill_r = np.where(ref_ok, ref, ref[ref_ok].mean())

@@ -287,7 +287,7 @@ def _products(out, rep, png, report, layout, data=None) -> dict:
     if png or figures:
         from concurrent.futures import ThreadPoolExecutor
 
-        from swathflow.mosaicking.drawing import png_bytes
+        from swathflow.io import png_bytes
         data, f = overview(out, QUICKLOOK_SIDE) if data is None else data
         grey = stretch(data)
         with ThreadPoolExecutor(1, thread_name_prefix="swathflow-report") as ex:

@@ -321,7 +321,7 @@ def quicklook(src_path, png_path, max_side: int = 1024, grey=None, png=None) -> 
     """An 8-bit grey + alpha PNG preview (2-98 % stretch) read from the COG's overviews
     (``grey``: that preview already made by :func:`stretch` of :func:`overview`; ``png``:
     it already encoded)."""
-    from swathflow.mosaicking.drawing import png_bytes
+    from swathflow.io import png_bytes
     if png is None:
         png = png_bytes(stretch(overview(src_path, max_side)[0]) if grey is None else grey)
     with atomic_path(os.fspath(png_path), suffix=".png") as tmp, open(tmp, "wb") as fh:

@@ -1,17 +1,17 @@
-"""The mosaic report's figures: where the seams are and how well they close.
+"""The mosaic report's figures: where the seams are and how well they close, drawn by
+matplotlib (:mod:`swathflow.drawing`: a Figure on the Agg canvas, no pyplot). The same
+figures go into the report picture ``<out>.report.png`` and the HTML report (inline SVG).
 
-Drawn on :class:`swathflow.mosaicking.drawing.Canvas` (no matplotlib: its import and layout
-cost seconds, more than the blending): the same panels go into the report picture
-``<out>.report.png`` (rasterised) and the HTML report (inline SVG).
-
-- the residual map: the mosaic (grey, from its overviews) with every overlap drawn as its
-  window, coloured by the residual of its offset after the network adjustment (px), and
-  the residual vector at its centre; skipped overlaps (low texture, too small) dotted grey,
-  rejected ones outlined in red;
-- the overlap graph: a node per strip or image at the centre of its swings, an edge per
-  overlap coloured the same way;
-- the network's result per node: offset (row, col) with 1-sigma bars, and the radiometric
-  balance (offset removed per node).
+- the residual map: the mosaic (grey, from its overviews) in its CRS with coordinates in
+  metres, a scale bar and a north arrow; every overlap drawn as its window, coloured by the
+  residual of its offset after the network adjustment, and the residual vector at its
+  centre; skipped overlaps (low texture, too small) dotted grey, rejected ones outlined
+  red;
+- the overlap graph: each swing's footprint, a node per strip (or image) at the centre of
+  its swings, and an edge per overlap between the centres of its two swings (so every
+  overlap is drawn, also those between swings of one strip);
+- the network's result per node: offset (row, col) with 1-sigma bars in grid pixels and in
+  metres, and the radiometric balance (offset removed per node, in the data's units).
 """
 from __future__ import annotations
 
@@ -19,10 +19,13 @@ import os
 
 import numpy as np
 
-from swathflow.io import atomic_path
-from swathflow.drawing import Axes, Canvas, colour, colour_bar
+__all__ = ["seams_picture", "map_figure", "graph_figure", "offsets_figure", "graph_edges",
+           "arrow_ends", "node_line", "write_report"]
 
-__all__ = ["seams_picture", "map_figure", "graph_figure", "offsets_figure"]
+COLOUR_MAP = "plasma"
+#: a map figure's margins (inches: left, right, bottom, top): tick labels and axis labels
+MAP_MARGINS = (0.85, 0.15, 0.6, 0.35)
+SKIPPED, REJECTED, NODE, ANCHOR = "#888888", "#e00000", "#1f77b4", "#2ca02c"
 
 
 def _residual(o) -> float:
@@ -33,7 +36,7 @@ def _residual(o) -> float:
 
 
 def _scale(rep):
-    """Residuals of the overlaps and the top of the colour scale."""
+    """Residuals of the overlaps (px) and the top of the colour scale."""
     res = np.array([_residual(o) for o in rep.get("overlaps", [])], float)
     top = max(0.1, float(np.nanmax(res)) if np.isfinite(res).any() else 0.1)
     return res, top
@@ -41,72 +44,237 @@ def _scale(rep):
 
 def _summary(rep) -> str:
     res, _ = _scale(rep)
-    return (f"{int(np.isfinite(res).sum())} overlaps used (colour: residual), "
-            f"{len(rep.get('skipped', []))} skipped (dotted), {len(rep.get('rejected', []))} "
-            f"rejected (red); sigma0 {rep.get('sigma0')}")
+    return (f"{int(np.isfinite(res).sum())} overlaps used, {len(rep.get('skipped', []))} "
+            f"skipped, {len(rep.get('rejected', []))} rejected; sigma0 "
+            f"{_sig(rep.get('sigma0'))}")
 
 
-def map_panel(cv: Canvas, box, rep: dict, grey, f: float, png=None) -> None:
-    """The residual map in ``box`` (x0, y0, x1, y1): ``grey`` the (2, rows, cols) uint8
-    grey + alpha overview of the mosaic, decimated by ``f`` from the grid (``png``: it
-    encoded)."""
-    res, top = _scale(rep)
-    rows, cols = grey.shape[1:]
-    x0, y0, x1, y1 = box
-    s = min((x1 - x0) / cols, (y1 - y0) / rows)
-    w, h = cols * s, rows * s
-    cv.image(x0, y0, w, h, grey, png)
-    cv.rect(x0, y0, w, h, stroke="#444444", width=0.8)
-    k = s / f                                  # canvas px per grid px
-    gain = _arrow_gain(rep.get("overlaps", []), res, (x0, y0, w, h), k)
-    for o, r in zip(rep.get("overlaps", []), res):
+def _sig(v) -> str:
+    return "-" if v is None else f"{v:.3g}"
+
+
+def _res_m(layout) -> float:
+    return abs(layout.transform.a)
+
+
+def _to_map(layout, rows, cols):
+    """Grid (row, col) -> map (x, y) in the grid's CRS."""
+    t = layout.transform
+    return t.c + np.asarray(cols, float) * t.a, t.f + np.asarray(rows, float) * t.e
+
+
+def _crs_name(layout) -> str:
+    if layout.crs is None:
+        return "grid without CRS"
+    import pyproj
+    c = pyproj.CRS.from_user_input(layout.crs)
+    return f"{c.name} (EPSG:{c.to_epsg()})" if c.to_epsg() else c.name
+
+
+def _extent(layout):
+    H, W = layout.shape
+    x0, y1 = _to_map(layout, 0, 0)
+    x1, y0 = _to_map(layout, H, W)
+    return float(x0), float(x1), float(y0), float(y1)
+
+
+def arrow_ends(rep: dict, layout, length: float = 0.1):
+    """Each used overlap's residual vector on the map: ``(start, end)`` pairs in map
+    coordinates, from the window's centre, scaled by one gain common to every arrow (the
+    largest a ``length`` fraction of the map's larger side, shrunk to a quarter of that at
+    most so that the arrows stay in the map; one still too long for its place is cut at
+    the frame); and the gain (map units per px of residual)."""
+    x0, x1, y0, y1 = _extent(layout)
+    frame = (x0, y0, x1 - x0, y1 - y0)
+    res, _ = _scale(rep)
+    used = [(o, r) for o, r in zip(rep.get("overlaps", []), res) if np.isfinite(r)]
+    big = max((r for _, r in used), default=0.0)
+    gain = length * max(frame[2], frame[3]) / max(big, 1e-3)
+    starts, dirs = [], []
+    for o, _ in used:
         r0, c0, r1, c1 = o["window"]
-        xa, ya, ww, hh = x0 + c0 * k, y0 + r0 * k, max((c1 - c0) * k, 1), max((r1 - r0) * k, 1)
-        if np.isfinite(r):
-            cv.rect(xa, ya, ww, hh, fill=colour(r / top), opacity=0.6)
-        elif o["ok"]:
-            cv.rect(xa, ya, ww, hh, stroke="#e00000", width=1.2)
-        else:
-            cv.rect(xa, ya, ww, hh, stroke="#777777", width=0.8, dash=True)
-    for o, r in zip(rep.get("overlaps", []), res):
-        if np.isfinite(r):
-            r0, c0, r1, c1 = o["window"]
-            xc, yc = x0 + (c0 + c1) / 2 * k, y0 + (r0 + r1) / 2 * k
-            dx, dy = o["residual"][1] * gain, o["residual"][0] * gain
-            t = _inside((xc, yc), (dx, dy), (x0, y0, w, h))
-            cv.arrow(xc, yc, xc + t * dx, yc + t * dy)
-    cv.text(x0, y0 + h + 16, f"arrows: residual vectors, {gain / k:.3g} grid px per px", 10)
-    colour_bar(cv, (x0 + w + 14, y0, x0 + w + 28, y0 + min(h, 320)), top,
-               "residual after adjustment (px)")
+        xc, yc = _to_map(layout, (r0 + r1) / 2, (c0 + c1) / 2)
+        starts.append((float(xc), float(yc)))
+        # residual (row, col) px -> map: col along x, row along -y (north-up grid)
+        dirs.append((o["residual"][1] * abs(layout.transform.a),
+                     o["residual"][0] * layout.transform.e))
+    fit = gain
+    for p, d in zip(starts, dirs):
+        if np.hypot(*d) > 0:
+            fit = min(fit, gain * _inside(p, (d[0] * gain, d[1] * gain), frame))
+    gain = max(fit, 0.25 * gain)
+    ends = []
+    for p, d in zip(starts, dirs):
+        t = _inside(p, (d[0] * gain, d[1] * gain), frame)
+        ends.append((p, (p[0] + t * d[0] * gain, p[1] + t * d[1] * gain)))
+    return ends, gain
 
 
 def _inside(p, d, frame) -> float:
-    """The largest ``t <= 1`` with ``p + t * d`` inside ``frame`` (x, y, w, h), less the
-    room of an arrow head (6 px), for ``p`` inside it."""
+    """The largest ``t <= 1`` with ``p + t * d`` inside ``frame`` (x, y, w, h), less 1 % of
+    the frame for the arrow's head, for ``p`` inside it."""
     x, y, w, h = frame
     t = 1.0
-    for c, v, lo, hi in ((p[0], d[0], x, x + w), (p[1], d[1], y, y + h)):
-        if v > 1e-9:
-            t = min(t, max(0.0, hi - 3.0 - c) / v)
-        elif v < -1e-9:
-            t = min(t, max(0.0, c - lo - 3.0) / -v)
+    for c, v, lo, hi, m in ((p[0], d[0], x, x + w, 0.01 * w), (p[1], d[1], y, y + h, 0.01 * h)):
+        if v > 1e-12:
+            t = min(t, max(0.0, hi - m - c) / v)
+        elif v < -1e-12:
+            t = min(t, max(0.0, c - lo - m) / -v)
     return t
 
 
-def _arrow_gain(overlaps, res, frame, k) -> float:
-    """Canvas px per px of residual, common to every arrow: the largest arrow a tenth of
-    the map's size, shrunk (to a quarter of that at most) so that the arrows stay in the
-    map; one still too long for its place is cut at the frame (:func:`_inside`)."""
-    used = res[np.isfinite(res)]
-    gain = 0.1 * max(frame[2], frame[3]) / max(float(used.max()) if used.size else 0.0, 1e-3)
-    fit = gain
-    for o, r in zip(overlaps, res):
-        if np.isfinite(r) and r > 0:
-            r0, c0, r1, c1 = o["window"]
-            p = (frame[0] + (c0 + c1) / 2 * k, frame[1] + (r0 + r1) / 2 * k)
-            d = (o["residual"][1] * gain, o["residual"][0] * gain)
-            fit = min(fit, gain * _inside(p, d, frame))
-    return max(fit, 0.25 * gain)
+def _backdrop(ax, grey, layout):
+    """The mosaic's grey overview (2, rows, cols: grey + alpha) on its map extent."""
+    rgba = np.empty(grey.shape[1:] + (4,), np.uint8)
+    rgba[..., :3] = grey[0][..., None]
+    rgba[..., 3] = grey[1]
+    x0, x1, y0, y1 = _extent(layout)
+    ax.imshow(rgba, extent=(x0, x1, y0, y1), interpolation="nearest", zorder=0)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+
+
+def map_panel(ax, rep: dict, grey, layout):
+    """The residual map on ``ax``; returns the colour mapping (for a colour bar)."""
+    import matplotlib
+    from matplotlib.patches import Rectangle
+
+    from swathflow.drawing import map_frame
+    res, top = _scale(rep)
+    cmap = matplotlib.colormaps[COLOUR_MAP]
+    norm = matplotlib.colors.Normalize(0.0, top)
+    _backdrop(ax, grey, layout)
+    kinds = set()
+    for o, r in zip(rep.get("overlaps", []), res):
+        r0, c0, r1, c1 = o["window"]
+        x, y = _to_map(layout, r1, c0)                         # lower left corner
+        w, h = (c1 - c0) * abs(layout.transform.a), (r1 - r0) * abs(layout.transform.e)
+        if np.isfinite(r):
+            ax.add_patch(Rectangle((x, y), w, h, fc=cmap(norm(r)), ec="none", alpha=0.6))
+            kinds.add("used")
+        elif o["ok"]:
+            ax.add_patch(Rectangle((x, y), w, h, fc="none", ec=REJECTED, lw=1.2))
+            kinds.add("rejected")
+        else:
+            ax.add_patch(Rectangle((x, y), w, h, fc="none", ec=SKIPPED, lw=0.8, ls=":"))
+            kinds.add("skipped")
+    ends, gain = arrow_ends(rep, layout)
+    for (xa, ya), (xb, yb) in ends:
+        ax.annotate("", xy=(xb, yb), xytext=(xa, ya),
+                    arrowprops=dict(arrowstyle="-|>", color="#00bcd4", lw=1.3,
+                                    shrinkA=0, shrinkB=0))
+    map_frame(ax, _crs_name(layout))
+    _map_legend(ax, kinds, bool(ends), gain, layout)
+    return matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
+
+
+def _map_legend(ax, kinds, arrows: bool, gain: float, layout) -> None:
+    """Entries for what the map shows, only those drawn."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    handles = []
+    if "used" in kinds:
+        handles.append(Patch(fc="#cc4778", alpha=0.6, label="overlap window (colour: residual)"))
+    if "rejected" in kinds:
+        handles.append(Patch(fc="none", ec=REJECTED, label="rejected overlap"))
+    if "skipped" in kinds:
+        handles.append(Patch(fc="none", ec=SKIPPED, ls=":", label="skipped overlap"))
+    if arrows:
+        handles.append(Line2D([], [], color="#00bcd4", lw=1.3, marker=">", markevery=[1],
+                              label=f"residual vector (1 px drawn {gain:.3g} m long)"))
+    if handles:
+        ax.legend(handles=handles, loc="upper left", fontsize=7.5, framealpha=0.85)
+
+
+def graph_edges(rep: dict, layout) -> list[dict]:
+    """The overlap graph's edges, one per overlap: its swings (``ref``, ``mov``), their
+    nodes, the map positions of the two swings' centres and the overlap's state
+    (``used``, ``rejected`` or ``skipped``) and residual (px)."""
+    per_image = bool(rep.get("per_image"))
+    centre = {s.image_id: _to_map(layout, s.row + s.height / 2, s.col + s.width / 2)
+              for s in layout.swings}
+    node_of = {s.image_id: str(s.image_id if per_image else s.strip) for s in layout.swings}
+    res, _ = _scale(rep)
+    out = []
+    for o, r in zip(rep.get("overlaps", []), res):
+        a, b = centre.get(o["ref"]), centre.get(o["mov"])
+        if a is None or b is None:
+            continue
+        state = "used" if np.isfinite(r) else ("rejected" if o["ok"] else "skipped")
+        out.append({"ref": o["ref"], "mov": o["mov"], "nodes": (node_of[o["ref"]],
+                                                                   node_of[o["mov"]]),
+                    "a": (float(a[0]), float(a[1])), "b": (float(b[0]), float(b[1])),
+                    "state": state, "residual": r})
+    return out
+
+
+def _node_places(rep: dict, layout) -> dict:
+    """Node name -> map (x, y) centre of its swings."""
+    per_image = bool(rep.get("per_image"))
+    acc: dict = {}
+    for s in layout.swings:
+        key = str(s.image_id if per_image else s.strip)
+        acc.setdefault(key, []).append(_to_map(layout, s.row + s.height / 2,
+                                               s.col + s.width / 2))
+    return {k: tuple(np.mean(np.array(v, float), axis=0)) for k, v in acc.items()}
+
+
+def graph_panel(ax, rep: dict, layout):
+    """The overlap graph on ``ax`` (map coordinates); returns the colour mapping."""
+    import matplotlib
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Rectangle
+
+    from swathflow.drawing import map_frame
+    _, top = _scale(rep)
+    cmap = matplotlib.colormaps[COLOUR_MAP]
+    norm = matplotlib.colors.Normalize(0.0, top)
+    x0, x1, y0, y1 = _extent(layout)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    for s in layout.swings:
+        x, y = _to_map(layout, s.row + s.height, s.col)
+        ax.add_patch(Rectangle((float(x), float(y)), s.width * abs(layout.transform.a),
+                               s.height * abs(layout.transform.e), fc="#f3f3f3",
+                               ec="#bbbbbb", lw=0.6, zorder=0))
+    states = set()
+    for e in graph_edges(rep, layout):
+        (xa, ya), (xb, yb) = e["a"], e["b"]
+        states.add(e["state"])
+        kw = (dict(color=cmap(norm(e["residual"])), lw=2.5) if e["state"] == "used" else
+              dict(color=REJECTED, lw=1.5) if e["state"] == "rejected" else
+              dict(color=SKIPPED, lw=1.0, ls=":"))
+        ax.plot([xa, xb], [ya, yb], zorder=2, solid_capstyle="round", **kw)
+        ax.plot([xa, xb], [ya, yb], "o", ms=2.5, color="#555555", zorder=3)
+    places = _node_places(rep, layout)
+    anchors = set(rep.get("anchors", []))
+    sig = {n["node"]: n["sigma"] for n in rep.get("nodes", [])}
+    label = len(places) <= 60
+    for q, (name, (x, y)) in enumerate(places.items()):
+        a = name in anchors
+        ax.plot(x, y, "s" if a else "o", ms=8, color=ANCHOR if a else NODE, mec="white",
+                zorder=4)
+        if label:
+            sg = sig.get(name) or [None, None]
+            text = (f"{name} (anchor)" if a else
+                    f"{name} σ {'/'.join(_sig(v) for v in sg)} px")
+            ax.annotate(text, (x, y), xytext=(0, 9 if q % 2 == 0 else -14),
+                        textcoords="offset points", ha="center", fontsize=7.5, zorder=5,
+                        bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.7))
+    map_frame(ax, _crs_name(layout))
+    handles = [Line2D([], [], marker="o", ls="", color=NODE, label="node (strip or image)")]
+    if anchors & set(places):
+        handles.append(Line2D([], [], marker="s", ls="", color=ANCHOR, label="anchor node"))
+    handles.append(Line2D([], [], marker="o", ls="", ms=2.5, color="#555555",
+                          label="swing centre"))
+    if "used" in states:
+        handles.append(Line2D([], [], color=cmap(0.6), lw=2.5, label="overlap (colour: residual)"))
+    if "rejected" in states:
+        handles.append(Line2D([], [], color=REJECTED, lw=1.5, label="rejected overlap"))
+    if "skipped" in states:
+        handles.append(Line2D([], [], color=SKIPPED, lw=1.0, ls=":", label="skipped overlap"))
+    ax.legend(handles=handles, loc="upper left", fontsize=7.5, framealpha=0.85)
+    return matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
 
 
 def _node_order(name):
@@ -116,124 +284,84 @@ def _node_order(name):
         return (1, 0.0, name)
 
 
-def _lim(lo, hi, pad=0.08):
-    lo, hi = float(np.nanmin(lo)), float(np.nanmax(hi))
-    if not np.isfinite(lo) or not np.isfinite(hi):
-        return -1.0, 1.0
-    lo, hi = min(lo, 0.0), max(hi, 0.0)
-    d = max(hi - lo, 1e-3)
-    return lo - pad * d, hi + pad * d
-
-
-def offsets_panels(cv: Canvas, box_off, box_rad, rep: dict) -> None:
-    """Each node's offset (row, col) with 1-sigma bars, and its radiometric offset."""
+def offsets_panels(ax_off, ax_rad, rep: dict, res_m: float) -> None:
+    """Each node's offset (row, col) with 1-sigma bars (px, and m on the right axis), and
+    its radiometric offset."""
     nodes = sorted(rep.get("nodes", []), key=lambda n: _node_order(n["node"]))
     if not nodes:
         return
     n = len(nodes)
+    x = np.arange(n)
     off = np.array([n_["offset"] for n_ in nodes], float).reshape(-1, 2)
-    sig = np.nan_to_num(np.array([[np.nan if v is None else v for v in n_["sigma"]]
-                                  for n_ in nodes], float).reshape(-1, 2))
-    step = max(1, n // 24)
-    ticks = [(q, str(nodes[q]["node"])) for q in range(0, n, step)]
-    ax = Axes(cv, box_off, (-0.7, n - 0.3), _lim(off - sig, off + sig),
-              f"network: {rep.get('anchor', '')} anchored, offsets with 1-sigma bars",
-              ylabel="offset (px)", xticks=ticks)
-    cv.line(ax.x(-0.7), ax.y(0), ax.x(n - 0.3), ax.y(0), stroke="#999999", width=0.6)
-    for axis, dx, col, sq in ((0, -0.12, "#1f77b4", False), (1, 0.12, "#ff7f0e", True)):
-        for q in range(n):
-            x, v, e = ax.x(q + dx), off[q, axis], sig[q, axis]
-            cv.line(x, ax.y(v - e), x, ax.y(v + e), stroke=col, width=1.2)
-            cv.marker(x, ax.y(v), 3.2, col, square=sq)
-    x1, y0 = box_off[2], box_off[1]
-    cv.marker(x1 - 120, y0 + 14, 3.2, "#1f77b4")
-    cv.text(x1 - 112, y0 + 18, "row offset", 10)
-    cv.marker(x1 - 120, y0 + 30, 3.2, "#ff7f0e", square=True)
-    cv.text(x1 - 112, y0 + 34, "column offset", 10)
+    sig = np.array([[np.nan if v is None else v for v in n_["sigma"]] for n_ in nodes],
+                   float).reshape(-1, 2)
+    for axis, dx, col, mk, name in ((0, -0.12, "#1f77b4", "o", "row offset"),
+                                    (1, 0.12, "#ff7f0e", "s", "column offset")):
+        ax_off.errorbar(x + dx, off[:, axis], yerr=np.nan_to_num(sig[:, axis]), fmt=mk,
+                        color=col, ms=4, capsize=2, label=name)
+    ax_off.axhline(0, color="#999999", lw=0.6)
+    ax_off.set_ylabel("offset (grid px)")
+    sec = ax_off.secondary_yaxis("right", functions=(lambda v: v * res_m,
+                                                     lambda v: v / res_m))
+    sec.set_ylabel("offset (m)")
+    ax_off.set_title(f"network: {rep.get('anchor', '')} anchored, offsets with 1-sigma bars")
+    ax_off.legend(loc="best", fontsize=7.5)
     rad = np.array([n_["radiometric"] for n_ in nodes], float)
-    ax = Axes(cv, box_rad, (-0.7, n - 0.3), _lim(rad, rad),
-              "radiometric balance per node", "node (strip or image)",
-              "radiometric offset removed", xticks=ticks)
-    half = min(0.35, 0.4 * (ax.x(1) - ax.x(0)))
-    for q in range(n):
-        xa, xb = ax.x(q) - half * (ax.x(1) - ax.x(0)), ax.x(q) + half * (ax.x(1) - ax.x(0))
-        ya, yb = sorted((ax.y(0), ax.y(rad[q])))
-        cv.rect(xa, ya, xb - xa, max(yb - ya, 0.5), fill="#2ca02c")
-    cv.line(ax.x(-0.7), ax.y(0), ax.x(n - 0.3), ax.y(0), stroke="#999999", width=0.6)
-
-
-def _node_places(rep: dict, layout) -> dict:
-    """Node name -> (column, row) centre of its swings on the grid."""
-    per_image = bool(rep.get("per_image"))
-    acc: dict = {}
-    for s in layout.swings:
-        key = str(s.image_id if per_image else s.strip)
-        acc.setdefault(key, []).append((s.col + s.width / 2, s.row + s.height / 2))
-    return {k: tuple(np.mean(v, axis=0)) for k, v in acc.items()}
-
-
-def graph_panel(cv: Canvas, box, rep: dict, layout) -> None:
-    """The overlap graph over the grid (y down, as the mosaic)."""
-    per_image = bool(rep.get("per_image"))
-    places = _node_places(rep, layout)
-    node_of = {s.image_id: str(s.image_id if per_image else s.strip) for s in layout.swings}
-    res, top = _scale(rep)
-    H, W = layout.shape
-    x0, y0, x1, y1 = box
-    s = min((x1 - x0) / W, (y1 - y0) / H)
-    box = (x0, y0, x0 + W * s, y0 + H * s)
-    ax = Axes(cv, box, (0, W), (0, H), "", "grid column (px)", "grid row (px)", yflip=True)
-    for o, r in zip(rep.get("overlaps", []), res):
-        a, b = places.get(node_of.get(o["ref"])), places.get(node_of.get(o["mov"]))
-        if a is None or b is None:
-            continue
-        kw = (dict(stroke=colour(r / top), width=2.5) if np.isfinite(r) else
-              dict(stroke="#e00000", width=1.5) if o["ok"] else
-              dict(stroke="#999999", width=1.0, dash=True))
-        cv.line(ax.x(a[0]), ax.y(a[1]), ax.x(b[0]), ax.y(b[1]), **kw)
-    sig = {n["node"]: n["sigma"] for n in rep.get("nodes", [])}
-    anchors = set(rep.get("anchors", []))
-    label = len(places) <= 60
-    for q, (name, (x, y)) in enumerate(places.items()):
-        a = name in anchors
-        cv.marker(ax.x(x), ax.y(y), 5, "#2ca02c" if a else "#1f77b4", square=a)
-        if label:                         # alternately above and below: neighbours apart
-            sg = sig.get(name) or [None, None]
-            cv.text(ax.x(x), ax.y(y) + (-9 - 11 * (q % 2) if q % 4 < 2 else 18 + 11 * (q % 2)),
-                    f"{name} σ " + "/".join(
-                "-" if v is None else f"{v:.2f}" for v in sg), 9, "middle")
-    colour_bar(cv, (box[2] + 14, y0, box[2] + 28, y0 + min(box[3] - y0, 300)), top,
-               "residual after adjustment (px)")
+    ax_rad.bar(x, rad, color="#2ca02c", width=0.6)
+    ax_rad.axhline(0, color="#999999", lw=0.6)
+    ax_rad.set_title("radiometric balance per node")
+    ax_rad.set_ylabel("radiometric offset removed (data units)")
+    ax_rad.set_xlabel("node (strip or image)")
+    step = max(1, n // 24)
+    for ax in (ax_off, ax_rad):
+        ax.set_xticks(x[::step], [str(nodes[q]["node"]) for q in range(0, n, step)])
+        ax.set_xlim(-0.6, n - 0.4)
 
 
 def _fit(shape, w, h):
-    """Width and height of a panel for a ``shape`` (rows, cols) area within w x h."""
+    """Width and height (inches) of a map panel for a ``shape`` (rows, cols) area within
+    w x h."""
     s = min(w / shape[1], h / shape[0])
     return shape[1] * s, shape[0] * s
 
 
-def map_figure(rep: dict, grey, f: float, png=None) -> Canvas:
-    pw, ph = _fit(grey.shape[1:], 760, 560)
-    cv = Canvas(int(pw) + 110, int(ph) + 56)
-    cv.text(10, 18, "per-overlap residuals on the mosaic: " + _summary(rep), 12)
-    map_panel(cv, (10, 30, 10 + pw, 30 + ph), rep, grey, f, png)
-    return cv
+def map_figure(rep: dict, grey, layout):
+    """The residual map as a figure (with its colour bar)."""
+    from swathflow.drawing import figure
+    pw, ph = _fit(layout.shape, 8.0, 7.0)
+    fig = figure(pw + 2.4, ph + 1.3, margins=MAP_MARGINS)
+    ax = fig.add_subplot()
+    sm = map_panel(ax, rep, grey, layout)
+    ax.set_title("per-overlap residuals on the mosaic: " + _summary(rep), fontsize=9)
+    _colour_bar(fig, ax, sm, rep)
+    return fig
 
 
-def graph_figure(rep: dict, layout) -> Canvas:
-    pw, ph = _fit(layout.shape, 760, 520)
-    cv = Canvas(int(pw) + 190, int(ph) + 90)
-    cv.text(10, 18, f"{len(_node_places(rep, layout))} nodes (square: anchor), "
-                    f"{len(rep.get('overlaps', []))} overlaps: colour = residual, red = "
-                    f"rejected, dotted = skipped", 12)
-    graph_panel(cv, (70, 34, 70 + pw, 34 + ph), rep, layout)
-    return cv
+def _colour_bar(fig, ax, sm, rep, shrink=0.8) -> None:
+    """The residual colour bar, when an overlap is coloured by its residual."""
+    if np.isfinite(_scale(rep)[0]).any():
+        fig.colorbar(sm, ax=ax, shrink=shrink, label="residual after adjustment (px)")
 
 
-def offsets_figure(rep: dict) -> Canvas:
-    cv = Canvas(1000, 380)
-    offsets_panels(cv, (70, 30, 480, 300), (580, 30, 990, 300), rep)
-    return cv
+def graph_figure(rep: dict, layout):
+    from swathflow.drawing import figure
+    pw, ph = _fit(layout.shape, 8.0, 7.0)
+    fig = figure(pw + 2.4, ph + 1.3, margins=MAP_MARGINS)
+    ax = fig.add_subplot()
+    sm = graph_panel(ax, rep, layout)
+    ax.set_title(f"{len(_node_places(rep, layout))} nodes, {len(rep.get('overlaps', []))} "
+                 f"overlaps (each an edge between its swings' centres)", fontsize=9)
+    _colour_bar(fig, ax, sm, rep)
+    return fig
+
+
+def offsets_figure(rep: dict, layout):
+    from swathflow.drawing import figure
+    fig = figure(10.5, 3.6, margins=(0.75, 0.2, 0.6, 0.35), wspace=0.45)
+    a, b = fig.subplots(1, 2)
+    offsets_panels(a, b, rep, _res_m(layout))
+    a.set_xlabel("node (strip or image)")
+    return fig
 
 
 def seams_picture(mosaic_path, rep: dict, layout, png_path, grey=None, f=None) -> str:
@@ -241,18 +369,58 @@ def seams_picture(mosaic_path, rep: dict, layout, png_path, grey=None, f=None) -
     into ``png_path`` (atomically): the residual map and the per-node offsets. ``grey``,
     ``f``: the mosaic's overview (:func:`swathflow.mosaicking.output.overview`), read when
     not given. Returns the path."""
+    from swathflow.drawing import figure, write_png
     from swathflow.mosaicking.output import overview, stretch
     if grey is None:
         data, f = overview(mosaic_path, 900)
         grey = stretch(data)
-    pw, ph = _fit(grey.shape[1:], 760, 640)
-    cv = Canvas(int(pw) + 640, max(int(ph) + 70, 700))
-    cv.text(10, 20, f"mosaic {os.path.basename(os.fspath(mosaic_path))}: {layout.shape[0]} x "
-                    f"{layout.shape[1]} px, {len(layout.swings)} swings. " + _summary(rep), 13)
-    map_panel(cv, (10, 40, 10 + pw, 40 + ph), rep, grey, f)
-    x = int(pw) + 170
-    offsets_panels(cv, (x, 60, x + 440, 330), (x, 390, x + 440, 620), rep)
-    png_path = os.fspath(png_path)
-    with atomic_path(png_path, suffix=".png") as tmp:
-        cv.png(tmp)
-    return png_path
+    pw, ph = _fit(layout.shape, 7.5, 7.5)
+    fig = figure(pw + 8.0, max(ph + 1.3, 7.0), margins=(0.85, 0.8, 0.6, 0.6), wspace=0.45,
+                 hspace=0.35)
+    grid = fig.add_gridspec(2, 2, width_ratios=[pw + 1.5, 6.0])
+    ax = fig.add_subplot(grid[:, 0])
+    sm = map_panel(ax, rep, grey, layout)
+    _colour_bar(fig, ax, sm, rep, 0.6)
+    offsets_panels(fig.add_subplot(grid[0, 1]), fig.add_subplot(grid[1, 1]), rep,
+                   _res_m(layout))
+    fig.suptitle(f"mosaic {os.path.basename(os.fspath(mosaic_path))}: {layout.shape[0]} x "
+                 f"{layout.shape[1]} px of {_res_m(layout):g} m, {len(layout.swings)} "
+                 f"swings. " + _summary(rep), fontsize=10)
+    return write_png(fig, png_path)
+
+
+def node_line(nd: dict, res_m: float | None = None) -> str:
+    """A node of mosaic.json as a person reads it on the terminal: offset (row, col) in
+    grid pixels (and metres with ``res_m``, the pixel size), its 1-sigma ("anchor" for a
+    node held fixed), the radiometric offset."""
+    off = nd["offset"]
+    sg = nd.get("sigma") or [None, None]
+    text = f"node {nd['node']}: offset (row, col) ({off[0]:+.3f}, {off[1]:+.3f}) px"
+    if res_m:
+        text += f" = ({off[0] * res_m:+.3f}, {off[1] * res_m:+.3f}) m"
+    if all(v is None for v in sg):
+        text += ", held (anchor)"
+    else:
+        text += f", sigma ({_sig(sg[0])}, {_sig(sg[1])}) px"
+    return text + f", radiometric {nd['radiometric']:+.3f}"
+
+
+def write_report(mosaic_path, rectified, strips: dict | None = None) -> dict:
+    """Make the mosaic's report picture and HTML page (``<out>.report.png``,
+    ``<out>.html``) from the finished mosaic, its ``<out>.json`` and the rectified swings
+    it was made of (``strips``: image id -> strip, as given to the mosaic): what a flow
+    submits off its critical path after a mosaic written with ``report=False`` for the
+    pictures. Returns the paths."""
+    import json
+
+    from swathflow.mosaicking.inputs import scan_inputs
+    from swathflow.mosaicking.output import overview, stretch
+    from swathflow.mosaicking.report_html import mosaic_report_html
+    stem = os.path.splitext(os.fspath(mosaic_path))[0]
+    with open(stem + ".json", encoding="utf-8") as fh:
+        rep = json.load(fh)
+    layout = scan_inputs(rectified, strips)
+    data, f = overview(mosaic_path, 1024)
+    grey = stretch(data)
+    return {"picture": seams_picture(mosaic_path, rep, layout, stem + ".report.png", grey, f),
+            "html": mosaic_report_html(mosaic_path, rep, layout, stem + ".html", grey, f)}

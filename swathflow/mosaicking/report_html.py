@@ -1,65 +1,54 @@
-"""The mosaic report as one self-contained HTML file (inline CSS, figures inlined as SVG,
-no script, no external asset): ``<out>.html`` beside the mosaic.
+"""The mosaic report as one self-contained HTML file from the Jinja2 template
+``swathflow/templates/mosaic_report.html.j2`` (autoescaped; inline CSS, figures inlined as
+SVG, no script, no external asset): ``<out>.html`` beside the mosaic.
 
-Figures (swathflow.mosaicking.report, drawn without matplotlib): the overlap graph (a node
-per strip or image at the centre of its swings, an edge per overlap: used ones coloured by
-their residual after the network adjustment, skipped dotted grey, rejected red), the
-per-overlap residuals on a map (the mosaic from its overviews, each overlap's window
-coloured by its residual and its residual vector drawn at the window's centre), and each
-node's offset with its 1-sigma bars and its radiometric offset. Tables: nodes (offset,
-sigma, radiometric) and overlaps (measurement, sigma, status, residual).
+Figures (:mod:`swathflow.mosaicking.report`, matplotlib): the overlap graph (every overlap
+an edge between its swings' centres: used ones coloured by their residual after the
+network adjustment, skipped dotted grey, rejected red), the per-overlap residuals on a map
+(the mosaic from its overviews in its CRS, with coordinates, a scale bar and a north arrow;
+each overlap's window coloured by its residual and its residual vector drawn at the
+window's centre), and each node's offset with its 1-sigma bars and its radiometric offset.
+Tables: nodes (offset and sigma in grid pixels and metres, radiometric) and overlaps
+(measurement, sigma, status, residual in pixels and metres).
 """
 from __future__ import annotations
 
-import html
 import os
 
-import numpy as np
-
 from swathflow.io import write_text
+from swathflow.pages import num, render, safe
 
 __all__ = ["mosaic_report_html"]
 
-CSS = """
-body{font-family:system-ui,sans-serif;margin:2em;color:#222;max-width:1200px}
-h1{font-size:1.5em}h2{font-size:1.2em;margin-top:2em;border-bottom:1px solid #ccc}
-table{border-collapse:collapse;margin:.5em 0;font-size:.85em}
-td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
-th{background:#f2f2f2}td.l,th.l{text-align:left}.bad{background:#fbb}.skip{color:#888}
-figure{margin:1em 0}figure svg{max-width:100%;height:auto}
-figcaption{color:#555;font-size:.85em}
-"""
+
+def _en(v, res: float, sign: bool = True):
+    """(row, col) in grid pixels -> (east, north) in metres (north = -row on a north-up
+    grid; ``sign=False`` for sigmas); None stays None."""
+    if v is None or any(x is None for x in v):
+        return None
+    return [v[1] * res, (-v[0] if sign else v[0]) * res]
 
 
-def _fmt(v, nd=3) -> str:
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "-"
-    if isinstance(v, (list, tuple)):
-        return ", ".join(_fmt(x, nd) for x in v)
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, (int, float)):
-        return f"{v:.{nd}f}" if isinstance(v, float) else str(v)
-    return html.escape(str(v))
+def _sigma(v) -> str:
+    return "anchor" if v is None or all(x is None for x in v) else num(v)
 
 
-def _tables(rep: dict) -> str:
-    rows = "".join(f"<tr><td class='l'>{_fmt(n['node'])}</td><td>{_fmt(n['offset'])}</td>"
-                   f"<td>{_fmt(n['sigma'])}</td><td>{_fmt(n['radiometric'])}</td></tr>"
-                   for n in rep.get("nodes", []))
-    out = ["<h2>Nodes</h2><table><tr><th class='l'>node</th><th>offset (row, col) px</th>"
-           f"<th>sigma (row, col) px</th><th>radiometric offset</th></tr>{rows}</table>"]
-    rows = []
+def _rows(rep: dict, res: float):
+    nodes = [{"node": str(n["node"]), "offset": num(n["offset"]),
+              "offset_m": num(_en(n["offset"], res)), "sigma": _sigma(n["sigma"]),
+              "sigma_m": _sigma(_en(n["sigma"], res, False)),
+              "radiometric": num(n["radiometric"])}
+             for n in rep.get("nodes", [])]
+    overlaps = []
     for o in rep.get("overlaps", []):
-        cls = "skip" if not o["ok"] else ("bad" if not o.get("used") else "")
-        rows.append(f"<tr class='{cls}'><td class='l'>{_fmt(o['ref'])} / {_fmt(o['mov'])}</td>"
-                    f"<td class='l'>{_fmt(o['status'])}</td><td>{_fmt(o['offset'])}</td>"
-                    f"<td>{_fmt(o['sigma'])}</td><td>{_fmt(o.get('residual'))}</td>"
-                    f"<td>{_fmt(o.get('used'))}</td><td>{_fmt(o.get('pixels'))}</td></tr>")
-    out.append("<h2>Overlaps</h2><table><tr><th class='l'>ref / mov</th><th class='l'>status"
-               "</th><th>offset (row, col) px</th><th>sigma px</th><th>residual px</th>"
-               f"<th>used</th><th>pixels</th></tr>{''.join(rows)}</table>")
-    return "".join(out)
+        overlaps.append({"cls": "skip" if not o["ok"] else ("bad" if not o.get("used") else ""),
+                         "pair": f"{o['ref']} / {o['mov']}", "status": str(o["status"]),
+                         "offset": num(o["offset"]), "sigma": num(o["sigma"]),
+                         "residual": num(o.get("residual")),
+                         "residual_m": num(_en(o.get("residual"), res)),
+                         "used": num(bool(o.get("used"))) or "no",
+                         "pixels": num(o.get("pixels"))})
+    return nodes, overlaps
 
 
 def mosaic_report_html(mosaic_path, rep: dict, layout, html_path, grey=None,
@@ -67,30 +56,33 @@ def mosaic_report_html(mosaic_path, rep: dict, layout, html_path, grey=None,
     """Write the mosaic report of a finished mosaic (``rep``: its mosaic.json content)
     to ``html_path`` atomically (``grey``, ``f``: the mosaic's overview as for
     :func:`swathflow.mosaicking.report.seams_picture`, read when not given; ``png``: it
-    encoded). Returns the path."""
+    encoded, unused: the map figure embeds the overview itself). Returns the path."""
+    from swathflow.drawing import svg
     from swathflow.mosaicking.output import overview, stretch
     from swathflow.mosaicking.report import graph_figure, map_figure, offsets_figure
     if grey is None:
         data, f = overview(mosaic_path, 900)
         grey = stretch(data)
-    name = html.escape(os.path.basename(os.fspath(mosaic_path)))
-    grid = rep.get("grid", {})
-    head = (f"<p>{len(layout.swings)} swings on a {layout.shape[0]} x {layout.shape[1]} px grid "
-            f"({html.escape(str(grid.get('crs')))}, {_fmt(grid.get('res'))} m); blend "
-            f"{_fmt(rep.get('blend'))}, feather {_fmt(rep.get('feather_px'))} px; network "
-            f"anchored on {_fmt(rep.get('anchor'))}, sigma0 {_fmt(rep.get('sigma0'))}; "
-            f"{len(rep.get('skipped', []))} overlaps skipped, "
-            f"{len(rep.get('rejected', []))} rejected.</p>")
-    figs = [("Overlap graph", "Nodes at the centre of their swings; an edge per overlap.",
-             graph_figure(rep, layout).svg()),
+    res = abs(layout.transform.a)
+    nodes, overlaps = _rows(rep, res)
+    figs = [("Overlap graph", "Each swing's footprint (grey), a node per strip (or image) at "
+             "the centre of its swings, and an edge per overlap between its two swings' "
+             "centres; coordinates in metres.", graph_figure(rep, layout)),
             ("Residuals on the map", "Each overlap's window and residual vector after the "
-             "network adjustment.", map_figure(rep, grey, f, png).svg()),
-            ("Offsets", "Each node's offset with its 1-sigma bars, and the radiometric "
-             "offset removed.", offsets_figure(rep).svg())]
-    body = "".join(f"<h2>{t}</h2><figure>{svg}<figcaption>{c}</figcaption></figure>"
-                   for t, c, svg in figs)
-    doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>swathflow mosaic "
-           f"{name}</title><style>{CSS}</style></head><body><h1>Mosaic {name}</h1>{head}"
-           f"{body}{_tables(rep)}</body></html>")
-    write_text(os.fspath(html_path), doc)
+             "network adjustment, on the mosaic; coordinates in metres.",
+             map_figure(rep, grey, layout)),
+            ("Offsets", "Each node's offset with its 1-sigma bars (grid pixels left, metres "
+             "right), and the radiometric offset removed (data units).",
+             offsets_figure(rep, layout))]
+    grid = rep.get("grid", {})
+    page = render(
+        "mosaic_report.html.j2", name=os.path.basename(os.fspath(mosaic_path)),
+        n_swings=len(layout.swings), shape=layout.shape, crs=str(grid.get("crs")),
+        res=num(res), blend=num(rep.get("blend")), feather=num(rep.get("feather_px")),
+        feather_m=num((rep.get("feather_px") or 0) * res, 1), anchor=num(rep.get("anchor")),
+        sigma0=num(rep.get("sigma0")), n_skipped=len(rep.get("skipped", [])),
+        n_rejected=len(rep.get("rejected", [])),
+        figures=[{"title": t, "caption": c, "svg": safe(svg(fig))} for t, c, fig in figs],
+        nodes=nodes, overlaps=overlaps)
+    write_text(os.fspath(html_path), page)
     return os.fspath(html_path)
