@@ -20,7 +20,7 @@ import os
 import numpy as np
 
 __all__ = ["seams_picture", "map_figure", "graph_figure", "offsets_figure", "graph_edges",
-           "arrow_ends", "node_line", "write_report"]
+           "arrow_ends", "node_line"]
 
 COLOUR_MAP = "plasma"
 #: a map figure's margins (inches: left, right, bottom, top): tick labels and axis labels
@@ -403,24 +403,3 @@ def node_line(nd: dict, res_m: float | None = None) -> str:
     else:
         text += f", sigma ({_sig(sg[0])}, {_sig(sg[1])}) px"
     return text + f", radiometric {nd['radiometric']:+.3f}"
-
-
-def write_report(mosaic_path, rectified, strips: dict | None = None) -> dict:
-    """Make the mosaic's report picture and HTML page (``<out>.report.png``,
-    ``<out>.html``) from the finished mosaic, its ``<out>.json`` and the rectified swings
-    it was made of (``strips``: image id -> strip, as given to the mosaic): what a flow
-    submits off its critical path after a mosaic written with ``report=False`` for the
-    pictures. Returns the paths."""
-    import json
-
-    from swathflow.mosaicking.inputs import scan_inputs
-    from swathflow.mosaicking.output import overview, stretch
-    from swathflow.mosaicking.report_html import mosaic_report_html
-    stem = os.path.splitext(os.fspath(mosaic_path))[0]
-    with open(stem + ".json", encoding="utf-8") as fh:
-        rep = json.load(fh)
-    layout = scan_inputs(rectified, strips)
-    data, f = overview(mosaic_path, 1024)
-    grey = stretch(data)
-    return {"picture": seams_picture(mosaic_path, rep, layout, stem + ".report.png", grey, f),
-            "html": mosaic_report_html(mosaic_path, rep, layout, stem + ".html", grey, f)}

@@ -18,7 +18,7 @@ import os
 from swathflow.io import write_text
 from swathflow.pages import num, render, safe
 
-__all__ = ["mosaic_report_html"]
+__all__ = ["mosaic_report_html", "write_report"]
 
 
 def _en(v, res: float, sign: bool = True):
@@ -86,3 +86,24 @@ def mosaic_report_html(mosaic_path, rep: dict, layout, html_path, grey=None,
         nodes=nodes, overlaps=overlaps)
     write_text(os.fspath(html_path), page)
     return os.fspath(html_path)
+
+
+def write_report(mosaic_path, rectified, strips: dict | None = None) -> dict:
+    """Make the mosaic's report picture and HTML page (``<out>.report.png``,
+    ``<out>.html``) from the finished mosaic, its ``<out>.json`` and the rectified swings
+    it was made of (``strips``: image id -> strip, as given to the mosaic): what a flow
+    submits off its critical path after a mosaic written with ``report=False`` for the
+    pictures. Returns the paths."""
+    import json
+
+    from swathflow.mosaicking.inputs import scan_inputs
+    from swathflow.mosaicking.output import overview, stretch
+    from swathflow.mosaicking.report import seams_picture
+    stem = os.path.splitext(os.fspath(mosaic_path))[0]
+    with open(stem + ".json", encoding="utf-8") as fh:
+        rep = json.load(fh)
+    layout = scan_inputs(rectified, strips)
+    data, f = overview(mosaic_path, 1024)
+    grey = stretch(data)
+    return {"picture": seams_picture(mosaic_path, rep, layout, stem + ".report.png", grey, f),
+            "html": mosaic_report_html(mosaic_path, rep, layout, stem + ".html", grey, f)}
