@@ -180,7 +180,8 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     :func:`swathflow.open_mission`, whose ``pos`` node, edited, is the trajectory used: see
     :func:`~swathflow.ingest.api.as_mission`) orthorectified onto its footprint grid,
     as a lazy DataArray over (y, x), or (band, y, x) when several bands are selected
-    (``bands``: 1-based indices or wavelengths, see :func:`~swathflow.rectification.rawimage.parse_bands`; default every band).
+    (``bands``: 1-based indices or wavelengths, see
+    :func:`~swathflow.rectification.rawimage.parse_bands`; default every band).
 
     ``dtype`` (default float32, NaN outside the footprint; None: the raw image's own type,
     as ``swathflow rectify`` writes it, with an integer nodata value or, with
