@@ -57,8 +57,11 @@ def image_dataset(mission: Mission, image_id: str, chunk_lines: int = CHUNK_LINE
     if waves is not None:
         coords["wavelength"] = ("band", np.asarray(waves))
     da = raw.assign_coords(coords)
-    da.attrs = {k: v for k, v in da.attrs.items() if k in ("_FillValue", "scale_factor",
-                                                           "add_offset")}
+    # the file's nodata, and its scale and offset unless they change nothing (the CF
+    # decoding of to_netcdf / to_zarr's reader would turn the counts into floats)
+    identity = {"scale_factor": 1.0, "add_offset": 0.0}
+    da.attrs = {k: v for k, v in da.attrs.items()
+                if k == "_FillValue" or (k in identity and v != identity[k])}
     ds = da.to_dataset(name="dn")
     if waves is not None and units:
         ds["wavelength"].attrs["units"] = units

@@ -2,7 +2,7 @@
 DataArrays of :func:`swathflow.rectify`) and returns the mosaic as a lazy, georeferenced
 ``xarray.DataArray``: the overlaps are matched and the offset network solved when it is
 called (on the current Dask client if one is active; the result is in
-``attrs["report"]``), the tiles are blended only when the array is computed, on the
+``attrs["report"]``, as JSON text), the tiles are blended only when the array is computed, on the
 current Dask scheduler. ``swathflow mosaic`` and the flow's mosaic task call it with
 ``out``, which also writes the COG, its quicklook, report picture and JSON with the
 engine's streaming writer (:func:`swathflow.mosaicking.mosaic.finish_mosaic`).
