@@ -48,6 +48,7 @@ def image_dataset(mission: Mission, image_id: str, chunk_lines: int = CHUNK_LINE
                                                                  "x": -1}, lock=False,
                                       parse_coordinates=False)
     raw = raw.rename({"y": "line", "x": "element"}).drop_vars("spatial_ref", errors="ignore")
+    raw.encoding.pop("grid_mapping", None)          # raw geometry: no CRS to point to
     nb, nl, ne = raw.shape
     coords = {"band": np.arange(1, nb + 1), "line": np.arange(nl), "element": np.arange(ne)}
     for k, v in mission.lines(image_id).items():
