@@ -168,7 +168,8 @@ def _truth_on(grid, truth) -> np.ndarray:
 def _shift(a, grid, truth, crop: int = 768):
     """Shift report (raw-output pixels) of ``a`` against the truth on its grid, on the
     central ``crop`` x ``crop`` window (the same window for every method)."""
-    from swathflow.rectification.rectify import shift_report
+    sys.path.insert(0, str(ROOT / "tests"))      # tests/shifts.py
+    from shifts import shift_report
     t = _truth_on(grid, truth)
     h, w = a.shape
     r0, c0 = max((h - crop) // 2, 0), max((w - crop) // 2, 0)

@@ -23,7 +23,7 @@ def _outputs(out: Path) -> dict:
 
 def _check_against_truth(mission: Path, result: dict, tol_px: float = 0.25):
     from swathflow.ingest.mission import load_mission
-    from swathflow.rectification.rectify import phase_shift
+    from shifts import phase_shift
     m = load_mission(mission)
     with rasterio.open(mission / "truth" / "ortho.tif") as t:
         truth = t.read(1, masked=True).astype(float).filled(np.nan)

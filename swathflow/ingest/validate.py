@@ -8,7 +8,6 @@ in :mod:`swathflow.plausible`, GCP tables in :mod:`swathflow.gcpfile`.
 """
 from __future__ import annotations
 
-import difflib
 import math
 import os
 import tomllib
@@ -18,61 +17,11 @@ from typing import Any
 import numpy as np
 
 from swathflow.errors import SwathflowError
-from swathflow.ingest.mission import (
-    BASE_LINE_COLUMNS,
-    IMAGE_KEYS,
-    ImageEntry,
-    Problem,
-)
 from swathflow.formats.pos import Trajectory, read_pos
 from swathflow.geometry.terrain import DEM, ConstantHeight
-
-#: the keys of each mission.toml table that swathflow reads (spec/mission-format.md)
-KNOWN_KEYS = {
-    "": ("mission", "sensor", "pos", "terrain", "gcp", "images", "calibration", "ties",
-         "rectify", "reference"),
-    "reference": ("ortho", "dem", "ties"),
-    "mission": ("name", "crs", "gsd", "max_pixels", "description", "date"),
-    "pos": ("file", "format", "max_gap"),
-    "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
-    "gcp": ("file", "crs"),
-    "rectify": ("bands",),
-    "images": IMAGE_KEYS + ("view",),
-}
-
-
-class Collector:
-    """Problems found so far."""
-
-    def __init__(self):
-        self.problems: list[Problem] = []
-
-    def add(self, file, where, message, fix="", level="error"):
-        self.problems.append(Problem(str(file), where, message, fix, level))
-
-    def warn(self, file, where, message, fix=""):
-        self.add(file, where, message, fix, "warning")
-
-
-def rel(root: Path, p) -> Path:
-    p = Path(str(p))
-    return p if p.is_absolute() else root / p
-
-
-def check_crs(crs) -> str | None:
-    import pyproj
-    try:
-        pyproj.CRS.from_user_input(crs)
-        return None
-    except (pyproj.exceptions.CRSError, TypeError, ValueError) as exc:
-        return str(exc).splitlines()[0][:200]
-
-
-def first_rows(mask, limit=5) -> str:
-    idx = np.flatnonzero(mask)
-    s = ", ".join(str(i + 2) for i in idx[:limit])
-    return s + (f" (and {idx.size - limit} more)" if idx.size > limit else "")
-
+from swathflow.ingest.images import ImageEntry, raster_check
+from swathflow.ingest.keys import BASE_LINE_COLUMNS, IMAGE_KEYS, KNOWN_KEYS
+from swathflow.ingest.problems import Collector, Problem, check_crs, check_keys, rel
 
 # ------------------------------------------------------------------------------------------
 # mission.toml
@@ -94,23 +43,6 @@ def read_toml(root: Path, c: Collector) -> dict | None:
     except OSError as exc:
         c.add(toml, "", f"cannot be read: {exc.strerror or exc}", "check the file's permissions")
     return None
-
-
-def check_keys(table, known, file, where: str, c: Collector, strict: bool = True) -> None:
-    """Unknown keys of a table: a near miss of a known key is an error naming it (a typo
-    silently changes the result), any other unknown key a warning (``strict``) or nothing."""
-    if not isinstance(table, dict):
-        return
-    for key in table:
-        if key in known:
-            continue
-        near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.75)
-        loc = f"{where}.{key}" if where else str(key)
-        if near:
-            c.add(file, loc, f"unknown key {key!r}", f"did you mean {near[0]!r}? rename it")
-        elif strict:
-            c.warn(file, loc, f"unknown key {key!r}, ignored",
-                   f"known keys here: {', '.join(known)}")
 
 
 def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
@@ -413,7 +345,6 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
 
 
 def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
-    from swathflow.ingest.mission import raster_check
     where = f"[[images]] id={entry.id!r}"
     ip = entry.file
     if not ip.exists():
