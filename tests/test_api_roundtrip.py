@@ -43,7 +43,7 @@ def test_an_edited_pos_node_moves_the_image_by_the_edit(tiny_mission, cal):
     dlon = np.degrees(east / (6378137.0 * np.cos(np.radians(float(pos["lat"].mean())))))
     tree["pos"] = pos.assign(lon=pos["lon"] + dlon)
     moved = swathflow.rectify(tree, "L1", cal)
-    from swathflow.rectification.rectify import phase_shift
+    from shifts import phase_shift
     with rasterio.open(tiny_mission / "truth" / "ortho.tif") as t:
         truth = t.read(1, masked=True).astype(float).filled(np.nan)
         tt = t.transform
