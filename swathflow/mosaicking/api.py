@@ -2,7 +2,7 @@
 DataArrays of :func:`swathflow.rectify`) and returns the mosaic as a lazy, georeferenced
 ``xarray.DataArray``: the overlaps are matched and the offset network solved when it is
 called (on the current Dask client if one is active; the result is in
-``attrs["report"]``), the tiles are blended only when the array is computed, on the
+``attrs["report"]``, as JSON text), the tiles are blended only when the array is computed, on the
 current Dask scheduler. ``swathflow mosaic`` and the flow's mosaic task call it with
 ``out``, which also writes the COG, its quicklook, report picture and JSON with the
 engine's streaming writer (:func:`swathflow.mosaicking.mosaic.finish_mosaic`).
@@ -75,21 +75,51 @@ def write_mosaic(paths, out, *, feather: int = 64, mode: str = "feather", tile: 
     return _plan_and_write(paths, out, feather, mode, tile, cache_mb, options)[1]
 
 
-def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
+def _is_mission(swings) -> bool:
+    """Whether ``swings`` is a mission (a Mission, the DataTree of ``open_mission``, or a
+    folder holding a ``mission.toml``) rather than rectified swings."""
+    import xarray as xr
+
+    from swathflow.ingest.mission import Mission
+    if isinstance(swings, (Mission, xr.DataTree)):
+        return True
+    return isinstance(swings, (str, os.PathLike)) and os.path.isfile(
+        os.path.join(os.fspath(swings), "mission.toml"))
+
+
+def mosaic(swings, out=None, *, calibration=None, feather: int = 64, mode: str = "feather",
            tile: int = 1024, cache_mb: int = 64, **options):
     """The mosaic of ``swings`` as a lazy float32 DataArray over (y, x) with NaN nodata,
-    CRS and transform (rioxarray); the matching report (offsets with sigmas, overlaps) is
-    in ``attrs["report"]``. With ``out`` the mosaic COG (and its ``.png``, ``.report.png``
-    and ``.json``) is also written there, and the full report (timings) returned.
-    ``options`` go to :func:`swathflow.mosaicking.mosaic.plan_mosaic` (``per_image``,
-    ``anchors``, ``balance``, ``match``, ``control``, ``strips``...) and to the writer
-    (``png``, ``report``, ``cog``, ``workers``). DataArray swings are written to COGs
-    first (beside ``out``, or in a temporary folder)."""
+    CRS and transform (rioxarray), ``long_name`` and ``units``; the matching report
+    (offsets with sigmas, overlaps) is in ``attrs["report"]`` as JSON text
+    (``json.loads`` it), so that ``to_netcdf`` and ``to_zarr`` write every attribute.
+    ``swings``: rectified swings (COG paths, or the DataArrays of
+    :func:`swathflow.rectify`), or a whole mission (a folder, a loaded Mission or the
+    DataTree of :func:`swathflow.open_mission`), whose every image is rectified first with
+    ``calibration`` (see :func:`swathflow.rectify`). With ``out`` the mosaic COG (and its
+    ``.png``, ``.report.png`` and ``.json``) is also written there, and the full report
+    (timings) returned. ``options`` go to :func:`swathflow.mosaicking.mosaic.plan_mosaic`
+    (``per_image``, ``anchors``, ``balance``, ``match``, ``control``, ``strips``...) and to
+    the writer (``png``, ``report``, ``cog``, ``workers``). DataArray swings are written to
+    COGs first (beside ``out``, or in a temporary folder).
+
+    >>> import json
+    >>> mos = swathflow.mosaic(swathflow.open_mission(mission_folder))
+    >>> mos.dims, mos.attrs["long_name"], json.loads(mos.attrs["report"])["inputs"]
+    (('y', 'x'), 'mosaic of digital numbers', 2)
+    """
     import xarray as xr
 
     from swathflow.geometry.grid import Grid
     from swathflow.mosaicking.mosaic import mosaic_array
-    from swathflow.rectification.api import grid_dataarray
+    from swathflow.rectification.api import grid_dataarray, rectify
+    if _is_mission(swings):
+        from swathflow.ingest.api import as_mission
+        m = as_mission(swings)
+        swings = [rectify(m, iid, calibration) for iid in m.images]
+    elif calibration is not None:
+        raise FormatError("mosaic: calibration applies to a mission; these swings are "
+                          "already rectified")
     swings = list(swings)
     if len(swings) == 0:
         raise FormatError("mosaic: no swings given")
@@ -103,6 +133,6 @@ def mosaic(swings, out=None, *, feather: int = 64, mode: str = "feather",
     layout, off, rad, _ = planned
     arr, _ = mosaic_array(layout, off, rad, feather, mode, tile)
     grid = Grid(layout.crs.to_string(), layout.transform, layout.shape)
-    da = grid_dataarray(arr, grid, "mosaic", {"product": "mosaic", "blend": mode})
-    da.attrs["report"] = report
-    return da
+    return grid_dataarray(arr, grid, "mosaic", {
+        "product": "mosaic", "blend": mode, "long_name": "mosaic of digital numbers",
+        "units": "1", "report": report})

@@ -23,12 +23,15 @@ import xarray as xr
 from swathflow.errors import FormatError
 from swathflow.formats.calibfile import calibration_priors, read_calibration
 from swathflow.geometry.grid import Grid, footprint_grid
-from swathflow.ingest.mission import Mission, load_mission
+from swathflow.ingest.api import as_mission, netcdf_attrs
+from swathflow.ingest.mission import Mission
 
 #: attributes that are not product tags (rioxarray's encoding, the mosaic's report)
 _NOT_TAGS = {"_FillValue", "scale_factor", "add_offset", "grid_mapping", "units",
              "long_name", "report", "nodata"}
 METHODS = ("exact", "polynomial")
+#: the ``long_name`` of a rectified (or mosaicked) raw image: the sensor's counts
+QUANTITY = "digital number"
 
 
 def _parameters(mission: Mission, calibration):
@@ -58,7 +61,10 @@ def grid_dataarray(data, grid: Grid, name: str, attrs: Mapping | None = None,
     call, paid once per CRS, type and nodata rather than once per swing). ``band_info``
     (the raw bands' :class:`~swathflow.rectification.rawimage.BandInfo`): their
     coordinates (:func:`_band_coords`), made with the array (assigned after, xarray's
-    alignment cost 3 ms a swing)."""
+    alignment cost 3 ms a swing). ``x``/``y`` carry the CF attributes of the CRS's axes
+    (``standard_name`` projection_x_coordinate, ``units`` metre... as rioxarray's
+    ``write_coordinate_system``); ``attrs`` are made netCDF-safe
+    (:func:`~swathflow.ingest.api.netcdf_attrs`: a dict becomes JSON text)."""
     t = grid.transform
     rows, cols = grid.shape
     coords = {"y": t.f + t.e * (np.arange(rows) + 0.5), "x": t.c + t.a * (np.arange(cols) + 0.5)}
@@ -66,12 +72,15 @@ def grid_dataarray(data, grid: Grid, name: str, attrs: Mapping | None = None,
     if data.ndim == 3:
         dims = ("band", "y", "x")
         coords["band"] = np.arange(1, data.shape[0] + 1)
-    ref_attrs, fill, encoding = _rio_template(str(grid.crs), np.dtype(data.dtype), nodata)
+    ref_attrs, fill, encoding, axes = _rio_template(str(grid.crs), np.dtype(data.dtype),
+                                                    nodata)
+    coords = {k: xr.Variable((k,), v, attrs=dict(axes[k])) if k in axes else v
+              for k, v in coords.items()}
     ref_attrs = dict(ref_attrs, GeoTransform=" ".join(str(v) for v in t.to_gdal()))
     coords["spatial_ref"] = xr.Variable((), 0, attrs=ref_attrs)
     if band_info is not None:
         coords.update(_band_coords(band_info, data.ndim == 3))
-    attrs = dict(attrs or {})
+    attrs = netcdf_attrs(attrs or {})
     if fill is not None:
         attrs["_FillValue"] = fill
     da = xr.DataArray(data, dims=dims, coords=coords, name=name, attrs=attrs)
@@ -87,7 +96,8 @@ def _rio_template(crs: str, dtype: np.dtype, nodata):
     """What rioxarray's ``write_crs``, ``write_transform`` and ``write_nodata(encoded=False)``
     write for ``crs``, ``dtype`` and ``nodata``, found on a 1 x 1 array once per
     combination: (the ``spatial_ref`` coordinate's attributes without ``GeoTransform``,
-    the ``_FillValue`` attribute or None, the encoding)."""
+    the ``_FillValue`` attribute or None, the encoding, the attributes of ``x`` and ``y``
+    that ``write_coordinate_system`` writes)."""
     key = (crs, dtype.str, repr(nodata))        # repr: NaN is one key
     if key not in _RIO_TEMPLATES:
         import rioxarray  # noqa: F401  (registers the .rio accessor)
@@ -98,7 +108,9 @@ def _rio_template(crs: str, dtype: np.dtype, nodata):
         if nodata is not None:
             one = one.rio.write_nodata(nodata, encoded=False)
         ref = {k: v for k, v in one.coords["spatial_ref"].attrs.items() if k != "GeoTransform"}
-        _RIO_TEMPLATES[key] = (ref, one.attrs.get("_FillValue"), dict(one.encoding))
+        axes = one.rio.write_coordinate_system()
+        _RIO_TEMPLATES[key] = (ref, one.attrs.get("_FillValue"), dict(one.encoding),
+                               {k: dict(axes[k].attrs) for k in ("x", "y")})
     return _RIO_TEMPLATES[key]
 
 
@@ -109,8 +121,9 @@ def _band_coords(infos, banded: bool) -> dict:
 
     def val(v):
         return v if dim else v[0]
-    coords = {"band": (dim, val(np.array([b.index for b in infos]))),
-              "description": (dim, val(np.array([b.description for b in infos], object)))}
+    coords = {"band": (dim, val(np.array([b.index for b in infos])))}
+    if dim or infos[0].description:      # no empty "description = " in a plot's title
+        coords["description"] = (dim, val(np.array([b.description for b in infos], object)))
     if any(b.wavelength is not None for b in infos):
         coords["wavelength"] = (dim, val(np.array([np.nan if b.wavelength is None
                                                    else b.wavelength for b in infos])),
@@ -124,7 +137,8 @@ def _band_coords(infos, banded: bool) -> dict:
 def _band_infos(da: xr.DataArray):
     """BandInfo of each band of ``da`` from its coordinates (see :func:`_band_coords`)."""
     from swathflow.rectification.rawimage import BandInfo
-    if "description" not in da.coords:
+    if "description" not in da.coords and not ("band" in da.coords
+                                               and da.coords["band"].ndim == 0):
         return ()
     n = da.sizes.get("band", 1)
 
@@ -139,8 +153,8 @@ def _band_infos(da: xr.DataArray):
                                   col("fwhm"))]
 
 
-def _open(mission, image_id):
-    m = mission if isinstance(mission, Mission) else load_mission(mission)
+def _open(mission, image_id) -> Mission:
+    m = as_mission(mission)
     if image_id not in m.images:
         raise FormatError(f"{m.path}: no image {image_id!r}; the mission has "
                           f"{', '.join(m.images)}")
@@ -162,9 +176,11 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
             crs: str | None = None, kernel: str = "bilinear", tile: int = 512,
             method: str = "exact", tol: float | None = None, bands=None,
             dtype: str | None = "float32", mask_band: bool = False) -> xr.DataArray:
-    """The swing ``image_id`` of ``mission`` (a folder or a loaded Mission) orthorectified
-    onto its footprint grid, as a lazy DataArray over (y, x), or (band, y, x) when several
-    bands are selected (``bands``: 1-based indices or wavelengths, see
+    """The swing ``image_id`` of ``mission`` (a folder, a loaded Mission or the DataTree of
+    :func:`swathflow.open_mission`, whose ``pos`` node, edited, is the trajectory used: see
+    :func:`~swathflow.ingest.api.as_mission`) orthorectified onto its footprint grid,
+    as a lazy DataArray over (y, x), or (band, y, x) when several bands are selected
+    (``bands``: 1-based indices or wavelengths, see
     :func:`~swathflow.rectification.rawimage.parse_bands`; default every band).
 
     ``dtype`` (default float32, NaN outside the footprint; None: the raw image's own type,
@@ -174,7 +190,22 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     mission's priors); ``gsd``/``crs`` default to the mission's. ``method``: ``exact``
     (tile by tile, ``tol`` raw pixels) or ``polynomial`` (one band, float32, computed as
     one block). Band descriptions and wavelengths are coordinates; the product tags
-    (image id, strip, calibration, parameters...) are attributes."""
+    (image id, strip, calibration, parameters...) are attributes, with ``long_name`` and
+    ``units``; ``x``/``y`` are in the CRS's units with their CF ``standard_name``. Every
+    attribute is a string or a number (``to_netcdf`` and ``to_zarr`` write it) and the
+    dask graph's tasks hold small arguments (it pickles, to any scheduler).
+
+    >>> tree = swathflow.open_mission(mission_folder)
+    >>> arr = swathflow.rectify(tree, "L1")
+    >>> arr.dims, arr.attrs["long_name"], arr["x"].attrs["standard_name"]
+    (('y', 'x'), 'digital number', 'projection_x_coordinate')
+    >>> arr.rio.crs.to_string()
+    'EPSG:32651'
+    >>> import pickle
+    >>> graph = dict(arr.data.__dask_graph__())
+    >>> pickle.loads(pickle.dumps(graph)).keys() == graph.keys()
+    True
+    """
     from swathflow.rectification.lattice import TOLERANCE_PX
     from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.tiles import check_inputs, output_plan, rectify_blocks
@@ -185,7 +216,8 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     m, model, terrain, grid, cal_tag = _swing(mission, image_id, calibration, gsd, crs)
     source = open_raw_image(m.images[image_id].file, bands=bands)
     check_inputs(model, source, kernel)
-    attrs = _tags(m, image_id, model, method, kernel, tol, cal_tag, terrain)
+    attrs = dict(_tags(m, image_id, model, method, kernel, tol, cal_tag, terrain),
+                 long_name=QUANTITY, units="1")
     if method == "polynomial":
         return _polynomial(model, source, grid, terrain, attrs)
     dt, nodata, use_mask = output_plan(source, dtype, mask_band)
@@ -223,7 +255,7 @@ def warm_up(mission, image_id: str | None = None, calibration=None, *,
     from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.tiles import output_plan, rectify_blocks
     keep_freed_memory()
-    m = mission if isinstance(mission, Mission) else load_mission(mission)
+    m = as_mission(mission)
     iid = image_id if image_id is not None else next(iter(m.images))
     with taking_turns() as cold:
         m, model, terrain, grid, _ = _swing(m, iid, calibration, None, None)
@@ -333,7 +365,8 @@ def geolocation(mission, image_id: str, calibration=None, product: str = "glt", 
         check_inputs(model, source, kernel)
         arr = glt_blocks(model, source, grid, terrain, kernel, tol, tile)
         attrs.update(product="GLT", bands="element+1,line+1",
-                     convention="ENVI GLT, 1-based, 0 = none")
+                     convention="ENVI GLT, 1-based, 0 = none",
+                     long_name="raw element + 1, raw line + 1 (0: none)", units="1")
         return grid_dataarray(arr, grid, f"{image_id}.glt", attrs, nodata=0)
     from swathflow.rectification.rectify import igm_block
     import dask
@@ -343,10 +376,11 @@ def geolocation(mission, image_id: str, calibration=None, product: str = "glt", 
         model, terrain, grid.crs, l0, min(l0 + blk, nl)),
         shape=(3, min(l0 + blk, nl) - l0, ne), dtype=np.float64) for l0 in range(0, nl, blk)]
     attrs.update(product="IGM", crs=grid.pyproj_crs.to_string(), bands="x,y,h_ellipsoidal",
-                 geometry="raw (line, element)")
+                 geometry="raw (line, element)", long_name="map x, map y, ellipsoidal height",
+                 units="m" if grid.pyproj_crs.is_projected else "deg, deg, m")
     data = dsa.concatenate(parts, axis=1).rechunk((3, tile, tile))
     return xr.DataArray(data, dims=("band", "line", "element"), name=f"{image_id}.igm",
-                        attrs={**attrs, "_FillValue": np.nan})
+                        attrs={**netcdf_attrs(attrs), "_FillValue": np.nan})
 
 
 def _grid_of(da: xr.DataArray) -> Grid | None:

@@ -8,7 +8,9 @@ is resampled at them. Memory is bounded by the tile and its raw window, never by
 """
 from __future__ import annotations
 
+import json
 import math
+import os
 import uuid
 import warnings
 import weakref
@@ -171,10 +173,14 @@ def check_inputs(model, source, kernel):
                           f"model expects {model.shape[0]} x {model.shape[1]} (lines x elements)")
 
 
-def tiled(block, bands: int, chunks, dtype, name: str):
+def tiled(block, bands: int, chunks, dtype, name: str, args=(), shared=None):
     """A lazy ``(bands, rows, cols)`` dask array whose block ``(0, i, j)`` is
-    ``block(r0, r1, c0, c1)`` (its rows and columns in the whole array), one task a tile
-    and no dependencies. Built as a graph of its own, not with ``da.map_blocks``: its
+    ``block(*args, r0, r1, c0, c1)`` (its rows and columns in the whole array), one task a
+    tile. ``shared``: graph keys -> objects that ``args`` name by key (a task argument
+    that is a key is its object: a sensor model travels once a graph, not once a tile);
+    the tiles depend on them alone. ``block`` is a module-level function and ``args``
+    small, so that the graph pickles (plain ``pickle``), small. Built as a graph of its
+    own, not with ``da.map_blocks``: its
     ``block_info`` dictionaries (every block's location, shape and chunk counts), built
     and parsed into tasks, cost about 0.1 ms a tile (the 0.05 m demo job's eight swings,
     442 tiles, in one process: 2.69-2.70 against 2.73-2.74 CPU-s, two alternated pairs)."""
@@ -183,8 +189,9 @@ def tiled(block, bands: int, chunks, dtype, name: str):
     rows, cols = chunks
     r_at = np.concatenate([[0], np.cumsum(rows)]).tolist()
     c_at = np.concatenate([[0], np.cumsum(cols)]).tolist()
-    dsk = {(name, 0, i, j): (block, r_at[i], r_at[i + 1], c_at[j], c_at[j + 1])
+    dsk = {(name, 0, i, j): (block, *args, r_at[i], r_at[i + 1], c_at[j], c_at[j + 1])
            for i in range(len(rows)) for j in range(len(cols))}
+    dsk.update(shared or {})
     graph = HighLevelGraph.from_collections(name, dsk, dependencies=())
     return da.Array(graph, name, ((bands,), tuple(rows), tuple(cols)), dtype=dtype,
                     meta=np.empty((0, 0, 0), dtype))
@@ -197,30 +204,63 @@ def rectify_blocks(model, source: RawImage, grid, terrain, kernel="bilinear",
     terrain = open_terrain(terrain)
     dt, _, _ = output_plan(source, dtype, mask_plane)
     nb = source.count + (1 if mask_plane else 0)
+    token = _token(model, grid, kernel, tol, source, dt.name, mask_plane)
+    key = f"swing-model-{token}"
+    return tiled(_rectify_block, nb, grid.chunks(tile), dt, f"rectify-{token}",
+                 (key, source, grid, terrain_arg(terrain), kernel, tol, step, dtype,
+                  mask_plane), {key: model})
 
-    def block(r0, r1, c0, c1):
-        sub = grid.window(slice(r0, r1), slice(c0, c1))
-        v, ok = tile_values(model, source, sub, terrain, kernel, tol, step, dtype=dtype,
-                            mask_band=mask_plane)
-        if not mask_plane:
-            return v
-        return np.concatenate([v, np.where(ok, 255, 0).astype(dt)[None]])
 
-    return tiled(block, nb, grid.chunks(tile), dt,
-                 f"rectify-{_token(model, grid, kernel, tol, source, dt.name, mask_plane)}")
+def _rectify_block(model, source, grid, terrain, kernel, tol, step, dtype, mask_plane,
+                   r0, r1, c0, c1):
+    """One tile of :func:`rectify_blocks` (rows ``r0:r1``, columns ``c0:c1`` of ``grid``)."""
+    sub = grid.window(slice(r0, r1), slice(c0, c1))
+    v, ok = tile_values(model, source, sub, terrain_of(terrain), kernel, tol, step,
+                        dtype=dtype, mask_band=mask_plane)
+    if not mask_plane:
+        return v
+    return np.concatenate([v, np.where(ok, 255, 0).astype(v.dtype)[None]])
+
+
+#: terrains opened in this process by :func:`terrain_of`, by their JSON state (the last few)
+_TERRAINS: dict = {}
+
+
+def terrain_arg(terrain):
+    """What a task carries for ``terrain``: a DEM read from a file as its state in JSON
+    (its absolute path, vertical datum...: a few hundred bytes, where its heights are
+    megabytes), reopened once a process by :func:`terrain_of`; another terrain as is."""
+    st = terrain.state()
+    if st.get("kind") != "dem" or not st.get("path") or not os.path.isfile(st["path"]):
+        return terrain
+    return json.dumps(dict(st, path=os.path.abspath(st["path"])), sort_keys=True)
+
+
+def terrain_of(arg):
+    """The terrain a task's argument of :func:`terrain_arg` stands for."""
+    if not isinstance(arg, str):
+        return arg
+    t = _TERRAINS.pop(arg, None) or open_terrain(json.loads(arg))
+    _TERRAINS[arg] = t                           # the most recent last
+    while len(_TERRAINS) > 4:
+        _TERRAINS.pop(next(iter(_TERRAINS)))
+    return t
 
 
 def glt_blocks(model, source, grid, terrain, kernel="bilinear", tol=TOLERANCE_PX, tile=512,
                step=32):
     """Lazy ENVI GLT ``(2, rows, cols)`` int32 dask array (the lattice alone, no reads)."""
     terrain = open_terrain(terrain)
+    token = _token(model, grid, kernel, tol, source)
+    key = f"swing-model-{token}"
+    return tiled(_glt_block, 2, grid.chunks(tile), np.dtype(np.int32), f"rectify-glt-{token}",
+                 (key, source, grid, terrain_arg(terrain), kernel, tol, step), {key: model})
 
-    def block(r0, r1, c0, c1):
-        sub = grid.window(slice(r0, r1), slice(c0, c1))
-        return glt_tile(*tile_coords(model, source, sub, terrain, kernel, tol, step))
 
-    return tiled(block, 2, grid.chunks(tile), np.dtype(np.int32),
-                 f"rectify-glt-{_token(model, grid, kernel, tol, source)}")
+def _glt_block(model, source, grid, terrain, kernel, tol, step, r0, r1, c0, c1):
+    """One tile of :func:`glt_blocks`."""
+    sub = grid.window(slice(r0, r1), slice(c0, c1))
+    return glt_tile(*tile_coords(model, source, sub, terrain_of(terrain), kernel, tol, step))
 
 
 def rectify(model, image, grid, terrain, kernel: str = "bilinear",
