@@ -15,7 +15,7 @@ from prefect.cache_policies import NO_CACHE
 
 from swathflow.cache import is_fresh, mark_done, stage_key
 from swathflow.errors import SwathflowError
-from swathflow.tasks import ahead, swings
+from swathflow.tasks import swings
 
 
 _load = swings.load
@@ -105,13 +105,22 @@ def calibrate(mission_path: str, out_dir: str, calibration: str | None = None) -
     return str(out)
 
 
-@task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
+@task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2,
+      task_run_name="rectify-{image_id}")
 def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
     """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration:
     ``to_cog(rectify(...))`` of the Python API in the raw image's dtype: every band of the
     raw image, or those of ``[rectify] bands`` in mission.toml
-    (:func:`swathflow.tasks.swings.rectify_swing`)."""
-    return swings.rectify_swing(_load(mission_path), image_id, calibration, out_dir)
+    (:func:`swathflow.tasks.swings.rectify_one`). The work runs on the Dask cluster of the
+    active Dask client (the flow's) as one Dask task, which this task run waits for
+    (a worker lost meanwhile: Dask runs it again on another); without a client, here."""
+    try:
+        from distributed import get_client
+        client = get_client()
+    except (ImportError, ValueError):
+        return swings.rectify_one(image_id, mission_path, calibration, out_dir)
+    return client.submit(swings.rectify_one, image_id, mission_path, calibration, out_dir,
+                         key=f"rectify-{image_id}-{os.urandom(4).hex()}").result()
 
 
 #: the last :func:`mosaic_control` of this process: {key: offsets}
@@ -171,7 +180,6 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
     if is_fresh(out, key):
         return str(out)
     control = mosaic_control(mission_path, calibration) if use_gcp else None
-    ahead.wait()        # a new install: the kernels being compiled ahead, loaded instead
     strips = {iid: e.strip for iid, e in m.images.items()} if m is not None else None
     write_mosaic(list(rectified), out, control=control, strips=strips)
     mark_done(out, key)

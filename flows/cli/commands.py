@@ -133,7 +133,8 @@ def rectify(args) -> int:
                     tol=args.tolerance, tile=args.tile, products=products,
                     progress=_say(args),
                     bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band,
-                    compress=args.compress)
+                    compress=args.compress, workers=getattr(args, "workers", None),
+                    dask_address=getattr(args, "dask_address", None))
     return 0
 
 
@@ -245,7 +246,7 @@ def run(args) -> int:
     _checked(args.mission, args.calibration)
     from swathflow.tasks.ahead import in_background
     with in_background():       # a new install: the mosaic's kernels compiled meanwhile
-        run_flow = _served_flow()
+        run_flow = _flow_run()
         result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
                           args.cluster, args.jobs)
     _print_summary(result, args)
@@ -253,27 +254,23 @@ def run(args) -> int:
 
 
 def _checked(mission, calibration) -> None:
-    """The first steps of ``swathflow run``: Prefect's standby spawned (its server code
-    imported from now on, on the other core), ``dask.array`` imported lean, and the inputs
-    checked (bad input is told here, before Prefect and Dask start)."""
-    from swathflow.flows import standby
-    standby.start()
+    """The first steps of ``swathflow run``: ``dask.array`` imported lean, the inputs
+    checked (bad input is told here, before Prefect and Dask start), then what an earlier
+    run killed by SIGKILL left serving ended, and this run's processes marked
+    (:func:`~swathflow.flows.guard.end_orphans`)."""
     from swathflow.startup import uncollected
     with uncollected(freeze=False):
         _lean_imports()
         from swathflow.flows.guard import check_run_inputs
         check_run_inputs(mission, calibration)
+    _own_processes()
 
 
-def _served_flow():
-    """After :func:`_checked`: the server handed its port (it starts while the flow's
-    modules are imported) and the flow's ``run``; the objects made until then (the
-    checked mission, Prefect's modules) frozen out of the collector's reach."""
-    from swathflow.flows import standby
-    from swathflow.startup import uncollected
-    with uncollected():
-        standby.serve()
-        return _flow_run()
+def _own_processes() -> None:
+    """End what earlier runs killed by SIGKILL left serving; mark this run's children."""
+    from swathflow.flows.guard import end_orphans, mark_run
+    end_orphans()
+    mark_run()
 
 
 def _first_run_notice(args) -> None:
@@ -289,8 +286,7 @@ def _first_run_notice(args) -> None:
 
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
-    from swathflow.flows import standby
-    standby.start()     # Prefect's server code imported meanwhile, on the other core
+    _own_processes()
     _lean_imports()
     run_flow = _flow_run()
     from swathflow.simulation import simulate as simulate_mission
