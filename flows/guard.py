@@ -224,7 +224,41 @@ def prefect_ready(timeout: float = PREFECT_TIMEOUT) -> None:
     server named by ``PREFECT_API_URL`` within ``timeout`` s (no retries), or else
     Prefect's own temporary server, which the client starts (Prefect's ephemeral mode;
     its start waits up to ``PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS``). A
-    :class:`SwathflowError` saying what to do otherwise."""
+    :class:`SwathflowError` saying what to do otherwise. After :func:`start_prefect`,
+    waits for its thread instead."""
+    thread = _STARTING.pop("thread", None)
+    if thread is not None:
+        thread.join()
+        error = _STARTING.pop("error", None)
+        if error is not None:
+            raise error
+        return
+    _healthy(timeout)
+
+
+#: the thread of :func:`start_prefect` and its failure
+_STARTING: dict = {}
+
+
+def start_prefect(timeout: float = PREFECT_TIMEOUT) -> None:
+    """:func:`prefect_ready` begun on a thread of its own: Prefect's temporary server
+    starts (its process imports the server's code, about 3 CPU-s) while this process
+    does other work, e.g. checks the mission; :func:`prefect_ready` then waits for it.
+    Prefect stops its temporary server when this process exits, as always."""
+    import threading
+    if "thread" in _STARTING:
+        return
+
+    def start():
+        try:
+            _healthy(timeout)
+        except BaseException as exc:  # noqa: BLE001 - raised by prefect_ready
+            _STARTING["error"] = exc
+    _STARTING["thread"] = threading.Thread(target=start, name="prefect-start", daemon=True)
+    _STARTING["thread"].start()
+
+
+def _healthy(timeout: float) -> None:
     from prefect import get_client
     from prefect.settings import (PREFECT_API_URL, PREFECT_CLIENT_MAX_RETRIES,
                                   PREFECT_SERVER_EPHEMERAL_ENABLED, temporary_settings)

@@ -49,7 +49,7 @@ def mission_flow(mission: str, out: str, calibration: str | None = None,
         # them; the mission check already found the POS covering every line)
         prog.start("rectify", len(ids))
         handing.join()
-        futures = stages.rectify.map(ids, mission_path=unmapped(mission),
+        futures = stages.rectify.map(image_id=ids, mission_path=unmapped(mission),
                                      calibration=unmapped(cal), out_dir=unmapped(out))
         prog.start("interpolate-pos")
         eo = stages.interpolate_pos(mission, out)

@@ -254,16 +254,20 @@ def run(args) -> int:
 
 
 def _checked(mission, calibration) -> None:
-    """The first steps of ``swathflow run``: ``dask.array`` imported lean, the inputs
-    checked (bad input is told here, before Prefect and Dask start), then what an earlier
-    run killed by SIGKILL left serving ended, and this run's processes marked
-    (:func:`~swathflow.flows.guard.end_orphans`)."""
+    """The first steps of ``swathflow run``: what an earlier run killed by SIGKILL left
+    serving ended and this run's processes marked
+    (:func:`~swathflow.flows.guard.end_orphans`); Prefect's temporary server started on a
+    thread (:func:`~swathflow.flows.guard.start_prefect`); ``dask.array`` imported lean
+    and the inputs checked meanwhile (bad input is told here, before the Dask cluster
+    starts; Prefect stops its server as the process exits)."""
+    _own_processes()
+    from swathflow.flows.guard import start_prefect
+    start_prefect()
     from swathflow.startup import uncollected
     with uncollected(freeze=False):
         _lean_imports()
         from swathflow.flows.guard import check_run_inputs
         check_run_inputs(mission, calibration)
-    _own_processes()
 
 
 def _own_processes() -> None:
@@ -287,6 +291,8 @@ def _first_run_notice(args) -> None:
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
     _own_processes()
+    from swathflow.flows.guard import start_prefect
+    start_prefect()     # Prefect's temporary server starts while the mission is simulated
     _lean_imports()
     run_flow = _flow_run()
     from swathflow.simulation import simulate as simulate_mission
