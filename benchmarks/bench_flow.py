@@ -28,34 +28,25 @@ from pathlib import Path
 
 from cputime import children_cpu  # this folder (the scripts' own)
 
-# as `swathflow run` (flows/cli/commands.py) does it, through its own steps: Prefect's
-# standby server spawned first, dask.array imported lean, the inputs checked (the mission
-# loaded once, memoised for the flow), the server handed its port, then the flow; with the
-# number of Dask workers the command line leaves to the machine (one per core)
+# as `swathflow run` (flows/cli/commands.py) does it, through its own steps: the inputs
+# checked (the mission loaded once, memoised for the flow; Prefect's temporary server
+# starting meanwhile), then the flow, with the given number of Dask workers
 _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "from swathflow.flows.cli import commands\n"
-        "if hasattr(commands, '_checked'):\n"
-        "    commands._checked(sys.argv[1], sys.argv[3])\n"
-        "    print('CHECKED', time.time())\n"
+        "commands._checked(sys.argv[1], sys.argv[3])\n"
+        "print('CHECKED', time.time())\n"
+        "if hasattr(commands, '_served_flow'):   # a build with its own standby server\n"
         "    run = commands._served_flow()\n"
-        "else:   # a build before stop 34, its command's steps\n"
-        "    from swathflow.flows import standby\n    standby.start()\n"
-        "    commands._lean_imports()\n"
-        "    from swathflow.flows.guard import check_run_inputs\n"
-        "    check_run_inputs(sys.argv[1], sys.argv[3])\n"
-        "    print('CHECKED', time.time())\n"
-        "    standby.serve()\n"
+        "else:\n"
         "    run = commands._flow_run()\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
         "import resource\nu = resource.getrusage(resource.RUSAGE_SELF)\n"
         "print('OWN_CPU', u.ru_utime + u.ru_stime)\n"
-        "try:   # Prefect's temporary server (stopped at exit), on builds that have one\n"
-        "    from swathflow.flows.standby import SERVER\n"
-        "except ImportError:\n    SERVER = {}\n"
-        "p = SERVER.get('process')\n"
-        "if p is not None and p.poll() is None:\n"
-        "    import psutil\n    c = psutil.Process(p.pid).cpu_times()\n"
-        "    print('SERVER_CPU', c.user + c.system)\n"
+        "import psutil\n"
+        "for p in psutil.Process().children():   # Prefect's temporary server, stopped at exit\n"
+        "    if 'uvicorn' in ' '.join(p.cmdline()):\n"
+        "        c = p.cpu_times()\n"
+        "        print('SERVER_CPU', c.user + c.system)\n"
         "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
 
 

@@ -163,11 +163,14 @@ def services(dask_address=None, cluster: str = "local", workers: int | None = No
         prefect_ready()
         yield None
         return
+    from prefect.settings import PREFECT_API_URL
+    if PREFECT_API_URL.value():     # a named server: checked within seconds, first
+        prefect_ready()
     pool = concurrent.futures.ThreadPoolExecutor(1)
     starting = pool.submit(local_cluster, workers, (swings.__name__,))
     pool.shutdown(wait=False)
     try:
-        prefect_ready()
+        prefect_ready()             # Prefect's temporary server starts meanwhile
     except BaseException:
         with contextlib.suppress(Exception):
             starting.result().close()

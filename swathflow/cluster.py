@@ -4,6 +4,7 @@ workers submitted as SLURM jobs (dask-jobqueue). Every worker is started by Dask
 from __future__ import annotations
 
 import contextlib
+import logging
 
 from swathflow.errors import SwathflowError
 
@@ -114,4 +115,8 @@ def local_cluster(n_workers: int | None = None, preload: tuple[str, ...] = ()):
     with dask.config.set(NO_HTTP):
         return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                             host="127.0.0.1", dashboard_address=None, **extra,
-                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                            # CRITICAL: a worker that outlives the scheduler by a
+                            # heartbeat at the close logs a CommClosedError traceback
+                            # (task failures still reach the client as exceptions)
+                            silence_logs=logging.CRITICAL)
