@@ -221,19 +221,25 @@ def test_killed_run_leaves_nothing_serving_once_the_next_has_started(tiny_missio
     env = _fresh_env(tmp_path)
     cmd = [sys.executable, "-m", "swathflow.flows.cli", "run", str(tiny_mission),
            "--calibration", cal]
-    first = subprocess.Popen(cmd + ["--out", str(tmp_path / "a")], env=env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    log = open(tmp_path / "first.log", "w")
+    first = subprocess.Popen(cmd + ["--out", str(tmp_path / "a")], env=env, stdout=log,
+                             stderr=subprocess.STDOUT)
     started: list = []
     try:
         deadline = time.time() + 600
         while time.time() < deadline and first.poll() is None:
-            kids = psutil.Process(first.pid).children(recursive=True)
-            # Prefect's server and the two Dask workers (each a process of its own)
-            if len(kids) >= 3 and (tmp_path / "a" / "pos").exists():
-                started = [k.pid for k in kids]
+            try:
+                kids = psutil.Process(first.pid).children(recursive=True)
+            except psutil.NoSuchProcess:
                 break
-            time.sleep(0.1)
-        assert started, "the run ended before its services were up"
+            # Prefect's server and the Dask workers (each a process of its own) up
+            if len(kids) >= 3:
+                time.sleep(2)
+                started = [k.pid for k in psutil.Process(first.pid).children(recursive=True)]
+                break
+            time.sleep(0.05)
+        assert started, ("the run ended before its services were up: "
+                         + (tmp_path / "first.log").read_text()[-3000:])
         os.kill(first.pid, signal.SIGKILL)
         first.wait()
         time.sleep(1)

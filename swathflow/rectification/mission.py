@@ -1,8 +1,8 @@
 """Rectify every (or some) image of a mission with a calibration: one COG per image and a
 ``rectify.json`` summary. Each image is ``to_cog(rectify(...))`` of the Python API
 (:mod:`swathflow.rectification.api`), as the flow's rectify task writes it; the images run
-side by side as tasks on a Dask cluster (:mod:`swathflow.cluster`: the active client's, or
-a local cluster started for the call), one image per task."""
+side by side as Dask tasks, one image each: on a Dask cluster (``--dask-address``, or the
+active client's), else on Dask's threaded scheduler in this process."""
 from __future__ import annotations
 
 import contextlib
@@ -62,11 +62,11 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     (``deflate``, or ``zstd``: see :data:`~.writing.CODECS`). Returns one summary per
     image.
 
-    The images are rectified side by side, one Dask task each (its tiles on the worker's
-    own thread): on the scheduler at ``dask_address``; else on the active Dask client's
-    cluster (e.g. inside the mission flow); else on a local cluster started for the call
-    (``workers`` single-threaded worker processes, default one per core, at most one per
-    image). The loaded mission is sent to the workers once."""
+    The images are rectified side by side, one Dask task each (its tiles on the task's
+    own thread): on the scheduler at ``dask_address`` (the loaded mission sent to its
+    workers once); else on the active Dask client's cluster (e.g. inside the mission
+    flow); else on Dask's threaded scheduler in this process (``workers`` threads,
+    default one per core, see :func:`_run`)."""
     unknown = set(products) - {"glt", "igm"}
     if unknown:
         raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
@@ -75,7 +75,7 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                           f"{', '.join(CODECS)}")
     if workers is not None and workers < 1:
         raise FormatError(f"workers must be at least 1, not {workers}")
-    with _cluster(dask_address, workers, len(images or ())) as start:
+    with _cluster(dask_address) as client:
         mission = load_mission(mission_path)
         ids = mission.image_ids
         if images:
@@ -90,10 +90,9 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
         jobs = [(iid, dict(options, bands=bands if bands not in (None, "") else
                            mission_bands(mission, iid)))
                 for iid in ids]
-        client = start()
         summaries, cal_tag = [], ""
         for s, tag, shape in _run(client, mission, jobs, calibration, out_dir,
-                                  tuple(products)):
+                                  tuple(products), workers):
             summaries.append(s)
             cal_tag = tag
             if progress:
@@ -105,41 +104,15 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
 
 
 @contextlib.contextmanager
-def _cluster(address: str | None, workers: int | None, n_images: int):
-    """Yields ``start()``, which returns the Dask client to rectify on: the one at
-    ``address``; else the active client; else a client of a local cluster (``workers``
-    processes; default one per core, at most one per image of ``n_images`` when given).
-    The local cluster starts at once, in a thread, so that its workers start (imports,
-    the engine's kernels loaded by the preload) while this process loads the mission; it
-    is closed on exit."""
-    from swathflow.cluster import connect, default_workers, local_cluster
+def _cluster(address: str | None):
+    """The Dask client to rectify on: the one at ``address``; else the active client;
+    else None (Dask's threaded scheduler in this process, :func:`_run`)."""
+    from swathflow.cluster import connect
     if address:
         with connect(address) as client:
-            yield lambda: client
+            yield client
         return
-    active = _active_client()
-    if active is not None:
-        yield lambda: active
-        return
-    import concurrent.futures
-
-    from distributed import Client
-    n = workers or min(default_workers(), n_images or default_workers())
-    pool = concurrent.futures.ThreadPoolExecutor(1)
-    starting = pool.submit(local_cluster, n, (__name__,))
-    pool.shutdown(wait=False)
-    clients: list = []
-
-    def start():
-        clients.append(Client(starting.result()))
-        return clients[-1]
-    try:
-        yield start
-    finally:
-        for client in clients:
-            client.close()
-        if starting.exception() is None:
-            starting.result().close()
+    yield _active_client()
 
 
 def _active_client():
@@ -172,9 +145,22 @@ def _one(mission, iid: str, calibration, out_dir: str, products: tuple, o: dict)
     return s, arr.attrs["calibration"], (arr.rio.height, arr.rio.width)
 
 
-def _run(client, mission, jobs, calibration, out_dir: str, products: tuple):
-    """The results of :func:`_one` for every job, in the jobs' order, computed on the
-    cluster of ``client`` (the mission sent to every worker once)."""
+def _run(client, mission, jobs, calibration, out_dir: str, products: tuple,
+         workers: int | None = None):
+    """The results of :func:`_one` for every job, in the jobs' order: on the cluster of
+    ``client`` (the mission sent to every worker once), or, without one, on Dask's
+    threaded scheduler in this process (``workers`` threads, default one per core: the
+    engine's compiled kernels release the GIL; the imports, the mission and the loaded
+    kernels are this process's, where worker processes would each pay them, about
+    2 CPU-s each)."""
+    if client is None:
+        import dask
+        from swathflow.cluster import default_workers
+        n = min(workers or default_workers(), len(jobs)) or 1
+        yield from dask.compute(*[dask.delayed(_one, pure=False)(
+            mission, iid, calibration, os.fspath(out_dir), products, o) for iid, o in jobs],
+            scheduler="threads", num_workers=n)
+        return
     [loaded] = client.scatter([mission], broadcast=True, hash=False)
     futures = [client.submit(_one, loaded, iid, calibration, os.fspath(out_dir), products,
                              o, key=f"rectify-{iid}-{os.urandom(4).hex()}")
@@ -195,16 +181,3 @@ def warm_engine() -> None:
     from swathflow.rectification.paint import paint_pixels, paint_window
     paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
     paint_pixels(np.zeros((2, 2, 2)), 0, 0, 4, 4)
-
-
-def dask_setup(worker=None) -> None:
-    """Dask's worker preload hook (:func:`rectify_mission`'s local cluster): the engine
-    loaded while the worker starts, before its first image arrives."""
-    warm_engine()
-
-
-def dask_teardown(worker=None) -> None:
-    """Dask's worker preload hook at the worker's close: the process ends soon after
-    (:func:`swathflow.cluster.leave_quickly`)."""
-    from swathflow.cluster import leave_quickly
-    leave_quickly()
