@@ -50,10 +50,19 @@ _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
 
 
+#: the settings `swathflow run`'s main() gives its own process (flows/cli/main.py), for
+#: the runs through the command's steps: its terminal quiet, and Prefect's temporary
+#: server given up to 120 s to start (a new Prefect home builds its database)
+_CLI_ENV = {"PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL": "CRITICAL",
+            "DASK_LOGGING__DISTRIBUTED": "warning",
+            "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120"}
+
+
 def _timed(cmd: list[str]) -> tuple[float, float, str]:
     """Wall and CPU seconds of a command in a fresh process, and its stdout."""
     c0, t0 = children_cpu(), time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200)
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200,
+                       env={**_CLI_ENV, **os.environ})
     wall, cpu = time.perf_counter() - t0, children_cpu() - c0
     if r.returncode:
         sys.exit(f"failed ({r.returncode}): {' '.join(cmd)}\n{r.stdout[-2000:]}{r.stderr[-3000:]}")
