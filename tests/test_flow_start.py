@@ -232,8 +232,9 @@ def test_killed_run_leaves_nothing_serving_once_the_next_has_started(tiny_missio
                 kids = psutil.Process(first.pid).children(recursive=True)
             except psutil.NoSuchProcess:
                 break
-            # Prefect's server and the Dask workers (each a process of its own) up
-            if len(kids) >= 3:
+            # Prefect's temporary server and the Dask workers (processes of their own) up
+            if len(kids) >= 3 and any("prefect.server" in " ".join(k.cmdline())
+                                      for k in kids):
                 time.sleep(2)
                 started = [k.pid for k in psutil.Process(first.pid).children(recursive=True)]
                 break
