@@ -212,6 +212,14 @@ def test_importing_the_flow_changes_no_setting(tmp_path):
         "prefect": True, "dask": True, "env": True, "levels": True, "filters": True}
 
 
+def _cmdline(proc) -> str:
+    import psutil
+    try:
+        return " ".join(proc.cmdline())
+    except psutil.Error:
+        return ""
+
+
 def test_killed_run_leaves_nothing_serving_once_the_next_has_started(tiny_mission, tmp_path):
     """`kill -9` of `swathflow run` (its process alone, as a crash or the OOM killer
     would): Prefect's temporary server and the Dask workers it started may go on
@@ -233,8 +241,7 @@ def test_killed_run_leaves_nothing_serving_once_the_next_has_started(tiny_missio
             except psutil.NoSuchProcess:
                 break
             # Prefect's temporary server and the Dask workers (processes of their own) up
-            if len(kids) >= 3 and any("prefect.server" in " ".join(k.cmdline())
-                                      for k in kids):
+            if len(kids) >= 3 and any("prefect.server" in _cmdline(k) for k in kids):
                 time.sleep(2)
                 started = [k.pid for k in psutil.Process(first.pid).children(recursive=True)]
                 break
