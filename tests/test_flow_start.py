@@ -194,6 +194,10 @@ def state():
             "levels": {n: logging.getLogger(n).level for n in
                        ("", "prefect", "distributed", "prefect.flow_runs")},
             "filters": len(warnings.filters)}
+# the libraries themselves first: what importing them, or defining a Prefect task
+# (Prefect sets up its logging then), does is theirs
+import prefect, prefect.flows, prefect.tasks, distributed, dask.array, rasterio, xarray  # noqa
+prefect.task(json.dumps)
 before = state()
 import swathflow.flows.mission, swathflow.flows.inbox, swathflow.tasks.stages  # noqa: F401
 after = state()
@@ -203,8 +207,8 @@ print("RESULT " + json.dumps({k: before[k] == after[k] for k in before}))
 
 def test_importing_the_flow_changes_no_setting(tmp_path):
     """Importing the flow modules leaves Prefect's settings, Dask's configuration, the
-    environment, the loggers' levels and the warning filters as they were (a served or
-    deployed flow run logs as its Prefect settings say)."""
+    environment, the loggers' levels and the warning filters as the libraries left them
+    (a served or deployed flow run logs as its Prefect settings say)."""
     r = subprocess.run([sys.executable, "-c", _IMPORT], capture_output=True, text=True,
                        env=_fresh_env(tmp_path, DO_NOT_TRACK="1"), timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
