@@ -265,3 +265,17 @@ def test_killed_run_leaves_nothing_serving_once_the_next_has_started(tiny_missio
         for pid in started:
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_rectify_on_an_unreachable_scheduler_is_one_clear_error(tiny_mission, tmp_path):
+    """`swathflow rectify --dask-address` naming no scheduler: one line, exit 2."""
+    port = _free_port()
+    r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "rectify",
+                        str(tiny_mission), "--out", str(tmp_path / "out"), "--dask-address",
+                        f"tcp://127.0.0.1:{port}"], capture_output=True, text=True,
+                       env=_fresh_env(tmp_path), timeout=300)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(
+        f"swathflow rectify: error: --dask-address tcp://127.0.0.1:{port}: no Dask scheduler "
+        f"answered"), r.stderr
