@@ -28,41 +28,38 @@ from pathlib import Path
 
 from cputime import children_cpu  # this folder (the scripts' own)
 
-# as `swathflow run` (flows/cli/commands.py) does it, through its own steps: Prefect's
-# standby server spawned first, the inputs checked (the mission
-# loaded once, memoised for the flow), the server handed its port, then the flow; with the
-# number of Dask workers the command line leaves to the machine (one per core)
+# as `swathflow run` (flows/cli/commands.py) does it, through its own steps: the inputs
+# checked (the mission loaded once, memoised for the flow; Prefect's temporary server
+# starting meanwhile), then the flow, with the given number of Dask workers
 _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "from swathflow.flows.cli import commands\n"
-        "if hasattr(commands, '_checked'):\n"
-        "    commands._checked(sys.argv[1], sys.argv[3])\n"
-        "    print('CHECKED', time.time())\n"
-        "    run = commands._served_flow()\n"
-        "else:   # an older build, its command's steps\n"
-        "    from swathflow.flows import standby\n    standby.start()\n"
-        "    commands._lean_imports()\n"
-        "    from swathflow.flows.guard import check_run_inputs\n"
-        "    check_run_inputs(sys.argv[1], sys.argv[3])\n"
-        "    print('CHECKED', time.time())\n"
-        "    standby.serve()\n"
-        "    run = commands._flow_run()\n"
+        "commands._checked(sys.argv[1], sys.argv[3])\n"
+        "print('CHECKED', time.time())\n"
+        "run = commands._flow_run()\n"
         "r = run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=int(sys.argv[4]))\n"
         "import resource\nu = resource.getrusage(resource.RUSAGE_SELF)\n"
         "print('OWN_CPU', u.ru_utime + u.ru_stime)\n"
-        "try:   # Prefect's temporary server (stopped at exit), on builds that have one\n"
-        "    from swathflow.flows.standby import SERVER\n"
-        "except ImportError:\n    SERVER = {}\n"
-        "p = SERVER.get('process')\n"
-        "if p is not None and p.poll() is None:\n"
-        "    import psutil\n    c = psutil.Process(p.pid).cpu_times()\n"
-        "    print('SERVER_CPU', c.user + c.system)\n"
+        "import psutil\n"
+        "for p in psutil.Process().children():   # Prefect's temporary server, stopped at exit\n"
+        "    if 'uvicorn' in ' '.join(p.cmdline()):\n"
+        "        c = p.cpu_times()\n"
+        "        print('SERVER_CPU', c.user + c.system)\n"
         "print('T0', T0)\nprint('TIMINGS', json.dumps(r['timings']))\n")
+
+
+#: the settings `swathflow run`'s main() gives its own process (flows/cli/main.py), for
+#: the runs through the command's steps: its terminal quiet, and Prefect's temporary
+#: server given up to 120 s to start (a new Prefect home builds its database)
+_CLI_ENV = {"PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL": "CRITICAL",
+            "DASK_LOGGING__DISTRIBUTED": "warning",
+            "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120"}
 
 
 def _timed(cmd: list[str]) -> tuple[float, float, str]:
     """Wall and CPU seconds of a command in a fresh process, and its stdout."""
     c0, t0 = children_cpu(), time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200)
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200,
+                       env={**_CLI_ENV, **os.environ})
     wall, cpu = time.perf_counter() - t0, children_cpu() - c0
     if r.returncode:
         sys.exit(f"failed ({r.returncode}): {' '.join(cmd)}\n{r.stdout[-2000:]}{r.stderr[-3000:]}")

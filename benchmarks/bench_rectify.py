@@ -355,7 +355,7 @@ def main():
                     help="--command: ours also with --compress zstd, alternated with ours")
     ap.add_argument("--timeline", action="store_true",
                     help="--command: ours alone, where its wall time goes (the serial start "
-                         "before the workers fork, then the workers)")
+                         "before the images start, then the images)")
     ap.add_argument("--cube", type=int, metavar="BANDS", help="a uint16 cube of BANDS bands")
     ap.add_argument("--igm", action="store_true", help="image_to_ground on a DEM, points/s")
     ap.add_argument("--phases", action="store_true",

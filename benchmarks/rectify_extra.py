@@ -315,7 +315,7 @@ def _table(rows, gsd) -> dict:
 
 
 # ----------------------------------------------------------------------------------------
-# the command's timeline: its serial start, then the forked workers
+# the command's timeline: its serial start, then the images
 # ----------------------------------------------------------------------------------------
 _TIMELINE = r"""
 import json, sys, time
@@ -329,14 +329,12 @@ def rectify(args):
     mark("command parsed")
     import swathflow.rectification.mission as M
     mark("engine imported")
-    load, warm, run = M.load_mission, M._warm, M._run
+    load, run = M.load_mission, M._run
     def load_(*a, **k):
         m = load(*a, **k); mark("mission loaded and checked (numba's first call)"); return m
-    def warm_(*a, **k):
-        warm(*a, **k); mark("kernels warmed: workers fork")
     def run_(*a, **k):
-        yield from run(*a, **k); mark("workers done")
-    M.load_mission, M._warm, M._run = load_, warm_, run_
+        yield from run(*a, **k); mark("images done")
+    M.load_mission, M._run = load_, run_
     return command(args)
 C.rectify = rectify
 from swathflow.flows.cli import main
@@ -354,7 +352,7 @@ print(json.dumps(marks))
 def timeline(mission_dir, preset="demo", gsd=None, threads=2, repeat: int = 3) -> dict:
     """Where the wall time of ``swathflow rectify`` goes, in a fresh interpreter: the
     serial start (imports, the mission loaded and checked, the kernels warmed) before the
-    workers fork, then the workers. Median seconds since the interpreter ran the first
+    images start, then the images. Median seconds since the interpreter ran the first
     line (wall and the parent's CPU), over ``repeat`` runs; the whole command's wall too."""
     import statistics
     m = _at_gsd(_mission(mission_dir, preset), gsd)

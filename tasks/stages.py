@@ -128,13 +128,22 @@ def reports_written() -> None:
         _REPORTS.pop().result()
 
 
-@task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2)
+@task(name="rectify", cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2,
+      task_run_name="rectify-{image_id}")
 def rectify(mission_path: str, image_id: str, calibration: str, out_dir: str) -> str:
     """Orthorectify one swing to ``OUT/rectified/<image>.tif`` (COG) with the calibration:
     ``to_cog(rectify(...))`` of the Python API in the raw image's dtype: every band of the
     raw image, or those of ``[rectify] bands`` in mission.toml
-    (:func:`swathflow.tasks.swings.rectify_swing`)."""
-    return swings.rectify_swing(_load(mission_path), image_id, calibration, out_dir)
+    (:func:`swathflow.tasks.swings.rectify_one`). The work runs on the Dask cluster of the
+    active Dask client (the flow's) as one Dask task, which this task run waits for
+    (a worker lost meanwhile: Dask runs it again on another); without a client, here."""
+    try:
+        from distributed import get_client
+        client = get_client()
+    except (ImportError, ValueError):
+        return swings.rectify_one(image_id, mission_path, calibration, out_dir)
+    return client.submit(swings.rectify_one, image_id, mission_path, calibration, out_dir,
+                         key=f"rectify-{image_id}-{os.urandom(4).hex()}").result()
 
 
 #: the last :func:`mosaic_control` of this process: {key: offsets}

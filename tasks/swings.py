@@ -5,7 +5,7 @@ that unpickled a function from a module importing Prefect would import Prefect, 
 The mission is loaded once per process (:func:`load`, memoised on the folder's file
 stamps) or handed over already loaded (:func:`remember`: the flow sends the client's
 Mission to its workers once, instead of each worker validating the mission again);
-:func:`rectify_batch` rectifies several swings per Dask task.
+:func:`rectify_one` rectifies one swing, a Dask task of the flow's rectify stage.
 """
 from __future__ import annotations
 
@@ -152,71 +152,38 @@ def recorded_facts(path) -> dict | None:
     return None
 
 
-def rectify_batch(image_ids, mission_path: str, calibration: str,
-                  out_dir: str) -> list[str]:
-    """Several swings, one after the other, in this process (a Dask worker: its tiles on
-    its own thread, so no pixels or models cross processes); the mission loaded once
-    (memoised, or handed over by :func:`remember`). The output paths in ``image_ids``
-    order."""
+def rectify_one(image_id: str, mission_path: str, calibration: str, out_dir: str) -> str:
+    """One swing in this process (a Dask worker: its tiles on its own thread, so no
+    pixels or models cross processes), the mission loaded once a process (memoised, or
+    handed over by :func:`remember`): :func:`rectify_swing`'s output path."""
     import dask
     m = load(mission_path)
     with dask.config.set(scheduler="sync"):
-        return [rectify_swing(m, iid, calibration, out_dir) for iid in image_ids]
+        return rectify_swing(m, image_id, calibration, out_dir)
 
 
-def warm(mission_path=None) -> None:
-    """Import the rectification engine and load its compiled kernels (from numba's
-    cache) in a worker while the client does the first stages. With ``mission_path``
-    (already loaded in this process, :func:`loaded`): also an 8 x 8 px window of its
-    first swing rectified as the flow's rectify task does
-    (:func:`swathflow.rectification.api.warm_up`), before the flow's workers are forked
-    from this process; a failure there is left to the rectify stage to meet and report."""
-    import numpy as np
-
+def warm() -> None:
+    """Import what a swing's rectification and its catalogue facts use and load the
+    engine's compiled kernels (numba's cache), e.g. in a Dask worker as it starts."""
     import pystac.extensions.raster  # noqa: F401  (catalog_facts, after each swing)
     import rasterio.features  # noqa: F401
     import rasterio.warp  # noqa: F401
     import shapely  # noqa: F401
 
     import swathflow.rectification.api  # noqa: F401
-    import swathflow.rectification.kernel  # noqa: F401
-    from swathflow.rectification.paint import paint_pixels, paint_window
-    paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
-    paint_pixels(np.zeros((2, 2, 2)), 0, 0, 4, 4)
-    if mission_path is not None and loaded(mission_path):
-        from swathflow.rectification.api import warm_up
-        from swathflow.rectification.mission import mission_bands
-        m = load(mission_path)
-        try:
-            iid = next(iter(m.images))
-            warm_up(m, iid, None, dtype=None, bands=mission_bands(m, iid))
-        except Exception:  # noqa: BLE001 - the rectify stage meets it again and reports
-            pass
+    from swathflow.rectification.mission import warm_engine
+    warm_engine()
 
 
 def dask_setup(worker=None) -> None:
     """Dask's worker preload hook (``local_cluster(preload=("swathflow.tasks.swings",))``):
     :func:`warm` while the worker starts, so a local cluster's workers are ready to
-    rectify when the flow begins (the flow waits for Prefect's server meanwhile); and the
-    worker process, once Dask has closed it, ends without the interpreter's teardown
-    (:func:`_exit_at_once`)."""
-    import atexit
+    rectify when the flow begins."""
     warm()
-    atexit.register(_exit_at_once)
 
 
-def _exit_at_once() -> None:
-    """A local worker's last act, after Dask closed the worker (its results delivered, its
-    folder released): output flushed, then ``os._exit(0)``, skipping the interpreter's
-    teardown of the loaded engine, which kept the cluster's close waiting 2.5-3 s
-    (0.04-0.12 s without it, 2 workers, load 6)."""
-    import logging
-    import os
-    import sys
-    logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError, AttributeError):
-            pass
-    os._exit(0)
+def dask_teardown(worker=None) -> None:
+    """Dask's worker preload hook at the worker's close: the process ends soon after
+    (:func:`swathflow.cluster.leave_quickly`)."""
+    from swathflow.cluster import leave_quickly
+    leave_quickly()

@@ -57,25 +57,10 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def prefect_harness():
-    """One Prefect test server for the whole session (DESIGN.md: about 10-13 s). Its new
-    database is a copy of the migrated empty one swathflow keeps, as a run's is
-    (flows/prefectdb.py), not migrated again (25-45 s): the harness's temporary folder
-    is given it (Prefect's harness names its database ``prefect-test.db``; under another
-    name the server migrates as before)."""
-    import contextlib
-
-    import prefect.testing.utilities as utilities
-    from swathflow.flows import prefectdb
-
-    def seeded(**kw):
-        folder = tempfile.mkdtemp(**kw)
-        prefectdb.seed(Path(folder) / "prefect-test.db")
-        return folder
-
-    with contextlib.ExitStack() as stack:
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(utilities, "mkdtemp", seeded)
-            stack.enter_context(utilities.prefect_test_harness(server_startup_timeout=120))
+    """One Prefect test server for the whole session (Prefect's own harness, its
+    database migrated afresh: 25-45 s on 2 busy cores)."""
+    from prefect.testing.utilities import prefect_test_harness
+    with prefect_test_harness(server_startup_timeout=120):
         yield
 
 

@@ -272,11 +272,10 @@ def test_changed_image_recomputes_exactly_what_depends_on_it(tiny_mission, tmp_p
     assert all(kept[k] == after[k] for k in rect), "swings redone for a lost mosaic"
 
 
-def test_workers_rectify_in_batches_without_prefect(tiny_mission, tmp_path):
+def test_workers_rectify_without_prefect(tiny_mission, tmp_path):
     """The rectify stage's worker code imports neither Prefect nor the flow (a worker
-    would pay about a CPU second for it), and a batch rectifies its swings with the
-    mission handed over already loaded: the same paths as one swing at a time, each
-    against the truth."""
+    would pay about a CPU second for it), and rectifies each swing with the mission
+    handed over already loaded: each output against the truth."""
     code = ("import sys\nimport swathflow.tasks.swings\n"
             "print('prefect' if 'prefect' in sys.modules else '-')\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -290,7 +289,7 @@ def test_workers_rectify_in_batches_without_prefect(tiny_mission, tmp_path):
     cal = str(tiny_mission / "truth" / "calibration.json")
     out = tmp_path / "out"
     ids = list(m.images)
-    paths = swings.rectify_batch(ids, str(tiny_mission), cal, str(out))
+    paths = [swings.rectify_one(i, str(tiny_mission), cal, str(out)) for i in ids]
     assert paths == [str(out / "rectified" / f"{i}.tif") for i in ids]
     _check_against_truth(tiny_mission, {"rectified": paths})
 

@@ -1,136 +1,99 @@
-"""The flow's start-up: ``run()`` starts Prefect's temporary server itself (Prefect's own
-command, without importing the server's code in the calling process), the flow is a real
-Prefect flow run recorded by that server, and the server ends with the process."""
+"""The flow's services, as a user meets them: ``swathflow run`` is a Prefect flow run on
+Prefect's own temporary server (each swing a task run, the run's logs stored), the Dask
+workers are Dask's own processes, unreachable services are told in one line, importing
+the flow changes no setting, and what a run killed by SIGKILL left serving is gone once
+the next run has started."""
 import json
 import os
+import signal
+import socket
 import subprocess
 import sys
+import time
+
+import pytest
 
 _SCRIPT = """
 import asyncio, json, sys
-from swathflow.flows.guard import check_run_inputs
-check_run_inputs(sys.argv[1])     # as `swathflow run` does, before the flow's module
-from swathflow.flows import mission as fm, standby
-result = fm.run(sys.argv[1], sys.argv[2], calibration=sys.argv[3], workers=1)
-server_code = "prefect.server.api.server" in sys.modules
-from prefect.client.orchestration import get_client
-from prefect.settings import PREFECT_API_URL, temporary_settings
+from swathflow.flows.cli import main
+code = main(["run", sys.argv[1], "--out", sys.argv[2], "--calibration", sys.argv[3]])
+from prefect import get_client
+from prefect.client.schemas.filters import LogFilter, LogFilterFlowRunId
+from prefect.server.api.server import SubprocessASGIServer
+import psutil
 
 async def recorded():
-    async with get_client() as client:
+    async with get_client() as client:      # the same temporary server as the run's
         flows = await client.read_flow_runs()
         tasks = await client.read_task_runs()
         names = {f.id: (await client.read_flow(f.flow_id)).name for f in flows}
+        logs = await client.read_logs(LogFilter(flow_run_id=LogFilterFlowRunId(
+            any_=[f.id for f in flows])))
         return ([(names[f.id], f.state.type.value) for f in flows],
-                [(t.name, t.state.type.value) for t in tasks])
+                [(t.name, t.state.type.value) for t in tasks], [l.message for l in logs])
 
-with temporary_settings({PREFECT_API_URL: standby.SERVER["url"]}):
-    flows, tasks = asyncio.run(recorded())
-print("RESULT " + json.dumps({"server_code": server_code, "flows": flows, "tasks": tasks,
-                              "pid": standby.SERVER["process"].pid,
-                              "mosaic": result["mosaic"]}))
+flows, tasks, logs = asyncio.run(recorded())
+kids = [p.pid for p in psutil.Process().children(recursive=True)]
+print("RESULT " + json.dumps({"code": code, "flows": flows, "tasks": tasks, "logs": logs,
+                              "children": kids}))
 """
+
+
+def _fresh_env(tmp_path, **extra):
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home"), **extra}
+    for k in ("PREFECT_API_URL", "DASK_LOGGING__DISTRIBUTED", "PREFECT_LOGGING_LEVEL"):
+        env.pop(k, None)        # as in a user's shell (conftest sets some of them)
+    return env
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return not f.read().split(") ", 1)[1].startswith("Z")
+    except (FileNotFoundError, ProcessLookupError):
+        return False
 
 
 def test_run_is_a_prefect_flow_run_on_its_own_temporary_server(tiny_mission, tmp_path):
-    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
-    env.pop("PREFECT_API_URL", None)
-    env.pop("DASK_LOGGING__DISTRIBUTED", None)      # as in a user's shell (conftest sets it)
+    """`swathflow run` without PREFECT_API_URL: Prefect starts its own temporary server
+    (its ephemeral mode), which records the flow run, one task run per stage and per
+    swing, and the run's logs; the terminal shows no Prefect or Dask log lines; the
+    server and the Dask workers end with the process."""
     cal = str(tiny_mission / "truth" / "calibration.json")
     r = subprocess.run([sys.executable, "-c", _SCRIPT, str(tiny_mission), str(tmp_path / "out"),
-                        cal], capture_output=True, text=True, env=env, timeout=600)
+                        cal], capture_output=True, text=True, env=_fresh_env(tmp_path),
+                       timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
-    # Dask's informational lines (the cluster's start and close) only with --verbose
+    # Dask's and Prefect's informational lines (the cluster's start and close, the flow
+    # run's states) only with --verbose
     assert "INFO" not in r.stderr and "distributed.scheduler" not in r.stderr, r.stderr[-3000:]
     doc = json.loads(r.stdout.split("RESULT ", 1)[1])
-    assert not doc["server_code"], "the calling process imported Prefect's server code"
+    assert doc["code"] == 0
     assert doc["flows"] == [["swathflow-mission", "COMPLETED"]]
-    stages = {name.rsplit("-", 1)[0] for name, _ in doc["tasks"]}
+    names = {name for name, _ in doc["tasks"]}
+    stages = {name.rsplit("-", 1)[0] for name in names}
     assert {"ingest", "calibrate", "interpolate-pos", "mosaic", "catalog"} <= stages, stages
+    assert {"rectify-L1", "rectify-R1"} <= names, names     # each swing a task run
     assert {state for _, state in doc["tasks"]} == {"COMPLETED"}
-    assert os.path.exists(doc["mosaic"])
-    # the temporary server ended with the process that started it
-    try:
-        os.kill(doc["pid"], 0)
-    except ProcessLookupError:
-        pass
-    else:
-        with open(f"/proc/{doc['pid']}/stat") as f:       # only a zombie may remain
-            assert f.read().split(") ", 1)[1].startswith("Z"), "the server outlived its run"
+    assert any("Finished in state Completed" in m for m in doc["logs"]), doc["logs"][:20]
+    assert (tmp_path / "out" / "mosaic.tif").exists()
+    # the temporary server and the workers ended with the process that started them
+    left = [pid for pid in doc["children"] if _alive(pid)]
+    assert not left, f"processes of the run outlived it: {left}"
 
 
-_STANDBY = """
-import json, os, sys, urllib.request
-from swathflow.errors import SwathflowError
-from swathflow.flows import standby
-from swathflow.flows.guard import check_run_inputs
-mission, bad = sys.argv[1], sys.argv[2]
-raised = False
-try:
-    check_run_inputs(bad)
-except SwathflowError:
-    raised = True
-print("BAD", json.dumps({"raised": raised, "left": standby._STANDBY.get("process") is not None}))
-check_run_inputs(mission)
-spawned = standby._STANDBY["process"].pid
-standby.launch()
-url = standby.ready()
-with urllib.request.urlopen(url + "/health", timeout=10) as r:
-    health = r.status
-print("GOOD", json.dumps({"spawned": spawned, "serving": standby.SERVER["process"].pid,
-                          "health": health}))
-"""
-
-
-def test_server_code_imported_while_the_mission_is_checked(tiny_mission, tmp_path):
-    """`swathflow run`'s check spawns a standby that imports Prefect's server code: on bad
-    input it is ended unused (the process that spawned it never started a server); after
-    a good check it is the process that serves the flow's temporary server."""
-    import shutil
-    bad = tmp_path / "bad"
-    shutil.copytree(tiny_mission, bad)
-    toml = bad / "mission.toml"
-    toml.write_text(toml.read_text().replace("gsd = 0.4", "gsd = -1"))
-    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
-    env.pop("PREFECT_API_URL", None)
-    r = subprocess.run([sys.executable, "-c", _STANDBY, str(tiny_mission), str(bad)],
-                       capture_output=True, text=True, env=env, timeout=600)
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert json.loads(r.stdout.split("BAD ", 1)[1].splitlines()[0]) == {"raised": True,
-                                                                          "left": False}
-    good = json.loads(r.stdout.split("GOOD ", 1)[1].splitlines()[0])
-    assert good["health"] == 200
-    assert good["serving"] == good["spawned"], "the standby did not serve"
-
-
-_FORKED = """
-import json, os, sys, threading, urllib.error, urllib.request
+_WORKERS = """
+import json, os, sys, urllib.error, urllib.request
 from distributed import Client
 from swathflow.cluster import local_cluster
 
-def setup():      # left in a module of this process: a forked worker has it, a spawned not
-    json.SET_UP = os.getpid()
+def engine():
+    return "swathflow.rectification.kernel" in sys.modules
 
-def child():      # run in each forked worker, on a thread beside its start
-    json.CHILD = os.getpid()
-
-def own_child():  # in a worker: child() ran there (waited for: it runs on a thread)
-    import time
-    mod, limit = sys.modules["json"], time.monotonic() + 60
-    while getattr(mod, "CHILD", None) is None and time.monotonic() < limit:
-        time.sleep(0.01)
-    return getattr(mod, "CHILD", None) == os.getpid()
-
-def noise():      # what a worker's heartbeat logs when the scheduler closes first
-    import logging
-    logging.getLogger("distributed.worker").error("WORKER-NOISE %d", os.getpid())
-
-def cluster(forks=True):
-    with local_cluster(2, fork_setup=setup, worker_setup=child) as c, Client(c) as client:
-        seen = client.run(lambda: getattr(sys.modules["json"], "SET_UP", None))
-        own = client.run(own_child) if forks else {}
+def main():
+    with local_cluster(2, preload=("swathflow.tasks.swings",)) as c, Client(c) as client:
         pids = list(client.run(os.getpid).values())
-        client.run(noise)
+        preloaded = list(client.run(engine).values())
         total = client.submit(sum, range(10)).result()
         ports = sorted(s.getsockname()[1] for s in c.scheduler.http_server._sockets.values())
         codes = []
@@ -147,139 +110,172 @@ def cluster(forks=True):
                 left += [pid] if not f.read().split(") ", 1)[1].startswith("Z") else []
         except FileNotFoundError:
             pass
-    return {"seen": list(seen.values()), "own": list(own.values()), "total": total,
-            "ports": ports,
-            "codes": codes, "left": left}
+    print("RESULT " + json.dumps({"parent": os.getpid(), "pids": pids, "total": total,
+                                 "preloaded": preloaded, "ports": ports, "codes": codes,
+                                 "left": left}))
 
-forked = cluster()
-stop = threading.Event()
-t = threading.Thread(target=stop.wait)       # another thread runs: no fork
-t.start()
-try:
-    spawned = cluster(forks=False)
-finally:
-    stop.set()
-print("RESULT " + json.dumps({"parent": os.getpid(), "forked": forked, "spawned": spawned,
-                             "in_parent": getattr(json, "CHILD", None)}))
+if __name__ == "__main__":
+    main()
 """
 
 
-def test_local_workers_forked_from_a_one_thread_process(tmp_path):
-    """The flow's local Dask workers are forked from its process while only its main thread
-    runs (they share what ``fork_setup`` prepared, e.g. the checked mission, and import
-    nothing again; each ran ``worker_setup`` itself), spawned by Dask's nannies otherwise;
-    either way real workers that run tasks, whose processes are gone once the cluster is
-    closed and whose Dask log lines are not printed (LocalCluster's ``silence_logs``: an
-    error logged on each is not seen); and the scheduler's HTTP server serves nothing, and
-    not on Dask's dashboard port 8787."""
-    r = subprocess.run([sys.executable, "-c", _FORKED], capture_output=True, text=True,
+def test_local_workers_are_dasks_own_processes(tmp_path):
+    """The local cluster's workers are processes Dask's nannies start (not this
+    process, nor forks of it): each ran the preload (the engine imported), they run
+    tasks, and none is left once the cluster is closed; the scheduler's HTTP server
+    serves nothing, and not on Dask's dashboard port 8787."""
+    script = tmp_path / "workers.py"
+    script.write_text(_WORKERS)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
                        timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     doc = json.loads(r.stdout.split("RESULT ", 1)[1])
-    forked, spawned = doc["forked"], doc["spawned"]
-    assert forked["seen"] == [doc["parent"]] * 2, "workers not forked"
-    assert forked["own"] == [True, True], "worker_setup not run in each forked worker"
-    assert doc["in_parent"] is None, "worker_setup ran in the parent"
-    assert spawned["seen"] == [None, None], "forked beside another thread"
-    assert "WORKER-NOISE" not in r.stderr + r.stdout, "a worker's Dask logs not silenced"
-    for run in (forked, spawned):
-        assert run["total"] == 45
-        assert run["left"] == [], "a worker process outlived its cluster"
-        assert 8787 not in run["ports"]
-        assert run["codes"] == [404, 404, 404]
+    assert len(set(doc["pids"])) == 2 and doc["parent"] not in doc["pids"]
+    assert doc["preloaded"] == [True, True]
+    assert doc["total"] == 45
+    assert doc["left"] == [], "a worker process outlived its cluster"
+    assert 8787 not in doc["ports"]
+    assert doc["codes"] == [404, 404, 404]
 
 
-def test_server_output_kept_off_the_terminal_and_told_when_it_fails_to_start(capfd):
-    """What the temporary server prints (e.g. Prefect's services cancelled while a run
-    ended by SIGTERM stops it) goes to its own file, not the user's terminal; a server
-    that exits before it is ready is reported with the end of what it printed."""
-    import pytest
-    from swathflow.flows import standby
-    code = "import sys; print('starting'); sys.stderr.write('Traceback: no database\\n'); sys.exit(1)"
-    proc = standby.spawn([sys.executable, "-c", code], dict(os.environ))
-    proc.wait(timeout=60)
-    seen = capfd.readouterr()
-    assert "Traceback" not in seen.err + seen.out and "starting" not in seen.out
-    assert standby.output_tail(proc) == "starting\nTraceback: no database"
-    saved = dict(standby.SERVER)
-    standby.SERVER.clear()
-    standby.SERVER.update(process=proc, url="http://127.0.0.1:9/api", env={}, ready=False)
-    try:
-        with pytest.raises(RuntimeError, match="exited with code 1 before it was ready; "
-                                               "it printed:\nstarting\nTraceback: no database"):
-            standby.ready()
-    finally:
-        standby.SERVER.clear()
-        standby.SERVER.update(saved)
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
-def test_server_routes_built_before_the_first_request(monkeypatch):
-    """The standby builds every route's request handling of Prefect's app before it serves
-    (``standby.warm_routes``): FastAPI otherwise builds an included router's routes at the
-    first request that reaches it, which the flow run's first requests waited for. Counted
-    on FastAPI's own builder: a request after the warm-up builds nothing; the same request
-    on an app not warmed does (so the count can tell)."""
-    import asyncio
-
-    import fastapi.routing as routing
-    import httpx
-    from prefect.server.api.server import create_app
-
-    from swathflow.flows import standby
-    built = []
-
-    def version(app) -> int:        # a request in this process, no lifespan: no database
-        async def get():
-            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
-                                         base_url="http://test") as client:
-                return (await client.get("/api/admin/version")).status_code
-        return asyncio.run(get())
-    real = routing._populate_api_route_state
-
-    def counted(*a, **k):
-        built.append(a[1])
-        return real(*a, **k)
-    monkeypatch.setattr(routing, "_populate_api_route_state", counted)
-    cold = create_app(ephemeral=True, ignore_cache=True)
-    assert version(cold) == 200
-    assert "/admin/version" in built      # paths of the app mounted at /api
-    warm = create_app(ephemeral=True, ignore_cache=True)
-    built.clear()
-    assert standby.warm_routes(warm) > 100
-    assert "/admin/version" in built and "/flow_runs/" in built
-    n = len(built)
-    assert version(warm) == 200
-    assert len(built) == n, built[n:]
+@pytest.mark.parametrize("service", ["dask", "prefect"])
+def test_unreachable_service_is_one_clear_error(tiny_mission, tmp_path, service):
+    """An unreachable --dask-address or PREFECT_API_URL ends `swathflow run` with one
+    line naming it and what to do (exit 2), not a traceback; nothing is written."""
+    port = _free_port()         # nothing listens there
+    env = _fresh_env(tmp_path)
+    args = []
+    if service == "dask":
+        args = ["--dask-address", f"tcp://127.0.0.1:{port}"]
+    else:
+        env["PREFECT_API_URL"] = f"http://127.0.0.1:{port}/api"
+    r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "run", str(tiny_mission),
+                        "--out", str(tmp_path / "out"), *args], capture_output=True,
+                       text=True, env=env, timeout=300)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    if service == "dask":
+        assert line.startswith(f"swathflow run: error: --dask-address tcp://127.0.0.1:{port}: "
+                               f"no Dask scheduler answered"), line
+    else:
+        assert line.startswith(f"swathflow run: error: PREFECT_API_URL=http://127.0.0.1:{port}"
+                               f"/api: the Prefect server did not answer"), line
+        assert "unset PREFECT_API_URL" in line
+    assert not (tmp_path / "out" / "rectified").exists()
 
 
-_STALE = """
-import json, os, sys, time, urllib.request
-from swathflow.flows import standby
-standby.start()
-spawned = standby._STANDBY["process"]
-os.environ["PREFECT_CLIENT_MAX_RETRIES"] = "7"   # the command's settings, not the standby's
-standby.serve()
-url = standby.ready()
-with urllib.request.urlopen(url + "/admin/version", timeout=30) as r:
-    version = r.status
-print("RESULT", json.dumps({"standby_code": spawned.wait(timeout=60),
-                            "serving": standby.SERVER["process"].pid, "spawned": spawned.pid,
-                            "args": standby.SERVER["process"].args[1:3], "version": version}))
+def test_no_server_allowed_is_one_clear_error(tiny_mission, tmp_path):
+    """No PREFECT_API_URL and Prefect's temporary server switched off: one line."""
+    env = _fresh_env(tmp_path, PREFECT_SERVER_ALLOW_EPHEMERAL_MODE="false")
+    r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "run", str(tiny_mission),
+                        "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                       env=env, timeout=300)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    assert "PREFECT_API_URL is not set" in r.stderr and \
+        "PREFECT_SERVER_ALLOW_EPHEMERAL_MODE" in r.stderr, r.stderr
+
+
+_IMPORT = """
+import json, logging, os, warnings
+def state():
+    import dask
+    from prefect.settings import get_current_settings
+    return {"prefect": get_current_settings().to_environment_variables(exclude_unset=True),
+            "dask": json.dumps(dask.config.config, sort_keys=True, default=str),
+            "env": dict(os.environ),
+            "levels": {n: logging.getLogger(n).level for n in
+                       ("", "prefect", "distributed", "prefect.flow_runs")},
+            "filters": len(warnings.filters)}
+# the libraries themselves first: what importing them, or defining a Prefect task
+# (Prefect sets up its logging then), does is theirs
+import prefect, prefect.flows, prefect.tasks, distributed, dask.array, rasterio, xarray  # noqa
+prefect.task(json.dumps)
+before = state()
+import swathflow.flows.mission, swathflow.flows.inbox, swathflow.tasks.stages  # noqa: F401
+after = state()
+print("RESULT " + json.dumps({k: before[k] == after[k] for k in before}))
 """
 
 
-def test_standby_with_other_settings_is_replaced_by_prefects_command(tmp_path):
-    """A standby that sees other Prefect settings than the command's (here a variable the
-    command set after spawning it) does not serve: it exits with ``STALE`` once handed its
-    port, and Prefect's own uvicorn command serves instead."""
-    from swathflow.flows import standby
-    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
-    env.pop("PREFECT_API_URL", None)
-    env.pop("PREFECT_CLIENT_MAX_RETRIES", None)
-    r = subprocess.run([sys.executable, "-c", _STALE], capture_output=True, text=True,
-                       env=env, timeout=600)
+def test_importing_the_flow_changes_no_setting(tmp_path):
+    """Importing the flow modules leaves Prefect's settings, Dask's configuration, the
+    environment, the loggers' levels and the warning filters as the libraries left them
+    (a served or deployed flow run logs as its Prefect settings say)."""
+    r = subprocess.run([sys.executable, "-c", _IMPORT], capture_output=True, text=True,
+                       env=_fresh_env(tmp_path, DO_NOT_TRACK="1"), timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
-    doc = json.loads(r.stdout.split("RESULT ", 1)[1])
-    assert doc["standby_code"] == standby.STALE
-    assert doc["serving"] != doc["spawned"]
-    assert doc["args"] == ["-m", "uvicorn"] and doc["version"] == 200
+    assert json.loads(r.stdout.split("RESULT ", 1)[1]) == {
+        "prefect": True, "dask": True, "env": True, "levels": True, "filters": True}
+
+
+def _cmdline(proc) -> str:
+    import psutil
+    try:
+        return " ".join(proc.cmdline())
+    except psutil.Error:
+        return ""
+
+
+def test_killed_run_leaves_nothing_serving_once_the_next_has_started(tiny_mission, tmp_path):
+    """`kill -9` of `swathflow run` (its process alone, as a crash or the OOM killer
+    would): Prefect's temporary server and the Dask workers it started may go on
+    running, re-parented; once the next run has started, none of them is left."""
+    import psutil
+    cal = str(tiny_mission / "truth" / "calibration.json")
+    env = _fresh_env(tmp_path)
+    cmd = [sys.executable, "-m", "swathflow.flows.cli", "run", str(tiny_mission),
+           "--calibration", cal]
+    log = open(tmp_path / "first.log", "w")
+    first = subprocess.Popen(cmd + ["--out", str(tmp_path / "a")], env=env, stdout=log,
+                             stderr=subprocess.STDOUT)
+    started: list = []
+    try:
+        deadline = time.time() + 600
+        while time.time() < deadline and first.poll() is None:
+            try:
+                kids = psutil.Process(first.pid).children(recursive=True)
+            except psutil.NoSuchProcess:
+                break
+            # Prefect's temporary server and the Dask workers (processes of their own) up
+            if len(kids) >= 3 and any("prefect.server" in _cmdline(k) for k in kids):
+                time.sleep(2)
+                started = [k.pid for k in psutil.Process(first.pid).children(recursive=True)]
+                break
+            time.sleep(0.05)
+        assert started, ("the run ended before its services were up: "
+                         + (tmp_path / "first.log").read_text()[-3000:])
+        os.kill(first.pid, signal.SIGKILL)
+        first.wait()
+        time.sleep(1)
+        orphans = [pid for pid in started if _alive(pid)]
+        second = subprocess.run(cmd + ["--out", str(tmp_path / "b")], env=env,
+                                capture_output=True, text=True, timeout=900)
+        assert second.returncode == 0, second.stderr[-3000:]
+        left = [pid for pid in started if _alive(pid)]
+        assert not left, f"left serving after the next run: {left} (orphans: {orphans})"
+    finally:
+        for pid in started:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def test_rectify_on_an_unreachable_scheduler_is_one_clear_error(tiny_mission, tmp_path):
+    """`swathflow rectify --dask-address` naming no scheduler: one line, exit 2."""
+    port = _free_port()
+    r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "rectify",
+                        str(tiny_mission), "--out", str(tmp_path / "out"), "--dask-address",
+                        f"tcp://127.0.0.1:{port}"], capture_output=True, text=True,
+                       env=_fresh_env(tmp_path), timeout=300)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(
+        f"swathflow rectify: error: --dask-address tcp://127.0.0.1:{port}: no Dask scheduler "
+        f"answered"), r.stderr

@@ -135,7 +135,8 @@ def rectify(args) -> int:
                     tol=args.tolerance, tile=args.tile, products=products,
                     progress=_say(args),
                     bands=args.bands or None, dtype=args.dtype, mask_band=args.mask_band,
-                    compress=args.compress)
+                    compress=args.compress, workers=getattr(args, "workers", None),
+                    dask_address=getattr(args, "dask_address", None))
     return 0
 
 
@@ -225,7 +226,7 @@ def run(args) -> int:
               f"(products in {os.path.abspath(args.out)})")
         return 0
     _checked(args.mission, args.calibration)
-    run_flow = _served_flow()
+    run_flow = _flow_run()
     result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
                       args.cluster, args.jobs)
     _print_summary(result, args)
@@ -233,26 +234,26 @@ def run(args) -> int:
 
 
 def _checked(mission, calibration) -> None:
-    """The first steps of ``swathflow run``: Prefect's standby spawned (its server code
-    imported from now on, on the other core) and the inputs checked (bad input is told
-    here, before Prefect and Dask start)."""
-    from swathflow.flows import standby
-    standby.start()
+    """The first steps of ``swathflow run``: what an earlier run killed by SIGKILL left
+    serving ended and this run's processes marked
+    (:func:`~swathflow.flows.guard.end_orphans`); Prefect's temporary server started on a
+    thread (:func:`~swathflow.flows.guard.start_prefect`); the inputs checked meanwhile
+    (bad input is told here, before the Dask cluster starts; Prefect stops its server as
+    the process exits)."""
+    _own_processes()
+    from swathflow.flows.guard import start_prefect
+    start_prefect()
     from swathflow.collector import uncollected
     with uncollected(freeze=False):
         from swathflow.flows.guard import check_run_inputs
         check_run_inputs(mission, calibration)
 
 
-def _served_flow():
-    """After :func:`_checked`: the server handed its port (it starts while the flow's
-    modules are imported) and the flow's ``run``; the objects made until then (the
-    checked mission, Prefect's modules) frozen out of the collector's reach."""
-    from swathflow.flows import standby
-    from swathflow.collector import uncollected
-    with uncollected():
-        standby.serve()
-        return _flow_run()
+def _own_processes() -> None:
+    """End what earlier runs killed by SIGKILL left serving; mark this run's children."""
+    from swathflow.flows.guard import end_orphans, mark_run
+    end_orphans()
+    mark_run()
 
 
 def _first_run_notice(args) -> None:
@@ -304,8 +305,9 @@ def demo_summary(result: dict, seconds: float) -> str:
 
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
-    from swathflow.flows import standby
-    standby.start()     # Prefect's server code imported meanwhile, on the other core
+    _own_processes()
+    from swathflow.flows.guard import start_prefect
+    start_prefect()     # Prefect's temporary server starts while the mission is simulated
     out = Path(args.out).resolve()
     ignored_by_git(out)
     run_flow = _flow_run()

@@ -100,6 +100,15 @@ def _apply_verbosity(args) -> None:
         os.environ["PREFECT_LOGGING_LEVEL"] = "INFO"
         os.environ["DASK_LOGGING__DISTRIBUTED"] = "info"
         logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    else:
+        # this process's terminal shows swathflow's own lines (a failure is told once, by
+        # the command): Prefect's console handler quiet (its documented logging override
+        # variables); the flow run's logs still reach Prefect's API and are stored
+        os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "CRITICAL")
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    # a first run in a new Prefect home: Prefect's temporary server builds its database
+    # (25-45 s on 2 busy cores) before it answers; Prefect's default wait is 20 s
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -222,6 +231,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="COG compression (default deflate, which every GDAL and TIFF reader "
                         "opens); zstd compresses about 1.6x faster, but needs GDAL 2.3 or "
                         "later built with ZSTD (rasterio's wheels and the usual GDAL builds)")
+    s.add_argument("--workers", type=_positive_int,
+                   help="local Dask worker processes (default: one per core, at most one "
+                        "per image)")
+    s.add_argument("--dask-address",
+                   help="rectify on an existing Dask scheduler (default: a local cluster)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:rectify"))
 
     s = sub.add_parser("mosaic", parents=common,

@@ -1,22 +1,20 @@
 """Rectify every (or some) image of a mission with a calibration: one COG per image and a
 ``rectify.json`` summary. Each image is ``to_cog(rectify(...))`` of the Python API
 (:mod:`swathflow.rectification.api`), as the flow's rectify task writes it; the images run
-side by side in forked worker processes."""
+side by side as Dask tasks, one image each: on a Dask cluster (``--dask-address``, or the
+active client's), else on Dask's threaded scheduler in this process."""
 from __future__ import annotations
 
 import contextlib
-import gc
 import json
 import os
-import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 
 from swathflow.errors import FormatError
 from swathflow.ingest.mission import load_mission
 from swathflow.io import write_text
-from swathflow.rectification.api import geolocation, rectify, to_cog, warm_up
+from swathflow.rectification.api import geolocation, rectify, to_cog
 from swathflow.rectification.lattice import TOLERANCE_PX
 from swathflow.rectification.rawimage import open_raw_image
 from swathflow.rectification.writing import CODECS
@@ -52,7 +50,8 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
                     products: Sequence[str] = (),
                     progress: Callable[[str], None] | None = None, bands=None,
                     dtype: str | None = None, mask_band: bool = False,
-                    workers: int | None = None, compress: str = "deflate") -> list[dict]:
+                    workers: int | None = None, compress: str = "deflate",
+                    dask_address: str | None = None) -> list[dict]:
     """Rectify the mission's images into ``out_dir/<id>.tif`` with ``calibration`` (a
     calibration.json; default: the mission's priors). Every band of each raw image is
     rectified (``bands``: a subset by 1-based index or wavelength, see
@@ -63,18 +62,20 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
     (``deflate``, or ``zstd``: see :data:`~.writing.CODECS`). Returns one summary per
     image.
 
-    ``workers`` processes rectify the images side by side (default: one per CPU, at most
-    one per image; forked, so nothing is imported or pickled again), each with one
-    thread; with one worker, one image, an active Dask client, other threads alive or no
-    ``fork`` on the platform, the images go one after the other, each on the current Dask
-    scheduler (threads over tiles)."""
+    The images are rectified side by side, one Dask task each (its tiles on the task's
+    own thread): on the scheduler at ``dask_address`` (the loaded mission sent to its
+    workers once); else on the active Dask client's cluster (e.g. inside the mission
+    flow); else on Dask's threaded scheduler in this process (``workers`` threads,
+    default one per core, see :func:`_run`)."""
     unknown = set(products) - {"glt", "igm"}
     if unknown:
         raise FormatError(f"unknown product(s) {', '.join(sorted(unknown))}; use glt, igm")
     if compress not in CODECS:
         raise FormatError(f"unknown COG compression {compress!r}; use one of "
                           f"{', '.join(CODECS)}")
-    with _start_up():
+    if workers is not None and workers < 1:
+        raise FormatError(f"workers must be at least 1, not {workers}")
+    with _cluster(dask_address) as client:
         mission = load_mission(mission_path)
         ids = mission.image_ids
         if images:
@@ -86,123 +87,104 @@ def rectify_mission(mission_path, out_dir, calibration: str | None = None,
         os.makedirs(out_dir, exist_ok=True)
         options = dict(kernel=kernel, tile=tile, method=method, tol=tol, bands=bands,
                        dtype=dtype, mask_band=mask_band, compress=compress)
-        jobs = [(mission, iid, calibration, out_dir, tuple(products),
-                 dict(options, bands=bands if bands not in (None, "") else
-                      mission_bands(mission, iid)))
+        jobs = [(iid, dict(options, bands=bands if bands not in (None, "") else
+                           mission_bands(mission, iid)))
                 for iid in ids]
-        processes = _processes(workers, len(jobs))
-        if processes > 1:
-            _warm(jobs[0])
-            # shared with the forked workers: no collector passes over these objects there
-            gc.freeze()     # (nor copies of their pages); _run unfreezes them at its end
-    summaries, cal_tag = [], ""
-    for s, tag, shape in _run(jobs, processes):
-        summaries.append(s)
-        cal_tag = tag
-        if progress:
-            progress(f"{s['image_id']}: {shape[0]} x {shape[1]} px -> {s['path']} "
-                     f"({s['seconds']:.1f} s)")
+        summaries, cal_tag = [], ""
+        for s, tag, shape in _run(client, mission, jobs, calibration, out_dir,
+                                  tuple(products), workers):
+            summaries.append(s)
+            cal_tag = tag
+            if progress:
+                progress(f"{s['image_id']}: {shape[0]} x {shape[1]} px -> {s['path']} "
+                         f"({s['seconds']:.1f} s)")
     write_text(os.path.join(out_dir, "rectify.json"),
                json.dumps({"images": summaries, "calibration": cal_tag}, indent=2) + "\n")
     return summaries
 
 
 @contextlib.contextmanager
-def _start_up():
-    """No collector passes while the mission loads and the engine warms up (0.1-0.2 CPU-s
-    on the demo): what is made then (the modules imported on the way, the mission, the
-    loaded kernels) lives to the end anyway. The collector's state is restored after."""
-    on = gc.isenabled()
-    gc.disable()
+def _cluster(address: str | None):
+    """The Dask client to rectify on: the one at ``address``; else the active client;
+    else None (Dask's threaded scheduler in this process, :func:`_run`)."""
+    from swathflow.cluster import connect
+    if address:
+        with connect(address) as client:
+            yield client
+        return
+    yield _active_client()
+
+
+def _active_client():
+    """The Dask client active in this process or task (None: none; distributed not
+    imported yet: none can be, and importing it costs 0.2-0.3 s)."""
+    import sys
+    if "distributed" not in sys.modules:
+        return None
     try:
-        yield
-    finally:
-        if on:
-            gc.enable()
+        from distributed import get_client
+        return get_client()
+    except ValueError:
+        return None
 
 
-#: the jobs of the running :func:`rectify_mission`, read by its forked workers
-_JOBS: list = []
-
-
-def _one(k: int):
-    """Rectify job ``k`` of :data:`_JOBS`: (summary, calibration tag, (rows, cols))."""
-    mission, iid, calibration, out_dir, products, o = _JOBS[k]
+def _one(mission, iid: str, calibration, out_dir: str, products: tuple, o: dict):
+    """Rectify image ``iid`` of the loaded ``mission``, its tiles on this thread: (summary,
+    calibration tag, (rows, cols))."""
+    import dask
     o = dict(o)
     compress = o.pop("compress")
     out = os.path.join(out_dir, f"{iid}.tif")
     t0 = time.perf_counter()
-    arr = rectify(mission, iid, calibration, **o)
-    s = to_cog(arr, out, blocksize=o["tile"], compress=compress)
-    for p in products:
-        to_cog(geolocation(mission, iid, calibration, p, kernel=o["kernel"], tile=o["tile"],
-                           tol=o["tol"]),
-               os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=o["tile"], compress=compress)
+    with dask.config.set(scheduler="sync"):     # the cluster's processes are the parallelism
+        arr = rectify(mission, iid, calibration, **o)
+        s = to_cog(arr, out, blocksize=o["tile"], compress=compress)
+        for p in products:
+            to_cog(geolocation(mission, iid, calibration, p, kernel=o["kernel"],
+                               tile=o["tile"], tol=o["tol"]),
+                   os.path.join(out_dir, f"{iid}.{p}.tif"), blocksize=o["tile"],
+                   compress=compress)
     s.update(image_id=iid, method=o["method"], kernel=o["kernel"],
              seconds=round(time.perf_counter() - t0, 3))
     return s, arr.attrs["calibration"], (arr.rio.height, arr.rio.width)
 
 
-def _one_synchronous(k: int):
-    import dask
-    with dask.config.set(scheduler="synchronous"):      # the processes are the parallelism
-        return _one(k)
-
-
-def _processes(workers: int | None, n_jobs: int) -> int:
-    """Worker processes to use (1: in this process)."""
-    import multiprocessing as mp
-    if workers is not None and workers < 1:
-        raise FormatError(f"workers must be at least 1, not {workers}")
-    n = min(workers or os.cpu_count() or 1, n_jobs)
-    if n < 2 or "fork" not in mp.get_all_start_methods() or threading.active_count() > 1:
-        return 1                  # forking beside other threads may copy a held lock
-    if "distributed" not in sys.modules:     # not imported: no client can be active (and
-        return n                             # importing it costs 0.2-0.3 s)
-    try:
-        from distributed import default_client
-        default_client()
-        return 1                                  # a cluster is there: use it
-    except ValueError:
-        return n
-
-
-def _run(jobs, processes: int):
-    """The results of :func:`_one` for every job, in the jobs' order."""
-    global _JOBS
-    _JOBS = jobs
-    try:
-        if processes < 2:
-            for k in range(len(jobs)):
-                yield _one(k)
-            return
-        import multiprocessing as mp
-        try:
-            with mp.get_context("fork").Pool(processes, initializer=_worker_signals) as pool:
-                yield from pool.imap(_one_synchronous, range(len(jobs)))
-                pool.close()                     # the workers end on their own (no SIGTERM)
-                pool.join()
-        finally:
-            gc.unfreeze()
-    finally:
-        _JOBS = []
-
-
-def _worker_signals() -> None:
-    """A forked worker ends quietly on SIGTERM (the pool's terminate, or the command's
-    process group stopped) and leaves Ctrl-C to the parent, which stops the pool."""
-    import signal
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _warm(job) -> None:
-    """Import the engine and load every compiled kernel the jobs call (numba's on-disk
-    cache) once, before the workers fork (each would otherwise load them again):
-    :func:`~swathflow.rectification.api.warm_up` on the first job's swing."""
-    mission, iid, calibration, _, _, o = job
-    if o["method"] != "exact":
+def _run(client, mission, jobs, calibration, out_dir: str, products: tuple,
+         workers: int | None = None):
+    """The results of :func:`_one` for every job, in the jobs' order: on the cluster of
+    ``client`` (the mission sent to every worker once), or, without one, on Dask's
+    threaded scheduler in this process (``workers`` threads, default one per core: the
+    engine's compiled kernels release the GIL; the imports, the mission and the loaded
+    kernels are this process's, where worker processes would each pay them, about
+    2 CPU-s each)."""
+    if client is None:
+        import dask
+        import dask.threaded
+        from swathflow.cluster import default_workers
+        n = min(workers or default_workers(), len(jobs)) or 1
+        # the threaded scheduler's function itself: named by a string, Dask would import
+        # distributed to look for a client first (0.2-0.3 s)
+        yield from dask.compute(*[dask.delayed(_one, pure=False)(
+            mission, iid, calibration, os.fspath(out_dir), products, o) for iid, o in jobs],
+            scheduler=dask.threaded.get, num_workers=n)
         return
-    warm_up(mission, iid, calibration, kernel=o["kernel"], tile=o["tile"], tol=o["tol"],
-            bands=o["bands"], dtype=o["dtype"], mask_band=o["mask_band"],
-            compress=o["compress"])
+    [loaded] = client.scatter([mission], broadcast=True, hash=False)
+    futures = [client.submit(_one, loaded, iid, calibration, os.fspath(out_dir), products,
+                             o, key=f"rectify-{iid}-{os.urandom(4).hex()}")
+               for iid, o in jobs]
+    try:
+        for f in futures:
+            yield f.result()
+    finally:
+        client.cancel(futures + [loaded])
+
+
+def warm_engine() -> None:
+    """Import the rectification engine and load the compiled kernels every swing calls
+    (numba's on-disk cache) in this process."""
+    import numpy as np
+
+    import swathflow.rectification.kernel  # noqa: F401
+    from swathflow.rectification.paint import paint_pixels, paint_window
+    paint_window(np.ones((1, 4), np.int64), np.zeros((1, 4, 2)), 2, 2, 0, 0, 4, 4)
+    paint_pixels(np.zeros((2, 2, 2)), 0, 0, 4, 4)
