@@ -6,7 +6,6 @@ predictor and metadata kept, atomic writes."""
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import pytest
