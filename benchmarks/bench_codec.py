@@ -12,10 +12,11 @@ overviews, nodata 0):
 
 - ``gdal-cog``: the blocks stored (``dask.array.store``) into a band-interleaved tiled
   GTiff beside the target, then ``rasterio.shutil.copy(..., driver="COG")``: the COG
-  driver builds the overviews (what :mod:`swathflow.rectification.writing` does);
+  driver builds the overviews;
 - ``gdal-cog-pixel``: the same with a pixel-interleaved GTiff;
 - ``gdal-ovr``: the band-interleaved GTiff given GDAL's overviews first
-  (``build_overviews``), copied by the COG driver with ``OVERVIEWS=FORCE_USE_EXISTING``;
+  (``build_overviews``), copied by the COG driver with ``OVERVIEWS=FORCE_USE_EXISTING``
+  (what :mod:`swathflow.rectification.writing` does);
 - ``rio-cogeo``: ``rio_cogeo.cog_translate`` of the band-interleaved GTiff;
 - ``odc-geo``: ``odc.geo.cog.save_cog_with_dask`` of the dask array (no GTiff between).
 """
