@@ -210,11 +210,11 @@ def test_mosaic_cog_is_valid_and_holds_the_plain_geotiffs_pixels(scene, tmp_path
     with rasterio.open(a) as x, rasterio.open(tmp_path / "plain.tif") as z:
         assert x.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
         assert len(x.overviews(1)) >= 1
-        full = x.read(1)
+        full = x.read(1, masked=True).astype(float).filled(np.nan)      # nodata: NaN
         assert np.isfinite(full).any()
         assert np.array_equal(x.read(), z.read(), equal_nan=True)
     with rasterio.open(a, overview_level=0) as ov:
-        got = ov.read(1).astype(float)
+        got = ov.read(1, masked=True).astype(float).filled(np.nan)
     h, w = full.shape
 
     def weights(n, m):
