@@ -66,8 +66,8 @@ def ours(model, path, grid, terrain, repeat, keep=8):
 
 
 def ours_cog(model, path, grid, terrain, out):
-    """The whole engine and the COG writer (tiles compressed once by GDAL as they stream,
-    our overviews, the COG layout copied by tifflayout; deflate), one thread: (wall s,
+    """The whole engine and the COG writer (the blocks streamed into a tiled GeoTIFF,
+    GDAL's overviews, GDAL's COG driver; deflate), the synchronous scheduler: (wall s,
     CPU s)."""
     import dask
     from swathflow.rectification import tiles as T

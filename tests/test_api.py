@@ -240,3 +240,48 @@ def test_grid_dataarray_is_what_rioxarray_writes():
                     assert got.rio.transform() == want.rio.transform() == t
                     assert repr(got.rio.nodata) == repr(want.rio.nodata)
                     assert type(got.attrs.get("_FillValue")) is type(want.attrs.get("_FillValue"))
+
+
+def test_every_cog_a_rectify_and_mosaic_write_is_valid_with_its_metadata(tiny_mission,
+                                                                          tmp_path):
+    """Every GeoTIFF 'swathflow rectify' (swings, GLT, IGM) and 'swathflow mosaic' write
+    passes ``rio cogeo validate``, and carries, read back with rasterio: the software's
+    version (``software`` and TIFF's Software tag), TIFF's DateTime tag, a description on
+    every band (single-band products too), and tags that are not plain text as JSON (the
+    swings' terrain and parameters)."""
+    import datetime
+    import json
+
+    from cogcheck import cog_problems, cogs_under
+    from swathflow.flows.cli import main
+    cal = tiny_mission / "truth" / "calibration.json"
+    out = tmp_path / "rect"
+    assert main(["rectify", str(tiny_mission), "--calibration", str(cal), "--tile", "128",
+                 "--products", "glt,igm", "--out", str(out), "-q"]) == 0
+    swings = sorted(p for p in out.glob("*.tif") if p.name.count(".") == 1)
+    (tmp_path / "swings").mkdir()
+    for p in swings:
+        shutil.copy(p, tmp_path / "swings" / p.name)
+    assert main(["mosaic", str(tmp_path / "swings"), "--out",
+                 str(tmp_path / "mos" / "mosaic.tif"), "--workers", "1", "-q"]) == 0
+    cogs = cogs_under(tmp_path)
+    names = {p.name for p in cogs}
+    assert {"L1.tif", "L1.glt.tif", "L1.igm.tif", "mosaic.tif"} <= names, names
+    software = f"swathflow {swathflow.__version__}"
+    for path in cogs:
+        assert cog_problems(path) == [], path
+        with rasterio.open(path) as src:
+            tags = src.tags()
+            assert tags["software"] == tags["TIFFTAG_SOFTWARE"] == software, path
+            datetime.datetime.strptime(tags["TIFFTAG_DATETIME"], "%Y:%m:%d %H:%M:%S")
+            assert all(src.descriptions) and len(src.descriptions) == src.count, path
+            if path.parent.name == "swings" or path in swings:
+                assert json.loads(tags["terrain"])["kind"] in ("constant", "dem")
+                assert isinstance(json.loads(tags["parameters"]), dict)
+                assert src.descriptions == ("band 1",)       # the raw file's band 1
+            elif path.name.endswith(".glt.tif"):
+                assert src.descriptions == ("element+1", "line+1")
+            elif path.name.endswith(".igm.tif"):
+                assert src.descriptions == ("x", "y", "h_ellipsoidal")
+            else:
+                assert tags["product"] == "mosaic" and src.descriptions == ("band 1",)

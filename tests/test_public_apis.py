@@ -44,15 +44,7 @@ ALLOWED: dict[tuple[str, str], str] = {}
 
 #: files other helpers of issue 43 are rewriting on their branches, not checked here yet.
 #: removed by the parallel/COG helper: these entries go when their branches merge
-PENDING = {
-    "swathflow/cluster.py": "removed by the parallel/COG helper (os.fork, ctypes prctl)",
-    "swathflow/rectification/mission.py": "removed by the parallel/COG helper (fork pool)",
-    "swathflow/rectification/store.py": "removed by the parallel/COG helper "
-                                        "(dask's _task_spec)",
-    "swathflow/rectification/tilecodec.py": "removed by the parallel/COG helper",
-    "flows/standby.py": "removed by the parallel/COG helper (Prefect's server start)",
-    "flows/prefectdb.py": "removed by the parallel/COG helper (Prefect's _migrations)",
-}
+PENDING: dict[str, str] = {}
 
 
 def _private(name: str) -> bool:

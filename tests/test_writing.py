@@ -1,11 +1,11 @@
-"""The COG writer (swathflow.rectification.writing): overviews built here, block by block,
-against the closed form (2 x 2 means of the valid pixels, each level from the full
-resolution), a valid COG layout, full-resolution pixels and metadata kept."""
+"""The COG writer (swathflow.rectification.writing: GDAL's COG driver through rasterio):
+overviews against a resampled truth (the area-weighted mean of the valid pixels under each
+overview pixel's footprint, each level from the one above), a valid COG layout
+(``rio cogeo validate`` and the validators' checks), full-resolution pixels, nodata, codec,
+predictor and metadata kept, atomic writes."""
 from __future__ import annotations
 
 import math
-import warnings
-import zlib
 
 import numpy as np
 import pytest
@@ -13,26 +13,58 @@ import rasterio
 from rasterio.transform import from_origin
 from swathflow.geometry.grid import Grid
 from swathflow.rectification.writing import overview_factors, write_cogs
+from cogcheck import cog_problems
 
 H, W = 1100, 1301           # odd width: the last overview column averages one column
 
 
-def _blocks(data, f, nodata):
-    """Per f x f block of the (ceil-sized) overview: mean, min and max of the valid pixels
-    (NaN where none), and whether the block is whole (inside the image, every pixel valid)."""
-    nb, h, w = data.shape
-    oh, ow = -(-h // f), -(-w // f)
+def _weights(n: int, m: int) -> np.ndarray:
+    """(m, n): the length of source pixel k inside overview pixel i, when ``n`` pixels are
+    resampled to ``m`` over the same extent (GDAL's overview grid: the overview's pixel is
+    ``n / m`` source pixels)."""
+    r = n / m
+    lo = np.arange(m)[:, None] * r
+    k = np.arange(n)[None, :]
+    return np.clip(np.minimum(lo + r, k + 1) - np.maximum(lo, k), 0, None)
+
+
+def _gather(x, shape, fill, reduce):
+    """Reduce (``reduce``: np.fmin, np.fmax, np.logical_and) the pixels of ``x`` (bands,
+    rows, cols) each pixel of ``shape`` touches (at most 3 x 3: the footprints are about 2
+    pixels wide), from ``fill``."""
+    (sy, cy), (sx, cx) = [((t := _weights(n, m) > 0).argmax(1), t.sum(1))
+                          for n, m in zip(x.shape[1:], shape)]
+    out = np.full((x.shape[0],) + tuple(shape), fill)
+    for a in range(3):
+        for b in range(3):
+            rows = np.minimum(sy + a, x.shape[1] - 1)
+            cols = np.minimum(sx + b, x.shape[2] - 1)
+            use = (a < cy)[:, None] & (b < cx)[None, :]
+            out = np.where(use, reduce(out, x[:, rows][:, :, cols]), out)
+    return out
+
+
+def _levels(data, nodata, shapes):
+    """The truth of each overview level, each resampled from the one above it (as GDAL
+    does): per level (mean, min, max, whole): the area-weighted mean of the valid pixels
+    under each pixel's footprint (NaN where none), the range of the valid full-resolution
+    pixels under it, and whether every pixel under it is valid."""
     x = data.astype(float)
     if not math.isnan(nodata):
         x = np.where(data == nodata, np.nan, x)
-    pad = np.full((nb, oh * f, ow * f), np.nan)
-    pad[:, :h, :w] = x
-    b = pad.reshape(nb, oh, f, ow, f)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        mean, lo, hi = np.nanmean(b, (2, 4)), np.nanmin(b, (2, 4)), np.nanmax(b, (2, 4))
-    whole = np.isfinite(b).all((2, 4))
-    return mean, lo, hi, whole
+    lo, hi, whole = x, x, ~np.isnan(x)
+    out = []
+    for shape in shapes:
+        wy, wx = _weights(x.shape[1], shape[0]), _weights(x.shape[2], shape[1])
+        ok = ~np.isnan(x)
+        s, n = wy @ np.where(ok, x, 0.0) @ wx.T, wy @ ok.astype(float) @ wx.T
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = np.where(n > 0, s / n, np.nan)
+        lo = _gather(lo, shape, np.inf, np.fmin)
+        hi = _gather(hi, shape, -np.inf, np.fmax)
+        whole = _gather(whole, shape, True, np.logical_and)
+        out.append((x, lo, hi, whole))
+    return out
 
 
 def _cube(nb, dtype):
@@ -67,24 +99,24 @@ def test_cog_with_our_overviews_matches_block_means(tmp_path, dtype, nodata):
         assert src.transform == grid.transform and src.count == nb
         assert src.overviews(1) == [2, 4, 8] and src.dtypes[0] == np.dtype(dtype).name
         assert np.array_equal(src.read(), data, equal_nan=True)
-    for lv, f in enumerate([2, 4, 8]):
+    shapes = [(-(-H // f), -(-W // f)) for f in (2, 4, 8)]      # gdaladdo's sizes
+    for lv, (mean, lo, hi, whole) in enumerate(_levels(data, nodata, shapes)):
         with rasterio.open(path, overview_level=lv) as ov:
             got = ov.read().astype(float)
         if not is_int:
             got[np.isnan(got)] = np.nan
         else:
             got[got == nodata] = np.nan
-        mean, lo, hi, whole = _blocks(data, f, nodata)
         assert got.shape == mean.shape
         # nodata exactly where a block has no valid pixel
         assert np.array_equal(np.isnan(got), np.isnan(mean))
         ok = ~np.isnan(mean)
-        # within the range of the block's valid pixels (plus integer rounding)
+        # within the range of the valid pixels under it (plus integer rounding)
         assert (got[ok] >= np.floor(lo[ok]) - 1e-6).all() and (got[ok] <= np.ceil(hi[ok]) + 1e-6).all()
-        # a whole block: each level is the mean of the one above, so the block mean
-        # (integer output: rounded half up once per level)
+        # every pixel under it valid: each level is the mean of the one above, so the
+        # truth's (integer output: rounded once per level)
         tol = 0.5 * (lv + 1) + 1e-9 if is_int else 1e-3
-        assert np.abs(got - mean)[whole].max() <= tol, (f, np.abs(got - mean)[whole].max())
+        assert np.abs(got - mean)[whole].max() <= tol, (lv, np.abs(got - mean)[whole].max())
 
 
 def _cog_layout_problems(path) -> list[str]:
@@ -140,19 +172,18 @@ def _cog_layout_problems(path) -> list[str]:
                                                      (3, np.float32, float("nan"), False, True),
                                                      (1, np.uint16, 0, False, False),
                                                      (2, np.int16, -32768, True, False)])
-def test_cog_layout_tiles_compressed_once_and_copied(tmp_path, monkeypatch, nb, dtype,
-                                                     nodata, big, ram):
-    """The COG laid out from GDAL's compressed tiles (tifflayout): the validators'
+def test_cog_layout_metadata_and_pixels(tmp_path, monkeypatch, nb, dtype, nodata, big, ram):
+    """The COG made by GDAL's COG driver: ``rio cogeo validate`` and the validators'
     layout checks, LAYOUT=COG, full-resolution pixels, overviews, nodata, tags and band
-    descriptions as written; BigTIFF when the file could pass 4 GB (forced here); the
-    overviews reduced in memory as the tiles arrive, or (``ram`` False: as for outputs
-    too large for that) from the streamed file."""
-    from swathflow.rectification import tifflayout, writing
+    descriptions as written; a BigTIFF (``BIGTIFF=YES`` forced here: GDAL makes one when
+    the file could pass 4 GB); the streamed ``.part`` in memory, or (``ram`` False: as
+    for outputs too large for that) in a scratch file beside the target."""
+    from swathflow.rectification import writing
     from swathflow.rectification.rawimage import BandInfo
     if big:
-        monkeypatch.setattr(tifflayout, "BIGTIFF_BYTES", 0)
+        monkeypatch.setattr(writing, "BIGTIFF", "YES")
     if not ram:
-        monkeypatch.setattr(writing, "LEVEL1_RAM_BYTES", 0)
+        monkeypatch.setattr(writing, "PART_RAM_BYTES", 0)
     data = _cube(nb, dtype)
     data[:, :100, :300] = nodata
     grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
@@ -163,6 +194,7 @@ def test_cog_layout_tiles_compressed_once_and_copied(tmp_path, monkeypatch, nb, 
                  "tags": {"product": "layout"}, "bands": infos}], blocksize=256)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.tif"]
     assert _cog_layout_problems(path) == []
+    assert cog_problems(path) == []
     assert open(path, "rb").read(4) == (b"II+\0" if big else b"II*\0")
     with rasterio.open(path) as src:
         assert src.count == nb and src.dtypes[0] == np.dtype(dtype).name
@@ -175,7 +207,7 @@ def test_cog_layout_tiles_compressed_once_and_copied(tmp_path, monkeypatch, nb, 
         assert src.compression.name.lower() == "deflate"
         assert np.array_equal(src.read(), data, equal_nan=True)
         ov = src.read(out_shape=(nb, -(-H // 8), -(-W // 8)))
-    mean, _, _, whole = _blocks(data, 8, nodata)
+    mean, _, _, whole = _levels(data, nodata, [(-(-H // f), -(-W // f)) for f in (2, 4, 8)])[-1]
     got = ov.astype(float)
     if not math.isnan(nodata):
         got[ov == nodata] = np.nan
@@ -242,23 +274,28 @@ def test_synchronous_blocks_run_each_task_once(tmp_path):
     assert sorted(calls) == [(i, j) for i in range(2) for j in range(3)]
 
 
-def test_configured_synchronous_scheduler_runs_the_blocks_here(tmp_path, monkeypatch):
+def test_configured_synchronous_scheduler_runs_the_blocks_here(tmp_path):
     """No scheduler given and dask configured with ``scheduler="sync"`` (the flow's Dask
-    workers, where ``distributed`` is imported): the blocks are computed here one by one,
-    as dask itself would pick the configured scheduler before any Client."""
+    workers, where ``distributed`` is imported): every block is computed in this thread,
+    as dask itself picks the configured scheduler before any Client."""
+    import threading
+
     import dask
     import dask.array as da
     import distributed  # noqa: F401
-    from swathflow.rectification import store
-    ran = []
-    real = store._blocks_in_order
-    monkeypatch.setattr(store, "_blocks_in_order", lambda arr: ran.append(1) or real(arr))
+    threads = set()
+
+    def f(x):
+        threads.add(threading.get_ident())
+        return x
+
     data = (np.arange(600 * 500) % 3000).reshape(600, 500).astype(np.uint16)
     grid = Grid("EPSG:32633", from_origin(500000, 6000000, 1, 1), data.shape)
     with dask.config.set(scheduler="sync"):
-        write_cogs([{"path": tmp_path / "c.tif", "array": da.from_array(data, chunks=256),
+        write_cogs([{"path": tmp_path / "c.tif",
+                     "array": da.from_array(data, chunks=256).map_blocks(f, dtype=data.dtype),
                      "grid": grid, "nodata": 0}], blocksize=256)
-    assert ran == [1]
+    assert threads == {threading.get_ident()}
     assert _cog_layout_problems(tmp_path / "c.tif") == []
     with rasterio.open(tmp_path / "c.tif") as src:
         assert np.array_equal(src.read(1), data)
@@ -270,85 +307,94 @@ def _all_nodata(block, nodata) -> bool:
 
 @pytest.mark.parametrize("dtype,nodata", [(np.uint16, 0), (np.float32, float("nan")),
                                           (np.int16, -32768)])
-def test_tiles_of_nodata_are_written_as_gdal_writes_them(tmp_path, dtype, nodata):
-    """GDAL leaves the tiles holding only nodata out of the streamed file and of the
-    overview levels (SPARSE_OK); the COG still has every tile, each left-out one with the
-    bytes GDAL itself writes for a nodata tile (a GeoTIFF written without SPARSE_OK),
-    and reads back the same pixels and overviews. The tiles of data are compressed by
-    ISA-L (:mod:`~swathflow.rectification.tilecodec`), not by GDAL: each inflates to the
-    bytes GDAL's tile inflates to (padding and predictor included)."""
-    from swathflow.rectification.tifflayout import read_first_ifd
+def test_tiles_of_nodata_are_written(tmp_path, dtype, nodata):
+    """Tiles holding only nodata are in the COG at every level (no sparse tile, which some
+    readers take for zeros), read back as nodata; the predictor is the type's (2 for
+    integers, 3 for floats) and the codec the one asked for (DEFLATE, or ZSTD), the
+    same pixels either way."""
     data = _cube(2, dtype)
     data[:, :, :700] = nodata                   # whole tiles of nodata, at every level
     data[:, :, 1200:] = nodata                  # and at the right edge (narrower tiles)
     grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
-    path = tmp_path / "sparse.tif"
-    write_cogs([{"path": path, "array": data, "grid": grid, "nodata": nodata}], blocksize=256)
-    assert _cog_layout_problems(path) == []
-    ref = tmp_path / "ref.tif"
-    with rasterio.open(ref, "w", driver="GTiff", width=W, height=H, count=2, dtype=data.dtype,
-                       nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
-                       compress="deflate", zlevel=1, predictor=3 if dtype == np.float32 else 2,
-                       interleave="band") as dst:
-        dst.write(data)
-    across = -(-W // 256)
-    blank = [_all_nodata(data[b, r * 256:(r + 1) * 256, c * 256:(c + 1) * 256], nodata)
-             for b in range(2) for r in range(-(-H // 256)) for c in range(across)]
-    with open(path, "rb") as f, open(ref, "rb") as g:
-        ours, gdal = read_first_ifd(f), read_first_ifd(g)
-        assert ours.counts.size == gdal.counts.size == len(blank) and (ours.counts > 0).all()
+    for compress in ("deflate", "zstd"):
+        path = tmp_path / f"sparse-{compress}.tif"
+        write_cogs([{"path": path, "array": data, "grid": grid, "nodata": nodata}],
+                   blocksize=256, compress=compress)
+        assert _cog_layout_problems(path) == [] and cog_problems(path) == []
+        blank = [_all_nodata(data[b, r * 256:(r + 1) * 256, c * 256:(c + 1) * 256], nodata)
+                 for b in range(2) for r in range(-(-H // 256)) for c in range(-(-W // 256))]
         assert 0 < sum(blank) < len(blank)
-        for off, n, goff, gn, empty in zip(ours.offsets, ours.counts, gdal.offsets,
-                                          gdal.counts, blank):
-            f.seek(int(off))
-            g.seek(int(goff))
-            mine, theirs = f.read(int(n)), g.read(int(gn))
-            assert zlib.decompress(mine) == zlib.decompress(theirs)
-            if empty:
-                assert mine == theirs
-    with rasterio.open(path) as src:
-        assert np.array_equal(src.read(), data, equal_nan=True)
-        for k, f in enumerate(src.overviews(1)):
-            with rasterio.open(path, overview_level=k) as ov:
-                left = ov.read()[:, :, :700 // f].astype(float)      # nodata only
-                assert (np.isnan(left) if math.isnan(nodata) else left == nodata).all()
+        with rasterio.open(path) as src:
+            assert src.compression.name.lower() == compress
+            pred = "3" if np.dtype(dtype).kind == "f" else "2"
+            assert src.tags(ns="IMAGE_STRUCTURE")["PREDICTOR"] == pred
+            assert np.array_equal(src.read(), data, equal_nan=True)
+            for k, f in enumerate(src.overviews(1)):
+                with rasterio.open(path, overview_level=k) as ov:
+                    for y in range(-(-ov.height // 256)):
+                        for x in range(-(-ov.width // 256)):
+                            size = ov.get_tag_item(f"BLOCK_SIZE_{x}_{y}", "TIFF", bidx=1)
+                            assert int(size) > 0, (k, x, y)
+                    left = ov.read()[:, :, :700 // f].astype(float)      # nodata only
+                    assert (np.isnan(left) if math.isnan(nodata) else left == nodata).all()
 
 
-@pytest.mark.parametrize("dtype,nodata", [(np.uint16, 0), (np.float32, float("nan")),
-                                          (np.int16, -32768)])
-def test_nodata_tiles_compressed_once_a_process(tmp_path, monkeypatch, dtype, nodata):
-    """A second output of the same type, nodata and codec takes the compressed nodata
-    tiles made for the first (none made again: NaN nodata included) and is the same file;
-    a zero fill makes one tile for every shape (GDAL pads edge tiles with zeros), another
-    fill one a shape; another codec gets its own tiles, and reads back the same pixels."""
-    from swathflow.rectification import tifflayout
+def test_tags_as_json_with_version_date_and_software(tmp_path):
+    """Tags that are not strings are written as JSON (a mapping, a list, a number, a
+    bool); ``software`` names swathflow's version; TIFF's own DateTime and Software tags
+    are set (GDAL reads them back as TIFFTAG_DATETIME and TIFFTAG_SOFTWARE); a
+    single-band output has a band description."""
+    import datetime
+    import json
 
-    class Made(dict):
-        def __setitem__(self, key, value):
-            added.append(key)
-            super().__setitem__(key, value)
-
-    added: list = []
-    monkeypatch.setattr(tifflayout, "_NODATA_TILES", Made())
-    data = _cube(1, dtype)[0]
-    data[:, :700] = nodata
-    data[:, 1200:] = nodata                 # right-edge tiles too, at every level
+    import swathflow
+    data = _cube(1, np.uint16)[0]
     grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+    path = tmp_path / "t.tif"
+    before = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
+    write_cogs([{"path": path, "array": data, "grid": grid, "nodata": 0,
+                 "tags": {"terrain": {"kind": "constant", "h": 5.0}, "ids": ["L1", "L2"],
+                          "tolerance_px": 0.05, "flag": True, "name": "plain text"}}],
+               blocksize=256)
+    after = datetime.datetime.now(datetime.timezone.utc)
+    with rasterio.open(path) as src:
+        tags = src.tags()
+        assert src.descriptions == ("band 1",)
+    assert json.loads(tags["terrain"]) == {"kind": "constant", "h": 5.0}
+    assert json.loads(tags["ids"]) == ["L1", "L2"]
+    assert json.loads(tags["tolerance_px"]) == 0.05 and json.loads(tags["flag"]) is True
+    assert tags["name"] == "plain text"
+    assert tags["software"] == tags["TIFFTAG_SOFTWARE"] == f"swathflow {swathflow.__version__}"
+    when = datetime.datetime.strptime(tags["TIFFTAG_DATETIME"], "%Y:%m:%d %H:%M:%S")
+    assert before <= when.replace(tzinfo=datetime.timezone.utc) <= after
+    raw = path.read_bytes()
+    assert f"swathflow {swathflow.__version__}".encode() in raw   # TIFF tag 305, not XML only
 
-    def write(name, compress="deflate"):
-        write_cogs([{"path": tmp_path / name, "array": data, "grid": grid,
-                     "nodata": nodata}], blocksize=256, compress=compress)
-        return (tmp_path / name).read_bytes()
 
-    first = write("a.tif")
-    n = len(added)
-    assert n == 1 if nodata == 0 else n >= 4        # full-resolution and overview shapes
-    assert write("b.tif") == first
-    assert len(added) == n                          # every nodata tile taken from the first
-    write("c.tif", "zstd")
-    assert len(added) == 2 * n                      # zstd's own
-    with rasterio.open(tmp_path / "c.tif") as src:
-        assert np.array_equal(src.read(1), data, equal_nan=True)
+@pytest.mark.parametrize("ram", [True, False])
+def test_a_failed_write_leaves_nothing_and_keeps_the_old_file(tmp_path, monkeypatch, ram):
+    """A block that fails while the COG is written: no file is left in the folder (no
+    ``.part``, no scratch file) and an existing output keeps its content."""
+    import dask.array as da
+    from swathflow.rectification import writing
+    if not ram:
+        monkeypatch.setattr(writing, "PART_RAM_BYTES", 0)
+    data = _cube(1, np.uint16)[0]
+    grid = Grid("EPSG:32633", from_origin(500000, 6000000, 0.5, 0.5), (H, W))
+    path = tmp_path / "keep.tif"
+    path.write_bytes(b"old")
+
+    def f(x, block_info=None):
+        if block_info[None]["chunk-location"] == (2, 3):
+            raise RuntimeError("disk on fire")
+        return x
+
+    arr = da.from_array(data, chunks=256).map_blocks(f, dtype=data.dtype)
+    with pytest.raises(RuntimeError, match="disk on fire"):
+        write_cogs([{"path": path, "array": arr, "grid": grid, "nodata": 0}], blocksize=256,
+                   scheduler="sync")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.tif"]
+    assert path.read_bytes() == b"old"
 
 
 @pytest.mark.parametrize("case", ["uint16", "nan", "bands", "mask", "no-nodata"])
@@ -383,6 +429,7 @@ def test_valid_mask_kept_while_writing_is_the_files_dataset_mask(tmp_path, case)
     path = tmp_path / "v.tif"
     write_cogs([{"path": path, "array": data, "grid": grid, "nodata": nodata, "mask": mask,
                  "valid": valid}], blocksize=128)
+    assert cog_problems(path) == []
     with rasterio.open(path) as src:
         assert np.array_equal(valid, src.dataset_mask())
     expect = {"uint16": hole | edge, "nan": hole | edge, "bands": hole | edge,

@@ -1,6 +1,7 @@
 """Writing the mosaic: tiles blended from the corrected swings on threads (compiled kernels
-that release the GIL), streamed into a tiled GeoTIFF that GDAL compresses tile by tile, laid
-out as a COG with overviews by the rectification's writer; the PNG quicklook."""
+that release the GIL), streamed into a tiled GeoTIFF, copied into a COG with overviews by
+GDAL's COG driver (the rectification's writer, :mod:`swathflow.rectification.writing`);
+the PNG quicklook."""
 from __future__ import annotations
 
 import contextlib
@@ -133,17 +134,13 @@ def _tile_swings(layout: Layout, tiles, offsets):
     return list(seen)
 
 
-def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers,
-                level1=None, sink=None):
+def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers):
     """Render ``tiles`` (r0, c0, r1, c1) on ``workers`` threads (the kernels release the
-    GIL) and write each into ``ds`` as it is done, or compressed by the thread into
-    ``sink`` (a :class:`~swathflow.rectification.tilecodec.TileSink`: ``ds`` then gets
-    the tags alone), and into ``level1``, the first overview level, when given; at most
-    two tiles per thread are in flight, so memory is bounded by
-    the threads, not by the mosaic. When every corrected swing fits in the cache they are
-    made first, all threads at it, in the order the tiles need them (else the first tiles'
-    threads wait on each other's swings: the 48-swing mosaic's first tiles ran on about
-    one core)."""
+    GIL) and write each into ``ds`` as it is done; at most two tiles per thread are in
+    flight, so memory is bounded by the threads, not by the mosaic. When every corrected
+    swing fits in the cache they are made first, all threads at it, in the order the tiles
+    need them (else the first tiles' threads wait on each other's swings: the 48-swing
+    mosaic's first tiles ran on about one core)."""
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
     from rasterio.windows import Window
     lock = threading.Lock()
@@ -156,11 +153,6 @@ def _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, workers,
         r0, c0, r1, c1 = t
         v, _ = render_tile(layout, r0, c0, r1, c1, offsets, cache, mode)
         out = _to_dtype(v, dtype, nodata)
-        if level1 is not None:
-            level1.add((slice(r0, r1), slice(c0, c1)), out)
-        if sink is not None:
-            sink.put(r0, c0, out)
-            return
         with lock:
             ds.write(out, 1, window=Window(c0, r0, c1 - c0, r1 - r0))
 
@@ -197,39 +189,24 @@ def _tile_order(layout: Layout, tile: int):
     return [(r, c, min(H, r + tile), min(W, c + tile)) for r, c in order]
 
 
-def _first_level(H, W, tile, blocksize, dtype, nodata):
-    """The first overview level reduced in memory as the tiles arrive
-    (:class:`swathflow.rectification.writing._Level1`), when the COG has overviews, the
-    tiles start on even rows and columns and the level fits in
-    :data:`~swathflow.rectification.writing.LEVEL1_RAM_BYTES`; else None (the overviews
-    are then built from the streamed file)."""
-    from swathflow.rectification import writing
-    if tile % 2 or not writing.overview_factors(H, W, blocksize):
-        return None
-    if -(-H // 2) * -(-W // 2) * dtype.itemsize > writing.LEVEL1_RAM_BYTES:
-        return None
-    return writing._Level1(1, H, W, dtype, nodata, "average")
-
-
 def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
                  mode: str = "feather", tile: int = 1024, workers: int | None = None,
                  dtype=None, nodata=None, cog: bool = True, blocksize: int = 512,
-                 handles=None, on_level1=None) -> dict:
+                 handles=None, on_level1=None, tags=None) -> dict:
     """Render the mosaic tile by tile on ``workers`` threads into ``out`` (a COG with
-    overviews when ``cog``), atomically. Memory is bounded by ``workers`` tiles and the
-    swing cache (its swings in memory mappings of their own, outside the C heap: see
-    :class:`swathflow.mosaicking.blend.Mappings`), which is let go before the COG is laid
-    out. ``handles``: the :class:`_Handles` to read the swings through (its own if None).
-    ``on_level1``: called with the first overview level (:func:`level_overview`'s
-    argument) once every tile is written and before the COG is laid out, when that level
-    is reduced in memory (it may start work beside the layout; it must not change it).
+    overviews when ``cog``, else a tiled GeoTIFF), atomically. Memory is bounded by
+    ``workers`` tiles and the swing cache (its swings in memory mappings of their own,
+    outside the C heap: see :class:`swathflow.mosaicking.blend.Mappings`), which is let go
+    before the COG is made. ``handles``: the :class:`_Handles` to read the swings through
+    (its own if None). ``on_level1``: called with the COG's first overview level
+    (:func:`level_overview`'s argument) and the nodata value once the COG is written and
+    before it is renamed into place. ``tags``: more dataset tags (e.g. the mission and the
+    calibration; values that are not strings as JSON) beside ``product``, ``blend``, the
+    software's version and the TIFF date and software tags.
 
-    The COG is written as the rectification's (:mod:`swathflow.rectification.writing`):
-    GDAL compresses each tile once as it is streamed (DEFLATE level 1 with the
-    predictor), the first overview level is reduced here as the tiles arrive, and
-    :func:`~swathflow.rectification.writing._layout_cog` copies the compressed tiles into
-    the COG layout (no second decompression and compression through GDAL's COG driver).
-    """
+    The tiles are streamed into a tiled GeoTIFF beside ``out`` and copied into the COG by
+    GDAL's COG driver (:func:`swathflow.rectification.writing.copy_to_cog`: DEFLATE level 1
+    with the predictor, average overviews)."""
     import rasterio
 
     from swathflow.rectification import writing
@@ -249,36 +226,47 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     handles = handles or _Handles()
     cache = swing_cache(layout, offsets, radiometric, feather, handles)
     tiles = _tile_order(layout, tile)
-    profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=dtype.name,
-                   crs=layout.crs, transform=layout.transform, nodata=nodata, tiled=True,
-                   blockxsize=blocksize, blockysize=blocksize, BIGTIFF="IF_SAFER",
-                   interleave="band", **writing._compression("deflate", dtype))
-    level1 = _first_level(H, W, tile, blocksize, dtype, nodata) if cog else None
+    profile = writing.part_profile((H, W), 1, dtype, blocksize, "deflate", nodata=nodata)
+    profile.update(crs=layout.crs, transform=layout.transform)
+    if not cog:
+        profile.update(writing.compression("deflate", dtype))
     n = max(1, int(workers or os.cpu_count() or 1))
     t0 = time.perf_counter()
     out = os.fspath(out)
     try:
-        with atomic_path(out, suffix=".tif") as final, contextlib.ExitStack() as stack:
-            part = stack.enter_context(scratch_path(out, "part.tif")) if cog else final
-            # the render threads compress the tiles (ISA-L) when the overviews are in memory
-            sink = writing.tile_sink(stack, out, profile, (H, W), cog and not tile % blocksize,
-                                     level1, nodata)
+        with atomic_path(out, suffix=".part.tif") as final, contextlib.ExitStack() as stack:
+            part = stack.enter_context(scratch_path(out, "stream.tif")) if cog else final
             with rasterio.open(part, "w", **profile) as ds:
-                _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n,
-                            level1, sink)
-                ds.update_tags(product="mosaic", blend=mode, software="swathflow")
+                ds.update_tags(**writing.product_tags(
+                    {"product": "mosaic", "blend": mode, **(tags or {})}))
+                ds.set_band_description(1, _description(layout))
+                _render_all(layout, ds, tiles, offsets, cache, mode, dtype, nodata, n)
+                if cog:
+                    writing.build_overviews(ds, blocksize, "average")
             t_render = time.perf_counter() - t0
-            del cache       # its corrected swings unmapped before the COG is laid out
-            if on_level1 is not None and level1 is not None:
-                on_level1(level1.array[0], nodata)
+            del cache       # its corrected swings unmapped before the COG is made
             if cog:
-                writing._layout_cog(part, final, out, level1, profile, blocksize, "average",
-                                    sink)
+                writing.copy_to_cog(part, final, blocksize, "deflate", "average")
+                if on_level1 is not None and writing.overview_factors(H, W, blocksize):
+                    with rasterio.open(final, overview_level=0) as ov:
+                        on_level1(ov.read(1), nodata)
     finally:
         if own:
             handles.close()
     return {"seconds_render": t_render, "seconds_total": time.perf_counter() - t0,
             "shape": [H, W], "dtype": dtype.name}
+
+
+def _description(layout: Layout) -> str:
+    """The mosaic's band description: the swings' first band's, when they agree, else
+    ``band 1``."""
+    import rasterio
+    names = set()
+    for s in layout.swings[:8]:
+        with rasterio.open(s.path) as ds:
+            names.add(ds.descriptions[0] or "")
+    name = names.pop() if len(names) == 1 else ""
+    return name or "band 1"
 
 
 def overview(src_path, max_side: int = 1024):

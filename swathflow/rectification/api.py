@@ -167,7 +167,7 @@ def _tags(m: Mission, image_id, model, method, kernel, tol, cal_tag, terrain) ->
     return {"software": f"swathflow {__version__}", "method": method, "kernel": kernel,
             "sensor": m.sensor.get("model", ""),
             "tolerance_px": tol if method == "exact" else "",
-            "terrain": str(terrain.state()), "image_id": image_id, "strip": e.strip,
+            "terrain": json.dumps(terrain.state()), "image_id": image_id, "strip": e.strip,
             "direction": e.direction, "mission": m.name, "calibration": cal_tag,
             "parameters": json.dumps(model.parameters.values_dict())}
 
@@ -299,22 +299,14 @@ def taking_turns():
 
 
 def _warm_writer(grid, dt, nodata, use_mask: bool, tile: int, compress: str) -> None:
-    """What :func:`to_cog` makes once a process for a swing's output (``dt``, ``nodata``,
-    ``tile``, ``compress``): rioxarray's attributes (:func:`_rio_template`), the overview
-    kernel of its type, the compressed nodata tile (:mod:`.tifflayout`, imported), the tile
-    codec (:mod:`.tilecodec`, imported). In a forked worker they cost 0.02-0.03 CPU-s,
-    each time."""
+    """What :func:`to_cog` makes once a process for a swing's output (``dt``, ``nodata``):
+    rioxarray's attributes (:func:`_rio_template`) and the writer's modules, imported.
+    (``use_mask``, ``tile`` and ``compress`` are GDAL's to use: nothing is made for them
+    here.)"""
     from swathflow.formats import raster  # noqa: F401  (the writer's CRS, imported)
-    from swathflow.rectification import tilecodec  # noqa: F401  (the writer's codec)
-    from swathflow.rectification.tifflayout import nodata_tiles
-    from swathflow.rectification.writing import _compression, _Level1
-    one = grid_dataarray(np.zeros((1, 1), dt), grid.window(slice(0, 1), slice(0, 1)), "warm",
-                         nodata=nodata)
-    if use_mask:                                      # written by GDAL's COG driver
-        return
-    dt, nd = np.dtype(dt), one.rio.nodata             # the nodata value to_cog writes
-    _Level1(1, 2, 2, dt, nd, "average").add((slice(0, 2), slice(0, 2)), np.zeros((2, 2), dt))
-    nodata_tiles(dt.name, nd, _compression(compress, dt), tile)(tile, tile)
+    from swathflow.rectification import writing  # noqa: F401  (the writer, imported)
+    grid_dataarray(np.zeros((1, 1), dt), grid.window(slice(0, 1), slice(0, 1)), "warm",
+                   nodata=nodata)
 
 
 def _swing(mission, image_id: str, calibration, gsd, crs):
@@ -413,10 +405,12 @@ def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: in
     """Write ``da`` (lazy or not; (y, x) or (band, y, x), or a raw-geometry array without
     CRS) as a Cloud-Optimized GeoTIFF at ``path``, atomically: its blocks are computed on
     the current Dask scheduler and streamed window by window in THIS process (memory
-    bounded by the blocks in flight), then laid out by GDAL's COG driver with overviews.
-    Keeps the dtype, the nodata value (``da.rio.nodata``) or the ``mask`` coordinate as an
-    internal mask band, band descriptions and wavelengths, and the attributes as GDAL
-    tags (with ``tags`` added). ``valid``: a (rows, cols) uint8 array to fill with the
+    bounded by the blocks in flight), then laid out by GDAL's COG driver with overviews
+    (:mod:`.writing`). Keeps the dtype, the nodata value (``da.rio.nodata``) or the
+    ``mask`` coordinate as an internal mask band, band descriptions (``band <n>`` where
+    none) and wavelengths, and the attributes as GDAL tags (with ``tags`` added; values
+    that are not strings as JSON), with the software's version and the TIFF date and
+    software tags. ``valid``: a (rows, cols) uint8 array to fill with the
     written data's valid mask (255 valid, 0 not: what rasterio's ``dataset_mask`` reads
     back), e.g. to trace its footprint without reading the file again. Returns a summary
     (path, grid, bands, dtype, nodata)."""
@@ -439,13 +433,15 @@ def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: in
         nodata = None
     elif data.ndim == 2:
         bands = data
-    out_tags = {k: str(v) for k, v in da.attrs.items() if k not in _NOT_TAGS}
-    out_tags.update({k: str(v) for k, v in (tags or {}).items()})
+    out_tags = {k: v for k, v in da.attrs.items() if k not in _NOT_TAGS}
+    out_tags.update(tags or {})
+    named = da.attrs.get("bands")           # the GLT's and the IGM's bands, by name
+    names = named.split(",") if isinstance(named, str) else None
     if scheduler is None:
         scheduler = local_scheduler(bands)
     write_cogs([{"path": path, "array": bands, "grid": grid, "nodata": nodata,
                  "tags": out_tags, "mask": use_mask, "bands": _band_infos(da),
-                 "valid": valid}],
+                 "descriptions": names, "valid": valid}],
                blocksize=blocksize, compress=compress,
                overview_resampling=overview_resampling, scheduler=scheduler)
     nd = "mask band" if use_mask else str(nodata)
