@@ -99,15 +99,21 @@ def test_quiet_command_prints_nothing(tmp_path):
 
 def test_prefect_telemetry_notice_off_by_default(tmp_path):
     """A new Prefect user on an interactive terminal: importing Prefect alone prints the
-    telemetry notice; importing swathflow's flow does not (DO_NOT_TRACK is set first)."""
+    telemetry notice; swathflow's command line sets DO_NOT_TRACK first, so it does not;
+    importing swathflow's flow from Python changes no setting (the user's Prefect as is)."""
     def fresh(name):
         home = tmp_path / name
         home.mkdir()
         return _env(PREFECT_HOME=str(home), HOME=str(home))
     bare = _run_pty("import prefect", fresh("bare"))
     assert "anonymous usage data" in bare, bare          # the notice the default hides
-    ours = _run_pty("import swathflow.flows.mission, os; print('DNT', os.environ['DO_NOT_TRACK'])",
+    ours = _run_pty("from swathflow.flows.cli import main; main(['sensors']); "
+                    "import swathflow.flows.mission, os; print('DNT', os.environ['DO_NOT_TRACK'])",
                     fresh("ours"))
     assert "DNT 1" in ours and "anonymous usage data" not in ours, ours
-    opted_in = _run_pty("import swathflow.flows.mission", {**fresh("optin"), "DO_NOT_TRACK": "0"})
+    imported = _run_pty("import swathflow.flows.mission, os; "
+                        "print('DNT', os.environ.get('DO_NOT_TRACK'))", fresh("api"))
+    assert "DNT None" in imported and "anonymous usage data" in imported, imported
+    opted_in = _run_pty("from swathflow.flows.cli import main; main(['sensors']); "
+                        "import swathflow.flows.mission", {**fresh("optin"), "DO_NOT_TRACK": "0"})
     assert "anonymous usage data" in opted_in, opted_in  # the user's choice is kept

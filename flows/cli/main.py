@@ -106,6 +106,10 @@ def _apply_verbosity(args) -> None:
         # variables); the flow run's logs still reach Prefect's API and are stored
         os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "CRITICAL")
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    # Prefect's client telemetry (and the notice it prints on a first interactive run): off
+    # for the command line unless the environment says otherwise; importing swathflow's
+    # modules from Python changes no setting
+    os.environ.setdefault("DO_NOT_TRACK", "1")
     # a first run in a new Prefect home: Prefect's temporary server builds its database
     # (25-45 s on 2 busy cores) before it answers; Prefect's default wait is 20 s
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
