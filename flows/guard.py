@@ -75,19 +75,164 @@ def _writable_folder(folder: str, what: str) -> None:
 
 
 def check_outputs(args) -> None:
-    """The --out of a command must be writable, of the right kind, and not an input."""
+    """The --out of a command must be writable, of the right kind, and never on or over an
+    input: no input file of the command (the mission.toml, every file it names, the
+    calibration, the reference) may be the output file or lie in the output folder."""
     out = getattr(args, "out", None)
     if out is None:
         return
+    _plain_path(out)
     if args.command in OUT_FOLDER:
         _writable_folder(out, "the output folder")
         _not_inside_inputs(args, out)
+        _not_over_inputs(args, out, folder=True)
+        if args.command == "run":
+            _no_other_mission(args, out)
     elif args.command in OUT_FILE:
         if os.path.isdir(out):
             raise SwathflowError(f"{out}: --out is a folder; give a file name such as "
                                  f"{os.path.join(out, 'mosaic.tif')}")
         _writable_folder(os.path.dirname(os.path.abspath(out)), "the output folder")
         _not_an_input(args, out)
+        _not_over_inputs(args, out, folder=False)
+
+
+def _plain_path(out) -> None:
+    """An output path with ``#`` or ``?``: the STAC writer (URLs) and GDAL (``/vsi`` and
+    URL syntax) read those characters as a URL's fragment or query, so a product could be
+    written to another file (``/x/victim.txt#2`` -> ``/x/victim.txt``): refused."""
+    bad = [ch for ch in "#?" if ch in os.fspath(out)]
+    if bad:
+        raise SwathflowError(f"{out}: --out holds {' and '.join(repr(b) for b in bad)}, "
+                             f"which the STAC and GDAL writers read as part of a URL (the "
+                             f"products could land in another file): give a path without "
+                             f"them")
+
+
+#: the sidecar files written beside a mosaic ``NAME.tif``
+MOSAIC_SIDECARS = (".png", ".report.png", ".json", ".html")
+
+
+def mission_inputs(mission) -> list[str]:
+    """The files a mission's commands read: its mission.toml, every existing file its
+    string values name (any depth, also outside the folder), and the files beside each
+    that share its name (an ENVI image's header)."""
+    import tomllib
+    root = os.path.abspath(os.fspath(mission))
+    if os.path.isfile(root):
+        root = os.path.dirname(root)
+    toml = os.path.join(root, "mission.toml")
+    found = {toml} if os.path.isfile(toml) else set()
+    try:
+        with open(toml, "rb") as f:
+            cfg = tomllib.load(f)
+    except (OSError, ValueError):
+        return sorted(found)
+    stack = [cfg]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, dict):
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(v)
+        elif isinstance(v, str) and v and len(v) < 4096 and "\0" not in v:
+            p = os.path.join(root, v)
+            try:
+                if os.path.isfile(p):
+                    found.add(p)
+                    found.update(_namesakes(p))
+            except (OSError, ValueError):
+                continue
+    return sorted(found)
+
+
+def _namesakes(path: str) -> list[str]:
+    """Files beside ``path`` with the same name before the extension (ENVI .img/.hdr)."""
+    folder, name = os.path.split(path)
+    stem = os.path.splitext(name)[0]
+    try:
+        return [os.path.join(folder, f) for f in os.listdir(folder)
+                if os.path.splitext(f)[0] == stem]
+    except OSError:
+        return []
+
+
+def command_inputs(args) -> list[str]:
+    """Every input file of a command (see :func:`mission_inputs`), its --calibration,
+    --reference and --reference-dem, and for ``mosaic`` its --mission's files (or those of
+    a mission folder given as SOURCE)."""
+    files: list[str] = []
+    mission = getattr(args, "mission", None)
+    if args.command == "mosaic":
+        src = os.fspath(getattr(args, "source", "") or "")
+        if mission is None and os.path.isfile(os.path.join(src, "mission.toml")):
+            mission = src
+    if mission:
+        files += mission_inputs(mission)
+    for key in ("calibration", "reference", "reference_dem"):
+        v = getattr(args, key, None)
+        if v:
+            files.append(os.fspath(v))
+    return files
+
+
+def _not_over_inputs(args, out, folder: bool) -> None:
+    real = os.path.realpath(out)
+    targets = {real}
+    if not folder:
+        base = os.path.splitext(real)[0]
+        targets.update(base + s for s in MOSAIC_SIDECARS)
+    for p in command_inputs(args):
+        rp = os.path.realpath(p)
+        if folder and (rp == real or rp.startswith(real.rstrip(os.sep) + os.sep)):
+            raise SwathflowError(f"{out}: --out holds an input of the command ({p}); its "
+                                 f"products could be written over it: give an output folder "
+                                 f"that holds none of the mission's files")
+        if not folder and rp in targets:
+            raise SwathflowError(f"{out}: the mosaic (or its .png/.json sidecar) would be "
+                                 f"written over an input of the command ({p}): give another "
+                                 f"file name")
+
+
+def _no_other_mission(args, out) -> None:
+    """``run --out`` holding the rectified swings of another mission: the run would keep
+    them beside its own, and a later ``swathflow mosaic`` of the folder blend both."""
+    import tomllib
+    folder = os.path.join(out, "rectified")
+    if not os.path.isdir(folder):
+        return
+    try:
+        with open(os.path.join(args.mission, "mission.toml"), "rb") as f:
+            cfg = tomllib.load(f)
+    except (OSError, ValueError):
+        return              # the command itself reports the mission
+    mission = cfg.get("mission") if isinstance(cfg.get("mission"), dict) else {}
+    name = str(mission.get("name", os.path.basename(os.path.abspath(args.mission))))
+    ids = {str(e.get("id")) for e in cfg.get("images", []) if isinstance(e, dict)}
+    others = []
+    for f in sorted(os.listdir(folder)):
+        if f.startswith(".") or not f.lower().endswith((".tif", ".tiff")):
+            continue
+        tags = _tags(os.path.join(folder, f))
+        if tags is None or "image_id" not in tags:
+            continue
+        if tags.get("mission", name) != name or tags["image_id"] not in ids:
+            others.append(f"{f} (mission {tags.get('mission', '?')!r}, image "
+                          f"{tags['image_id']!r})")
+    if others:
+        raise SwathflowError(f"{out}: holds rectified swings of another mission "
+                             f"({', '.join(others[:3])}{' ...' if len(others) > 3 else ''}); "
+                             f"they would be mosaicked with this mission's: give an empty "
+                             f"or this mission's own output folder")
+
+
+def _tags(path: str) -> dict | None:
+    import rasterio
+    try:
+        with rasterio.open(path) as src:
+            return src.tags()
+    except (rasterio.errors.RasterioError, OSError):
+        return None
 
 
 def _not_an_input(args, out: str) -> None:
@@ -106,12 +251,8 @@ def _not_an_input(args, out: str) -> None:
 
 def _is_swing(path: str) -> bool:
     """A rectified swing (tagged with its image id), not an earlier mosaic."""
-    import rasterio
-    try:
-        with rasterio.open(path) as src:
-            return "image_id" in src.tags()
-    except rasterio.errors.RasterioError:
-        return True         # unreadable: never write over it
+    tags = _tags(path)
+    return tags is None or "image_id" in tags       # unreadable: never write over it
 
 
 def _not_inside_inputs(args, out: str) -> None:

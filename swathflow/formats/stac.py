@@ -195,6 +195,10 @@ def write_catalog(rectified: Sequence, mosaic=None, out="stac", *, calibration=N
     import pystac
     when = acquired or dt.datetime.now(dt.UTC)
     out = os.path.abspath(os.fspath(out))
+    if "#" in out or "?" in out:    # pystac reads them as a URL's fragment or query: the
+        from swathflow.errors import SwathflowError     # files would land elsewhere
+        raise SwathflowError(f"{out}: a STAC catalogue cannot be written to a path with "
+                             f"'#' or '?' (read as part of a URL): choose another folder")
     cal_assets = {"calibration": (calibration, "application/json", "calibration parameters"),
                   "report": (report, "text/html", "calibration report")}
     catalog = pystac.Catalog(catalog_id, f"Products of {title}: rectified swings and mosaic",

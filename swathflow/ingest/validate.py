@@ -368,6 +368,12 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
         return None
     iid = str(e["id"])
     where = f"[[images]] id={iid!r}"
+    bad = id_problem(iid if isinstance(e["id"], (str, int)) and not isinstance(
+        e["id"], bool) else e["id"])
+    if bad:
+        c.add(toml, where + ".id", bad, 'an id is a plain name: letters, digits, "_", "-" '
+              'and "." (not first), e.g. id = "L1"')
+        return None
     if iid in images:
         c.add(toml, where, "duplicate image id", "give every image a unique id")
         return None
@@ -388,6 +394,29 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
     attrs = {k2: v for k2, v in e.items() if k2 not in IMAGE_KEYS}
     return ImageEntry(iid, rel(root, e["file"]), rel(root, e["lines"]), direction.upper(),
                       strip, attrs)
+
+
+#: image ids that name one of the run's own products (the mosaic's STAC item)
+RESERVED_IDS = ("mosaic",)
+#: endings of an image's extra products (``<id>.glt.tif``): no id may end so
+PRODUCT_ENDINGS = (".glt", ".igm")
+
+
+def id_problem(iid) -> str:
+    """Why ``iid`` cannot be an image id (empty: it can). Ids name files (``<id>.tif``)
+    and STAC items: a plain name, never a path."""
+    import re
+    if not isinstance(iid, str):
+        return f"must be a string, got {iid!r}"
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,127}", iid) or ".." in iid:
+        return (f"{iid!r} is not a plain name (path separators, '..', spaces and other "
+                f"characters would place its products outside the output folder or make "
+                f"them unreadable)")
+    if iid.lower() in RESERVED_IDS:
+        return f"{iid!r} is the name of one of the run's own products (the mosaic)"
+    if iid.lower().endswith(PRODUCT_ENDINGS + (".tif", ".tiff", ".json")):
+        return f"{iid!r} ends like the file of another image's product"
+    return ""
 
 
 def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
@@ -476,10 +505,63 @@ def priors(cls, sensor, cal, root, toml, c: Collector):
                   "name a valid calibration.json")
             return None
     check_keys(cal, base.names, toml, "[calibration]", c, strict=False)
+    n0 = len(c.problems)
+    for name, v in cal.items():
+        _check_prior(name, v, toml, c)
+    if len(c.problems) > n0:
+        return None
     try:
-        return base.updated(cal)
+        out = base.updated(cal)
     except (SwathflowError, TypeError, ValueError) as exc:
         c.add(toml, "[calibration]", str(exc),
               f"parameters of {cls.name}: {', '.join(base.names)}; each "
               "{ value = [...], sigma = [...] }")
         return None
+    return _held(out, toml, c)
+
+
+#: the largest magnitude of a prior angle (degrees): beyond a turn, a unit mistake
+MAX_ANGLE_DEG = 360.0
+
+
+def _numbers(x) -> list | None:
+    """The numbers of a scalar or a list (None: something else)."""
+    xs = x if isinstance(x, list) else [x]
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs):
+        return [float(v) for v in xs]
+    return None
+
+
+def _check_prior(name, v, toml, c: Collector) -> None:
+    """A ``[calibration]`` entry: finite values; sigmas finite and >= 0 (0 holds the
+    parameter at its value, as ``--fix`` does; leave sigma out for no prior)."""
+    where = f"[calibration].{name}"
+    value = v.get("value") if isinstance(v, dict) else v
+    sigma = v.get("sigma") if isinstance(v, dict) else None
+    vals = _numbers(value) if value is not None else []
+    if vals is None or not all(math.isfinite(x) for x in vals):
+        c.add(toml, where + ".value", f"must be finite numbers, got {value!r}",
+              "value = [0.0, 0.0, 0.0]")
+    if sigma is not None:
+        sig = _numbers(sigma)
+        if sig is None or not all(math.isfinite(x) and x >= 0 for x in sig):
+            c.add(toml, where + ".sigma", f"must be finite numbers >= 0, got {sigma!r}",
+                  "sigma = [1.0, 1.0, 1.0] (0 holds the parameter at its value, like "
+                  "--fix; leave sigma out for no prior)")
+
+
+def _held(params, toml, c: Collector):
+    """Prior sigma 0: the component is held at its value (``fixed``), not weighted
+    infinitely; a prior angle beyond a turn is an error (a unit mistake)."""
+    from dataclasses import replace
+
+    from swathflow.sensormodel.base import ParameterSet
+    blocks = []
+    for b in params.blocks:
+        if b.units == "deg" and any(abs(x) > MAX_ANGLE_DEG for x in b.value):
+            c.add(toml, f"[calibration].{b.name}.value", f"{list(b.value)} degrees: beyond "
+                  f"+-{MAX_ANGLE_DEG:.0f} degrees", "give the angles in degrees")
+        if any(s == 0 for s in b.sigma):
+            b = replace(b, fixed=tuple(f or s == 0 for f, s in zip(b.fixed, b.sigma)))
+        blocks.append(b)
+    return ParameterSet(tuple(blocks))
