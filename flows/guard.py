@@ -117,15 +117,14 @@ def mission_inputs(mission) -> list[str]:
     """The files a mission's commands read: its mission.toml, every existing file its
     string values name (any depth, also outside the folder), and the files beside each
     that share its name (an ENVI image's header)."""
-    import tomllib
+    from swathflow.ingest.tomlfile import load
     root = os.path.abspath(os.fspath(mission))
     if os.path.isfile(root):
         root = os.path.dirname(root)
     toml = os.path.join(root, "mission.toml")
     found = {toml} if os.path.isfile(toml) else set()
     try:
-        with open(toml, "rb") as f:
-            cfg = tomllib.load(f)
+        cfg = load(toml)
     except (OSError, ValueError):
         return sorted(found)
     stack = [cfg]
@@ -197,13 +196,12 @@ def _not_over_inputs(args, out, folder: bool) -> None:
 def _no_other_mission(args, out) -> None:
     """``run --out`` holding the rectified swings of another mission: the run would keep
     them beside its own, and a later ``swathflow mosaic`` of the folder blend both."""
-    import tomllib
+    from swathflow.ingest.tomlfile import load
     folder = os.path.join(out, "rectified")
     if not os.path.isdir(folder):
         return
     try:
-        with open(os.path.join(args.mission, "mission.toml"), "rb") as f:
-            cfg = tomllib.load(f)
+        cfg = load(os.path.join(args.mission, "mission.toml"))
     except (OSError, ValueError):
         return              # the command itself reports the mission
     mission = cfg.get("mission") if isinstance(cfg.get("mission"), dict) else {}

@@ -123,7 +123,7 @@ def rectify(args) -> int:
         _lean_imports()
         from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
-    if not args.calibration:
+    if not args.calibration and not getattr(args, "quiet", False):
         print("swathflow rectify: warning: no --calibration given: rectifying with the "
               "mission's prior parameters (uncalibrated; metres off where the priors are "
               "wrong); run 'swathflow calibrate' and pass its calibration.json",

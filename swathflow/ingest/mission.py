@@ -113,15 +113,29 @@ def raster_check(path) -> tuple[int, int, int, str]:
     try:
         with _open_raw(path) as src:
             rows, cols, bands = src.height, src.width, src.count
+            if np.dtype(src.dtypes[0]).kind == "c":
+                raise SwathflowError(f"{path}: complex-valued pixels ({src.dtypes[0]}); a "
+                                     f"raw image holds real numbers: write its magnitude "
+                                     f"(or the real part) as the image")
             need = rows * cols * bands * np.dtype(src.dtypes[0]).itemsize
             if src.driver == "ENVI":
                 data = _envi_data_file(src, path)
                 have = os.path.getsize(data)
-                if have < need:
+                offset = _envi_offset(src)
+                if have < need + offset:
                     raise SwathflowError(
                         f"{data}: truncated: {have:,} bytes where the header "
                         f"({rows} lines x {cols} samples x {bands} band(s), "
-                        f"{src.dtypes[0]}) needs {need:,}; re-copy or re-export the image")
+                        f"{src.dtypes[0]}) needs {need + offset:,}; re-copy or re-export "
+                        f"the image")
+                if have > need + offset:
+                    raise SwathflowError(
+                        f"{data}: {have:,} bytes where the header ({rows} lines x {cols} "
+                        f"samples x {bands} band(s), {src.dtypes[0]}, header offset "
+                        f"{offset}) accounts for {need + offset:,}: the header does not "
+                        f"describe the file (its bands, samples, lines or data type are "
+                        f"wrong, and the pixels would be read scrambled); correct the "
+                        f".hdr")
             end = _tiff_blocks_end(src) if src.driver == "GTiff" else None
             if end is None:              # not told: read the last line (0.003 s each)
                 src.read(1, window=Window(0, rows - 1, cols, 1))
@@ -134,9 +148,55 @@ def raster_check(path) -> tuple[int, int, int, str]:
                              f"{str(exc).splitlines()[0][:200]}") from None
     except (OSError, ValueError) as exc:
         raise SwathflowError(f"{path}: cannot read image: {exc}") from None
+    _has_data(path)
     note = (f"the image has {bands} bands; every band is rectified, the mosaic uses band 1"
             if bands > 1 else "")
     return rows, cols, bands, note
+
+
+def _envi_offset(src) -> int:
+    """The ``header offset`` of an open ENVI image (bytes before its pixels; 0 if none)."""
+    for f in src.files:
+        if f.lower().endswith(".hdr"):
+            try:
+                with open(f, encoding="latin-1") as h:
+                    for line in h:
+                        k, _, v = line.partition("=")
+                        if k.strip().lower() == "header offset":
+                            return max(int(v.strip()), 0)
+            except (OSError, ValueError):
+                return 0
+    return 0
+
+
+#: lines of a raw image read to tell it holds data (all of it only when none of these has)
+SAMPLE_LINES = 32
+
+
+def _has_data(path) -> None:
+    """Refuse a raw image without one valid pixel (all NaN, or all its nodata value): its
+    products would be empty. A few lines spread over the image are read; all of it only
+    when none of those holds a valid pixel."""
+    from rasterio.windows import Window
+    with _open_raw(path) as src:
+        rows, cols = src.height, src.width
+        nodata = src.nodata
+
+        def valid(a) -> bool:
+            ok = np.isfinite(a) if a.dtype.kind == "f" else np.ones(a.shape, bool)
+            if nodata is not None:
+                ok &= a != nodata
+            return bool(ok.any())
+        for r in np.unique(np.linspace(0, rows - 1, min(SAMPLE_LINES, rows)).astype(int)):
+            if valid(src.read(window=Window(0, int(r), cols, 1))):
+                return
+        step = max(1, (64 << 20) // max(cols * src.count * 8, 1))
+        for r0 in range(0, rows, step):
+            if valid(src.read(window=Window(0, r0, cols, min(step, rows - r0)))):
+                return
+    what = "NaN" if nodata is None else f"NaN or its nodata value {nodata}"
+    raise SwathflowError(f"{path}: no valid pixel (every pixel is {what}): its products "
+                         f"would be empty; check the export of the image")
 
 
 def _tiff_blocks_end(src) -> int | None:

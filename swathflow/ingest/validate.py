@@ -86,9 +86,12 @@ def read_toml(root: Path, c: Collector) -> dict | None:
         c.add(toml, "", "mission.toml not found",
               "create mission.toml (see spec/mission-format.md)")
         return None
+    if not toml.is_file():          # a FIFO would hang the reader, a device fill memory
+        c.add(toml, "", "not a regular file", "mission.toml must be a text file")
+        return None
+    from swathflow.ingest.tomlfile import load
     try:
-        with open(toml, "rb") as f:
-            return tomllib.load(f)
+        return load(toml)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         c.add(toml, "", f"not valid TOML: {exc}", "correct the syntax at the position shown")
     except OSError as exc:
@@ -148,11 +151,17 @@ def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: 
         gsd = None
     parts["gsd"] = gsd
     mp = m.get("max_pixels", 2e9)
-    if not _positive(mp):
-        c.add(toml, "[mission].max_pixels", f"must be a positive number, got {mp!r}",
-              "max_pixels = 2e9")
+    if not _positive(mp) or mp > MAX_PIXELS_LIMIT:
+        c.add(toml, "[mission].max_pixels", f"must be a positive number up to "
+              f"{MAX_PIXELS_LIMIT:g}, got {mp!r}", "max_pixels = 2e9")
         mp = 2e9
     parts["max_pixels"] = float(mp)
+
+
+#: the largest ``[mission] max_pixels`` a user may set: a swing's output grid of 10^12
+#: pixels is terabytes of COG and days of work; beyond it the limit no longer bounds
+#: anything (1e300 let a mistaken gsd allocate without end)
+MAX_PIXELS_LIMIT = 1e12
 
 
 def _positive(v) -> bool:
@@ -344,6 +353,8 @@ def check_images(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -
                 c.add(toml, f"[[images]] id={entry.id!r}.{key}", f"{p.name} is also the "
                       f"{key} of image {other!r}", "give every image its own file")
         shape = _image_shape(entry, parts, c)
+        if shape is not None:
+            _bands(entry, cfg, toml, c)
         cols = line_table(entry, need, shape, parts.get("trajectory"), c)
         if cols is None:
             continue
@@ -419,6 +430,87 @@ def id_problem(iid) -> str:
     return ""
 
 
+def _bands(entry: ImageEntry, cfg: dict, toml: Path, c: Collector) -> None:
+    """What rectify reads of an image's bands: its ENVI header's band lists (wavelength,
+    FWHM: one value per band) and the ``[rectify] bands`` selection, which must fit it."""
+    from swathflow.errors import FormatError
+    from swathflow.rectification.rawimage import open_raw_image
+    where = f"[[images]] id={entry.id!r}"
+    try:
+        img = open_raw_image(entry.file)
+    except (FormatError, OSError, ValueError) as exc:
+        c.add(entry.file, where, str(exc).replace(str(entry.file) + ": ", ""),
+              "correct the image's header (one wavelength and FWHM per band)")
+        return
+    spec = (cfg.get("rectify") or {}).get("bands") if isinstance(cfg.get("rectify"),
+                                                                  dict) else None
+    if spec in (None, "", []):
+        return
+    if not isinstance(spec, (str, list)) or (isinstance(spec, list) and not all(
+            isinstance(b, int) and not isinstance(b, bool) for b in spec)):
+        c.add(toml, "[rectify].bands", f"{spec!r} is neither a string such as \"1,4-6\" or "
+              f"\"550nm\" nor a list of 1-based band numbers", 'bands = "1,4-6"')
+        return
+    try:
+        img.select(spec)
+    except (FormatError, ValueError) as exc:
+        c.add(toml, "[rectify].bands", f"{spec!r} does not fit image {entry.id!r}: "
+              f"{str(exc).split(': ', 1)[-1]}", "select bands the image has")
+
+
+def check_reference(cfg: dict, root: Path, toml: Path, c: Collector) -> None:
+    """``[reference]``: ortho (a north-up raster with a projected CRS) and dem (a DEM)
+    that exist and open; ties true or false."""
+    ref = cfg.get("reference")
+    if ref is None:
+        return
+    if not isinstance(ref, dict):
+        c.add(toml, "[reference]", "must be a table", 'ortho = "reference.tif"')
+        return
+    if "ortho" not in ref or not isinstance(ref["ortho"], str):
+        c.add(toml, "[reference].ortho", "missing or not a file name",
+              'ortho = "<reference orthophoto file>"')
+    else:
+        _reference_ortho(rel(root, ref["ortho"]), c)
+    if "dem" in ref:
+        dp = rel(root, str(ref["dem"]))
+        if not dp.is_file():
+            c.add(dp, "[reference].dem", "reference DEM not found", "check [reference].dem")
+        else:
+            try:
+                DEM.open(dp, "ellipsoidal")
+            except SwathflowError as exc:
+                c.add(dp, "[reference].dem", str(exc).replace(str(dp) + ": ", ""),
+                      "fix the reference DEM")
+    if not isinstance(ref.get("ties", False), bool):
+        c.add(toml, "[reference].ties", f"must be true or false, got {ref['ties']!r}",
+              "ties = true")
+
+
+def _reference_ortho(p: Path, c: Collector) -> None:
+    import rasterio
+    if not p.is_file():
+        c.add(p, "[reference].ortho", "reference orthophoto not found",
+              "check [reference].ortho in mission.toml")
+        return
+    try:
+        with rasterio.open(p) as src:
+            crs, t = src.crs, src.transform
+    except (rasterio.errors.RasterioError, OSError) as exc:
+        c.add(p, "[reference].ortho", f"cannot be read: {str(exc).splitlines()[0][:200]}",
+              "write the reference as a GeoTIFF")
+        return
+    if crs is None:
+        c.add(p, "[reference].ortho", "has no CRS", "write it as a GeoTIFF with a CRS")
+    elif not crs.is_projected:
+        c.add(p, "[reference].ortho", f"its CRS ({crs.to_string()}) is not projected: "
+              f"the matching's distances are metres", "warp it to the mission's CRS "
+              "(gdalwarp -t_srs EPSG:...)")
+    if t.b != 0 or t.d != 0 or t.e >= 0 or abs(abs(t.e) - t.a) > 1e-9 * abs(t.a):
+        c.add(p, "[reference].ortho", "not north-up with square pixels",
+              "warp it first (gdalwarp)")
+
+
 def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
     from swathflow.ingest.mission import raster_check
     where = f"[[images]] id={entry.id!r}"
@@ -463,6 +555,7 @@ def inspect(path) -> tuple[list[Problem], dict]:
     check_pos(cfg, root, toml, c, parts)
     check_terrain(cfg, root, toml, c, parts)
     check_images(cfg, root, toml, c, parts)
+    check_reference(cfg, root, toml, c)
     traj = parts["trajectory"]
     crs = parts["crs"]
     if isinstance(crs, str) and crs.lower() == "auto-utm" and traj is not None:

@@ -389,12 +389,13 @@ def _swings_only(folder: str, tifs: list[str]) -> list[str]:
 def mission_strips(path) -> dict:
     """Image id -> strip number from a mission folder's ``mission.toml`` ([[images]])."""
     import tomllib
+
+    from swathflow.ingest.tomlfile import load
     path = os.fspath(path)
     toml = os.path.join(path, "mission.toml") if os.path.isdir(path) else path
     try:
-        with open(toml, "rb") as f:
-            cfg = tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+        cfg = load(toml)
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(f"{toml}: cannot read mission file: {exc}") from None
     out = {}
     for k, e in enumerate(cfg.get("images", [])):
