@@ -401,3 +401,16 @@ def test_a_closed_pipe_ends_quietly(base):
     p.wait(timeout=240)
     assert "Traceback" not in err and "BrokenPipe" not in err, err
     assert not math.isnan(p.returncode)
+
+
+def test_reference_dem_in_millimetres_fails_validation(m, capsys):
+    """A reference DEM in millimetres: every automatic point unusable, calibrate exited 0
+    with nothing estimated (and validate passed)."""
+    with rasterio.open(m / "dem.tif") as src:
+        prof, a = src.profile, src.read()
+    with rasterio.open(m / "refdem.tif", "w", **prof) as dst:
+        dst.write(a * 1000.0)
+    _ortho(m / "ref.tif", "EPSG:32651", (0.4, 0, 500000, 0, -0.4, 3600000))
+    _toml(m, "[calibration]", '[reference]\northo = "ref.tif"\ndem = "refdem.tif"\n\n'
+          '[calibration]')
+    _bad(capsys, m, "refdem.tif", "above the aircraft")

@@ -458,9 +458,10 @@ def _bands(entry: ImageEntry, cfg: dict, toml: Path, c: Collector) -> None:
               f"{str(exc).split(': ', 1)[-1]}", "select bands the image has")
 
 
-def check_reference(cfg: dict, root: Path, toml: Path, c: Collector) -> None:
-    """``[reference]``: ortho (a north-up raster with a projected CRS) and dem (a DEM)
-    that exist and open; ties true or false."""
+def check_reference(cfg: dict, root: Path, toml: Path, c: Collector, pos=None) -> None:
+    """``[reference]``: ortho (a north-up raster with a projected CRS) and dem (a DEM
+    below the aircraft: heights in millimetres or feet are not) that exist and open; ties
+    true or false."""
     ref = cfg.get("reference")
     if ref is None:
         return
@@ -478,13 +479,28 @@ def check_reference(cfg: dict, root: Path, toml: Path, c: Collector) -> None:
             c.add(dp, "[reference].dem", "reference DEM not found", "check [reference].dem")
         else:
             try:
-                DEM.open(dp, "ellipsoidal")
+                dem = DEM.open(dp, "ellipsoidal")
             except SwathflowError as exc:
                 c.add(dp, "[reference].dem", str(exc).replace(str(dp) + ": ", ""),
                       "fix the reference DEM")
+            else:
+                _below_aircraft(dem, dp, pos, c)
     if not isinstance(ref.get("ties", False), bool):
         c.add(toml, "[reference].ties", f"must be true or false, got {ref['ties']!r}",
               "ties = true")
+
+
+def _below_aircraft(dem, dp: Path, pos, c: Collector) -> None:
+    """A reference DEM reaching the aircraft's height gives no usable point (typically
+    heights in millimetres or feet)."""
+    if pos is None or "h" not in pos:
+        return
+    with np.errstate(all="ignore"):
+        top, flight = float(np.nanmax(dem.data)), float(np.nanmin(pos["h"].values))
+    if np.isfinite(top) and top >= flight:
+        c.add(dp, "[reference].dem", f"heights up to {top:.0f} m, at or above the aircraft "
+              f"(lowest POS height {flight:.0f} m)", "give ellipsoidal heights in metres "
+              "(not millimetres or feet)")
 
 
 def _reference_ortho(p: Path, c: Collector) -> None:
@@ -555,7 +571,7 @@ def inspect(path) -> tuple[list[Problem], dict]:
     check_pos(cfg, root, toml, c, parts)
     check_terrain(cfg, root, toml, c, parts)
     check_images(cfg, root, toml, c, parts)
-    check_reference(cfg, root, toml, c)
+    check_reference(cfg, root, toml, c, parts.get("pos"))
     traj = parts["trajectory"]
     crs = parts["crs"]
     if isinstance(crs, str) and crs.lower() == "auto-utm" and traj is not None:
