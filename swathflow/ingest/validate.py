@@ -379,6 +379,7 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
         return None
     iid = str(e["id"])
     where = f"[[images]] id={iid!r}"
+    from swathflow.ingest.names import id_problem
     bad = id_problem(iid if isinstance(e["id"], (str, int)) and not isinstance(
         e["id"], bool) else e["id"])
     if bad:
@@ -407,29 +408,6 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
                       strip, attrs)
 
 
-#: image ids that name one of the run's own products (the mosaic's STAC item)
-RESERVED_IDS = ("mosaic",)
-#: endings of an image's extra products (``<id>.glt.tif``): no id may end so
-PRODUCT_ENDINGS = (".glt", ".igm")
-
-
-def id_problem(iid) -> str:
-    """Why ``iid`` cannot be an image id (empty: it can). Ids name files (``<id>.tif``)
-    and STAC items: a plain name, never a path."""
-    import re
-    if not isinstance(iid, str):
-        return f"must be a string, got {iid!r}"
-    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,127}", iid) or ".." in iid:
-        return (f"{iid!r} is not a plain name (path separators, '..', spaces and other "
-                f"characters would place its products outside the output folder or make "
-                f"them unreadable)")
-    if iid.lower() in RESERVED_IDS:
-        return f"{iid!r} is the name of one of the run's own products (the mosaic)"
-    if iid.lower().endswith(PRODUCT_ENDINGS + (".tif", ".tiff", ".json")):
-        return f"{iid!r} ends like the file of another image's product"
-    return ""
-
-
 def _bands(entry: ImageEntry, cfg: dict, toml: Path, c: Collector) -> None:
     """What rectify reads of an image's bands: its ENVI header's band lists (wavelength,
     FWHM: one value per band) and the ``[rectify] bands`` selection, which must fit it."""
@@ -456,75 +434,6 @@ def _bands(entry: ImageEntry, cfg: dict, toml: Path, c: Collector) -> None:
     except (FormatError, ValueError) as exc:
         c.add(toml, "[rectify].bands", f"{spec!r} does not fit image {entry.id!r}: "
               f"{str(exc).split(': ', 1)[-1]}", "select bands the image has")
-
-
-def check_reference(cfg: dict, root: Path, toml: Path, c: Collector, pos=None) -> None:
-    """``[reference]``: ortho (a north-up raster with a projected CRS) and dem (a DEM
-    below the aircraft: heights in millimetres or feet are not) that exist and open; ties
-    true or false."""
-    ref = cfg.get("reference")
-    if ref is None:
-        return
-    if not isinstance(ref, dict):
-        c.add(toml, "[reference]", "must be a table", 'ortho = "reference.tif"')
-        return
-    if "ortho" not in ref or not isinstance(ref["ortho"], str):
-        c.add(toml, "[reference].ortho", "missing or not a file name",
-              'ortho = "<reference orthophoto file>"')
-    else:
-        _reference_ortho(rel(root, ref["ortho"]), c)
-    if "dem" in ref:
-        dp = rel(root, str(ref["dem"]))
-        if not dp.is_file():
-            c.add(dp, "[reference].dem", "reference DEM not found", "check [reference].dem")
-        else:
-            try:
-                dem = DEM.open(dp, "ellipsoidal")
-            except SwathflowError as exc:
-                c.add(dp, "[reference].dem", str(exc).replace(str(dp) + ": ", ""),
-                      "fix the reference DEM")
-            else:
-                _below_aircraft(dem, dp, pos, c)
-    if not isinstance(ref.get("ties", False), bool):
-        c.add(toml, "[reference].ties", f"must be true or false, got {ref['ties']!r}",
-              "ties = true")
-
-
-def _below_aircraft(dem, dp: Path, pos, c: Collector) -> None:
-    """A reference DEM reaching the aircraft's height gives no usable point (typically
-    heights in millimetres or feet)."""
-    if pos is None or "h" not in pos:
-        return
-    with np.errstate(all="ignore"):
-        top, flight = float(np.nanmax(dem.data)), float(np.nanmin(pos["h"].values))
-    if np.isfinite(top) and top >= flight:
-        c.add(dp, "[reference].dem", f"heights up to {top:.0f} m, at or above the aircraft "
-              f"(lowest POS height {flight:.0f} m)", "give ellipsoidal heights in metres "
-              "(not millimetres or feet)")
-
-
-def _reference_ortho(p: Path, c: Collector) -> None:
-    import rasterio
-    if not p.is_file():
-        c.add(p, "[reference].ortho", "reference orthophoto not found",
-              "check [reference].ortho in mission.toml")
-        return
-    try:
-        with rasterio.open(p) as src:
-            crs, t = src.crs, src.transform
-    except (rasterio.errors.RasterioError, OSError) as exc:
-        c.add(p, "[reference].ortho", f"cannot be read: {str(exc).splitlines()[0][:200]}",
-              "write the reference as a GeoTIFF")
-        return
-    if crs is None:
-        c.add(p, "[reference].ortho", "has no CRS", "write it as a GeoTIFF with a CRS")
-    elif not crs.is_projected:
-        c.add(p, "[reference].ortho", f"its CRS ({crs.to_string()}) is not projected: "
-              f"the matching's distances are metres", "warp it to the mission's CRS "
-              "(gdalwarp -t_srs EPSG:...)")
-    if t.b != 0 or t.d != 0 or t.e >= 0 or abs(abs(t.e) - t.a) > 1e-9 * abs(t.a):
-        c.add(p, "[reference].ortho", "not north-up with square pixels",
-              "warp it first (gdalwarp)")
 
 
 def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
@@ -571,6 +480,7 @@ def inspect(path) -> tuple[list[Problem], dict]:
     check_pos(cfg, root, toml, c, parts)
     check_terrain(cfg, root, toml, c, parts)
     check_images(cfg, root, toml, c, parts)
+    from swathflow.ingest.refcheck import check_reference
     check_reference(cfg, root, toml, c, parts.get("pos"))
     traj = parts["trajectory"]
     crs = parts["crs"]
@@ -615,8 +525,9 @@ def priors(cls, sensor, cal, root, toml, c: Collector):
             return None
     check_keys(cal, base.names, toml, "[calibration]", c, strict=False)
     n0 = len(c.problems)
+    from swathflow.ingest.priorcheck import check_prior, held
     for name, v in cal.items():
-        _check_prior(name, v, toml, c)
+        check_prior(name, v, toml, c)
     if len(c.problems) > n0:
         return None
     try:
@@ -626,51 +537,4 @@ def priors(cls, sensor, cal, root, toml, c: Collector):
               f"parameters of {cls.name}: {', '.join(base.names)}; each "
               "{ value = [...], sigma = [...] }")
         return None
-    return _held(out, toml, c)
-
-
-#: the largest magnitude of a prior angle (degrees): beyond a turn, a unit mistake
-MAX_ANGLE_DEG = 360.0
-
-
-def _numbers(x) -> list | None:
-    """The numbers of a scalar or a list (None: something else)."""
-    xs = x if isinstance(x, list) else [x]
-    if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs):
-        return [float(v) for v in xs]
-    return None
-
-
-def _check_prior(name, v, toml, c: Collector) -> None:
-    """A ``[calibration]`` entry: finite values; sigmas finite and >= 0 (0 holds the
-    parameter at its value, as ``--fix`` does; leave sigma out for no prior)."""
-    where = f"[calibration].{name}"
-    value = v.get("value") if isinstance(v, dict) else v
-    sigma = v.get("sigma") if isinstance(v, dict) else None
-    vals = _numbers(value) if value is not None else []
-    if vals is None or not all(math.isfinite(x) for x in vals):
-        c.add(toml, where + ".value", f"must be finite numbers, got {value!r}",
-              "value = [0.0, 0.0, 0.0]")
-    if sigma is not None:
-        sig = _numbers(sigma)
-        if sig is None or not all(math.isfinite(x) and x >= 0 for x in sig):
-            c.add(toml, where + ".sigma", f"must be finite numbers >= 0, got {sigma!r}",
-                  "sigma = [1.0, 1.0, 1.0] (0 holds the parameter at its value, like "
-                  "--fix; leave sigma out for no prior)")
-
-
-def _held(params, toml, c: Collector):
-    """Prior sigma 0: the component is held at its value (``fixed``), not weighted
-    infinitely; a prior angle beyond a turn is an error (a unit mistake)."""
-    from dataclasses import replace
-
-    from swathflow.sensormodel.base import ParameterSet
-    blocks = []
-    for b in params.blocks:
-        if b.units == "deg" and any(abs(x) > MAX_ANGLE_DEG for x in b.value):
-            c.add(toml, f"[calibration].{b.name}.value", f"{list(b.value)} degrees: beyond "
-                  f"+-{MAX_ANGLE_DEG:.0f} degrees", "give the angles in degrees")
-        if any(s == 0 for s in b.sigma):
-            b = replace(b, fixed=tuple(f or s == 0 for f, s in zip(b.fixed, b.sigma)))
-        blocks.append(b)
-    return ParameterSet(tuple(blocks))
+    return held(out, toml, c)
