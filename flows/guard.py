@@ -82,7 +82,9 @@ def check_outputs(args) -> None:
     if out is None:
         return
     _plain_path(out)
-    if args.command in OUT_FOLDER:
+    if args.command == "simulate":     # its --texture and --dem must not be in OUT
+        _not_over_inputs(args, out, folder=True)
+    elif args.command in OUT_FOLDER:
         _writable_folder(out, "the output folder")
         _not_inside_inputs(args, out)
         _not_over_inputs(args, out, folder=True)
@@ -168,7 +170,7 @@ def command_inputs(args) -> list[str]:
             mission = src
     if mission:
         files += mission_inputs(mission)
-    for key in ("calibration", "reference", "reference_dem"):
+    for key in ("calibration", "reference", "reference_dem", "texture", "dem"):
         v = getattr(args, key, None)
         if v:
             files.append(os.fspath(v))
@@ -184,9 +186,9 @@ def _not_over_inputs(args, out, folder: bool) -> None:
     for p in command_inputs(args):
         rp = os.path.realpath(p)
         if folder and (rp == real or rp.startswith(real.rstrip(os.sep) + os.sep)):
-            raise SwathflowError(f"{out}: --out holds an input of the command ({p}); its "
-                                 f"products could be written over it: give an output folder "
-                                 f"that holds none of the mission's files")
+            raise SwathflowError(f"{out}: the output folder holds an input of the command "
+                                 f"({p}); its products could be written over it: give an "
+                                 f"output folder that holds none of the command's inputs")
         if not folder and rp in targets:
             raise SwathflowError(f"{out}: the mosaic (or its .png/.json sidecar) would be "
                                  f"written over an input of the command ({p}): give another "

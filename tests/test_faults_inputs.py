@@ -414,3 +414,24 @@ def test_reference_dem_in_millimetres_fails_validation(m, capsys):
     _toml(m, "[calibration]", '[reference]\northo = "ref.tif"\ndem = "refdem.tif"\n\n'
           '[calibration]')
     _bad(capsys, m, "refdem.tif", "above the aircraft")
+
+
+@pytest.mark.slow
+def test_reference_dem_missing_the_swath_is_blamed_on_the_dem(tmp_path, capsys):
+    """A reference DEM that misses the swath was reported as an orthophoto that does not
+    cover the flight: now the DEM is named, with the cause."""
+    mm = tmp_path / "r"
+    assert main(["simulate", str(mm), "--preset", "tiny", "--seed", "3"]) == 0
+    with rasterio.open(mm / "dem.tif") as src:
+        prof, a = src.profile, src.read()
+    t = prof["transform"]
+    prof.update(transform=rasterio.Affine(t.a, t.b, t.c + 50000.0, t.d, t.e, t.f))
+    with rasterio.open(tmp_path / "far.tif", "w", **prof) as dst:      # 50 km east
+        dst.write(a)
+    capsys.readouterr()
+    code, text = _run(capsys, "calibrate", mm, "--out", tmp_path / "cal", "--reference",
+                      mm / "truth" / "ortho.tif", "--reference-dem", tmp_path / "far.tif",
+                      "--rounds", "1")
+    assert code == 2, text
+    line = next(ln for ln in text.splitlines() if "error" in ln)
+    assert "far.tif" in line and "misses the swath" in line, text

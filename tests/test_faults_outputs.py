@@ -209,3 +209,13 @@ def test_run_into_another_missions_products_is_refused(m, tmp_path, capsys):
     code, text = _run(capsys, "run", m, "--out", out,
                       "--calibration", m / "truth" / "calibration.json")
     assert code == 2 and "another" in text, text
+
+
+def test_simulate_into_the_folder_of_its_own_dem_is_refused(m, capsys):
+    """``simulate M --dem M/dem.tif --force`` would write the simulated DEM over the one
+    it reads."""
+    before = (m / "dem.tif").read_bytes()
+    code, text = _run(capsys, "simulate", m, "--dem", m / "dem.tif", "--force",
+                      "--geometry-only")
+    assert code == 2 and "dem.tif" in text, text
+    assert (m / "dem.tif").read_bytes() == before
