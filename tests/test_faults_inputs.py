@@ -312,19 +312,20 @@ def test_max_pixels_of_1e300_refused(m, capsys):
     _bad(capsys, m, "[mission].max_pixels")
 
 
-@pytest.mark.parametrize("kind", ["fifo", "device"])
-def test_gcp_file_that_is_a_fifo_or_a_device_refused(m, kind):
+@pytest.mark.parametrize("name, kind", [("gcp.csv", "fifo"), ("gcp.csv", "device"),
+                                        ("pos.sbet", "fifo")])
+def test_mission_file_that_is_a_fifo_or_a_device_refused(m, name, kind):
     """A GCP file that is a FIFO hung validate; /dev/zero filled memory. Run in a child
     with a time limit: a hang fails the test instead of stalling the suite."""
-    (m / "gcp.csv").unlink()
+    (m / name).unlink()
     if kind == "fifo":
-        os.mkfifo(m / "gcp.csv")
+        os.mkfifo(m / name)
     else:
-        os.symlink("/dev/zero", m / "gcp.csv")
+        os.symlink("/dev/zero", m / name)
     r = subprocess.run([sys.executable, "-m", "swathflow.flows.cli", "validate", str(m)],
                        capture_output=True, text=True, timeout=240)
     assert r.returncode == 2, r.stdout + r.stderr
-    assert "gcp.csv" in r.stdout and "not a regular file" in r.stdout, r.stdout
+    assert name in r.stdout and "not a regular file" in r.stdout, r.stdout
 
 
 def test_read_pos_with_a_number_as_format_is_a_clear_error(base):

@@ -475,6 +475,8 @@ def inspect(path) -> tuple[list[Problem], dict]:
     if cfg is None:
         return c.problems, parts
     parts["config"] = cfg
+    if not _regular_files(cfg, root, toml, c):
+        return c.problems, parts
     check_mission_table(cfg, root, toml, c, parts)
     check_sensor(cfg, toml, c, parts)
     check_pos(cfg, root, toml, c, parts)
@@ -496,6 +498,29 @@ def inspect(path) -> tuple[list[Problem], dict]:
     if cls is not None and traj is not None and parts["priors"] is not None:
         check_models(parts, toml, c)
     return c.problems, parts
+
+
+def _regular_files(cfg, root: Path, toml: Path, c: Collector) -> bool:
+    """Every path mission.toml names that exists is a regular file or a folder: a FIFO
+    would hang a reader, a device (/dev/zero) fill memory. False when one is not."""
+    import stat
+    stack, ok = [cfg], True
+    while stack:
+        v = stack.pop()
+        if isinstance(v, dict):
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(v)
+        elif isinstance(v, str) and v and len(v) < 4096 and "\0" not in v:
+            try:
+                mode = os.stat(rel(root, v)).st_mode
+            except (OSError, ValueError):
+                continue
+            if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+                c.add(rel(root, v), "", "not a regular file (a device or FIFO): reading it "
+                      "would hang or never end", f"name the data file itself in {toml.name}")
+                ok = False
+    return ok
 
 
 def priors(cls, sensor, cal, root, toml, c: Collector):
