@@ -220,10 +220,11 @@ def _no_other_mission(args, out) -> None:
             others.append(f"{f} (mission {tags.get('mission', '?')!r}, image "
                           f"{tags['image_id']!r})")
     if others:
-        raise SwathflowError(f"{out}: holds rectified swings of another mission "
-                             f"({', '.join(others[:3])}{' ...' if len(others) > 3 else ''}); "
-                             f"they would be mosaicked with this mission's: give an empty "
-                             f"or this mission's own output folder")
+        raise SwathflowError(f"{out}: holds rectified swings that are not this mission's "
+                             f"images ({', '.join(others[:3])}"
+                             f"{' ...' if len(others) > 3 else ''}); they would stay beside "
+                             f"this mission's and be mosaicked with them: give an empty "
+                             f"output folder (or this mission's own)")
 
 
 def _tags(path: str) -> dict | None:
