@@ -185,6 +185,8 @@ def _not_over_inputs(args, out, folder: bool) -> None:
         targets.update(base + s for s in MOSAIC_SIDECARS)
     for p in command_inputs(args):
         rp = os.path.realpath(p)
+        if folder and _written_beside(args, real, rp, p):
+            continue
         if folder and (rp == real or rp.startswith(real.rstrip(os.sep) + os.sep)):
             raise SwathflowError(f"{out}: the output folder holds an input of the command "
                                  f"({p}); its products could be written over it: give an "
@@ -193,6 +195,28 @@ def _not_over_inputs(args, out, folder: bool) -> None:
             raise SwathflowError(f"{out}: the mosaic (or its .png/.json sidecar) would be "
                                  f"written over an input of the command ({p}): give another "
                                  f"file name")
+
+
+#: where ``rectify`` and ``run --calibration`` write in their output folder (relative
+#: paths; a folder ends with "/"): a calibration file elsewhere in it stays untouched
+PRODUCT_PLACES = {"rectify": ("rectify.json", ".tif"),
+                  "run": ("pos/", "rectified/", "stac/", "mosaic.", "run.swathflow.json")}
+
+
+def _written_beside(args, out_real: str, real: str, given: str) -> bool:
+    """True for the --calibration file of ``rectify`` or ``run`` lying in the output folder
+    where the command writes nothing (``calibrate M --out O`` then ``rectify M
+    --calibration O/calibration.json --out O`` is the usual way): it is read, never
+    written over. Every other input inside the output folder is refused."""
+    cal = getattr(args, "calibration", None)
+    places = PRODUCT_PLACES.get(args.command)
+    if not cal or places is None or os.fspath(cal) != os.fspath(given):
+        return False
+    relpath = os.path.relpath(real, out_real)
+    if relpath.startswith(".."):
+        return False
+    return not any(relpath.startswith(pl) if pl.endswith(("/", ".")) else
+                   relpath == pl or relpath.endswith(pl) for pl in places)
 
 
 def _no_other_mission(args, out) -> None:

@@ -80,15 +80,32 @@ def test_calibrate_out_holding_the_prior_calibration_file_is_refused(m, capsys):
     assert (m / "prior" / "calibration.json").read_bytes() == before
 
 
-def test_rectify_out_holding_the_calibration_given_is_refused(m, tmp_path, capsys):
+def test_rectify_out_where_it_writes_its_calibration_is_refused(m, tmp_path, capsys):
+    """rectify writes ``rectify.json`` into its output folder: a calibration file of that
+    name there would be replaced by the rectification's summary."""
+    cal_dir = tmp_path / "cal"
+    cal_dir.mkdir()
+    shutil.copy(m / "truth" / "calibration.json", cal_dir / "rectify.json")
+    before = (cal_dir / "rectify.json").read_bytes()
+    code, text = _run(capsys, "rectify", m, "--calibration", cal_dir / "rectify.json",
+                      "--out", cal_dir)
+    assert code == 2 and "rectify.json" in text, text
+    assert (cal_dir / "rectify.json").read_bytes() == before
+
+
+def test_rectify_into_the_calibrate_output_folder_keeps_the_calibration(m, tmp_path,
+                                                                         capsys):
+    """``calibrate M --out O`` then ``rectify M --calibration O/calibration.json --out O``:
+    the calibration is read, never written over, so the folder is allowed."""
     cal_dir = tmp_path / "cal"
     cal_dir.mkdir()
     shutil.copy(m / "truth" / "calibration.json", cal_dir / "calibration.json")
     before = (cal_dir / "calibration.json").read_bytes()
     code, text = _run(capsys, "rectify", m, "--calibration", cal_dir / "calibration.json",
-                      "--out", cal_dir)
-    assert code == 2 and "calibration.json" in text, text
+                      "--out", cal_dir, "--images", "L1")
+    assert code == 0, text
     assert (cal_dir / "calibration.json").read_bytes() == before
+    assert (cal_dir / "L1.tif").exists()
 
 
 @pytest.mark.parametrize("target", ["dem.tif", "images/L1.tif"])
