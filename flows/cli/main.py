@@ -60,8 +60,8 @@ def _int_between(lo: int, hi: int, step: int = 1):
 #: output tile sizes in pixels: TIFF tiles are multiples of 16; beyond 4096 a tile
 #: (and its compression buffer) no longer fits a worker's share of memory
 TILE = _int_between(16, 4096, 16)
-#: the mosaic's search range: each overlap block is searched over (2 S + 1)^2 shifts, in
-#: blocks grown by S on each side; 256 px is 100 m at 0.4 m
+#: the mosaic's search range S: each search holds (2 S + 1)^2 costs of 8 bytes (S = 100000
+#: asked for 299 GiB; 256 asks 2 MiB, and is 100 m at 0.4 m pixels)
 MAX_SHIFT = _int_between(1, 256)
 
 
