@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import tomllib
+from pathlib import Path
 
 BOM = b"\xef\xbb\xbf"
 
@@ -17,3 +18,25 @@ def load(path) -> dict:
     if data.startswith(BOM):
         data = data[len(BOM):]
     return tomllib.loads(data.decode("utf-8"))
+
+
+def special_files(cfg: dict, root) -> list[Path]:
+    """Paths a mission.toml names (string values at any depth, relative to ``root``) that
+    exist and are neither regular files nor folders: FIFOs, devices, sockets."""
+    import stat
+    found, stack = [], [cfg]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, dict):
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(v)
+        elif isinstance(v, str) and v and len(v) < 4096 and "\0" not in v:
+            p = Path(v) if Path(v).is_absolute() else Path(root) / v
+            try:
+                mode = os.stat(p).st_mode
+            except (OSError, ValueError):
+                continue
+            if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+                found.append(p)
+    return found

@@ -354,7 +354,8 @@ def check_images(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -
                       f"{key} of image {other!r}", "give every image its own file")
         shape = _image_shape(entry, parts, c)
         if shape is not None:
-            _bands(entry, cfg, toml, c)
+            from swathflow.ingest.bands import check_bands
+            check_bands(entry, cfg, toml, c)
         cols = line_table(entry, need, shape, parts.get("trajectory"), c)
         if cols is None:
             continue
@@ -408,34 +409,6 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
                       strip, attrs)
 
 
-def _bands(entry: ImageEntry, cfg: dict, toml: Path, c: Collector) -> None:
-    """What rectify reads of an image's bands: its ENVI header's band lists (wavelength,
-    FWHM: one value per band) and the ``[rectify] bands`` selection, which must fit it."""
-    from swathflow.errors import FormatError
-    from swathflow.rectification.rawimage import open_raw_image
-    where = f"[[images]] id={entry.id!r}"
-    try:
-        img = open_raw_image(entry.file)
-    except (FormatError, OSError, ValueError) as exc:
-        c.add(entry.file, where, str(exc).replace(str(entry.file) + ": ", ""),
-              "correct the image's header (one wavelength and FWHM per band)")
-        return
-    spec = (cfg.get("rectify") or {}).get("bands") if isinstance(cfg.get("rectify"),
-                                                                  dict) else None
-    if spec in (None, "", []):
-        return
-    if not isinstance(spec, (str, list)) or (isinstance(spec, list) and not all(
-            isinstance(b, int) and not isinstance(b, bool) for b in spec)):
-        c.add(toml, "[rectify].bands", f"{spec!r} is neither a string such as \"1,4-6\" or "
-              f"\"550nm\" nor a list of 1-based band numbers", 'bands = "1,4-6"')
-        return
-    try:
-        img.select(spec)
-    except (FormatError, ValueError) as exc:
-        c.add(toml, "[rectify].bands", f"{spec!r} does not fit image {entry.id!r}: "
-              f"{str(exc).split(': ', 1)[-1]}", "select bands the image has")
-
-
 def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
     from swathflow.ingest.mission import raster_check
     where = f"[[images]] id={entry.id!r}"
@@ -475,7 +448,11 @@ def inspect(path) -> tuple[list[Problem], dict]:
     if cfg is None:
         return c.problems, parts
     parts["config"] = cfg
-    if not _regular_files(cfg, root, toml, c):
+    from swathflow.ingest.tomlfile import special_files
+    for sp in special_files(cfg, root):     # a FIFO would hang a reader, a device fill memory
+        c.add(sp, "", "not a regular file (a device or FIFO): reading it would hang or "
+              "never end", "name the data file itself in mission.toml")
+    if len(c.problems):
         return c.problems, parts
     check_mission_table(cfg, root, toml, c, parts)
     check_sensor(cfg, toml, c, parts)
@@ -498,29 +475,6 @@ def inspect(path) -> tuple[list[Problem], dict]:
     if cls is not None and traj is not None and parts["priors"] is not None:
         check_models(parts, toml, c)
     return c.problems, parts
-
-
-def _regular_files(cfg, root: Path, toml: Path, c: Collector) -> bool:
-    """Every path mission.toml names that exists is a regular file or a folder: a FIFO
-    would hang a reader, a device (/dev/zero) fill memory. False when one is not."""
-    import stat
-    stack, ok = [cfg], True
-    while stack:
-        v = stack.pop()
-        if isinstance(v, dict):
-            stack.extend(v.values())
-        elif isinstance(v, list):
-            stack.extend(v)
-        elif isinstance(v, str) and v and len(v) < 4096 and "\0" not in v:
-            try:
-                mode = os.stat(rel(root, v)).st_mode
-            except (OSError, ValueError):
-                continue
-            if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
-                c.add(rel(root, v), "", "not a regular file (a device or FIFO): reading it "
-                      "would hang or never end", f"name the data file itself in {toml.name}")
-                ok = False
-    return ok
 
 
 def priors(cls, sensor, cal, root, toml, c: Collector):
