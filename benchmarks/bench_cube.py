@@ -49,14 +49,14 @@ def ours(model, path, grid, terrain, repeat, keep=8):
     them (no whole-image concatenation in the timing); then, untimed, the first ``keep``
     bands for the checks."""
     import dask
-    from swathflow.rectification import rectify as R
+    from swathflow.rectification import tiles as T
     from swathflow.rectification.rawimage import open_raw_image
     img = open_raw_image(path)
     best = None
     with dask.config.set(scheduler="sync"):
         for _ in range(repeat):
             c0, t0 = time.process_time(), time.perf_counter()
-            arr = R.rectify(model, img, grid, terrain, tile=512)
+            arr = T.rectify(model, img, grid, terrain, tile=512)
             for d in arr.to_delayed().ravel():
                 d.compute()
             run = (time.perf_counter() - t0, time.process_time() - c0)
@@ -70,13 +70,13 @@ def ours_cog(model, path, grid, terrain, out):
     our overviews, the COG layout copied by tifflayout; deflate), one thread: (wall s,
     CPU s)."""
     import dask
-    from swathflow.rectification import rectify as R
+    from swathflow.rectification import tiles as T
     from swathflow.rectification.rawimage import open_raw_image
     from swathflow.rectification.writing import write_cogs
     img = open_raw_image(path)
     with dask.config.set(scheduler="sync"):
         c0, t0 = time.process_time(), time.perf_counter()
-        write_cogs([{"path": out, "array": R.rectify(model, img, grid, terrain, tile=512),
+        write_cogs([{"path": out, "array": T.rectify(model, img, grid, terrain, tile=512),
                      "grid": grid, "nodata": 0}], blocksize=512, scheduler="sync")
         return time.perf_counter() - t0, time.process_time() - c0
 

@@ -29,7 +29,7 @@ from pathlib import Path
 from cputime import children_cpu  # this folder (the scripts' own)
 
 # as `swathflow run` (flows/cli/commands.py) does it, through its own steps: Prefect's
-# standby server spawned first, dask.array imported lean, the inputs checked (the mission
+# standby server spawned first, the inputs checked (the mission
 # loaded once, memoised for the flow), the server handed its port, then the flow; with the
 # number of Dask workers the command line leaves to the machine (one per core)
 _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
@@ -38,7 +38,7 @@ _RUN = ("import time\nT0 = time.time()\nimport json, sys\n"
         "    commands._checked(sys.argv[1], sys.argv[3])\n"
         "    print('CHECKED', time.time())\n"
         "    run = commands._served_flow()\n"
-        "else:   # a build before stop 34, its command's steps\n"
+        "else:   # an older build, its command's steps\n"
         "    from swathflow.flows import standby\n    standby.start()\n"
         "    commands._lean_imports()\n"
         "    from swathflow.flows.guard import check_run_inputs\n"

@@ -3,7 +3,7 @@ one thread, before and after, for every sensor model.
 
 Reproduce:
     .venv/bin/python benchmarks/bench_igm.py                        # this build
-    .venv/bin/python benchmarks/bench_igm.py --before /work/main/.venv/bin/python
+    .venv/bin/python benchmarks/bench_igm.py --before OLD/bin/python   # OLD: another build's venv
     .venv/bin/python benchmarks/bench_igm.py --sizes 10000,100000,1000000 --repeat 3
 
 The scene is the hills DEM of the tests (tests/test_rectify.py ``hills_dem``: 4 m cells,

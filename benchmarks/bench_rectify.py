@@ -4,22 +4,23 @@ same swing, the same output grid and the same kernel, plus the paper's polynomia
 
 All peers get the geolocation arrays our own model computes (pixel CORNER convention for
 GDAL: the array value at [i, j] is the ground position of raw coordinate (i - 0.5, j - 0.5),
-see shared/DESIGN.md). Positional error: subpixel shift against the truth ortho (analytic
+as GDAL documents its geolocation arrays). Positional error: subpixel shift against the truth ortho (analytic
 texture at the output pixel centres) over the whole footprint and per 128-px tile.
 
     .venv/bin/python benchmarks/bench_rectify.py                  # side by side, 5x and 1x grids
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m  # whole command vs GDAL
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.11,0.4 \
-        --baseline /work/main/.venv/bin/swathflow        # output sizes; another build beside
+        --baseline OLD/bin/swathflow        # output sizes; another build beside
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.05 --timeline
         # ours alone: the serial start (imports, mission, warm-up), then the workers
     .venv/bin/python benchmarks/bench_rectify.py --command /tmp/m --command-gsd 0.05 --zstd
         # ours also with --compress zstd, alternated with ours (the codec's share)
     .venv/bin/python benchmarks/bench_rectify.py --startup         # start-up, numba cache warm/cold
     .venv/bin/python benchmarks/bench_rectify.py --startup --command /tmp/m \
-        --baseline /work/main/.venv/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
+        --baseline OLD/bin/swathflow   # + the command's fixed cost (1 swing, 2 m)
     .venv/bin/python benchmarks/bench_rectify.py --cube 100        # 100-band uint16 cube
     .venv/bin/python benchmarks/bench_rectify.py --igm             # image_to_ground on a DEM
+(OLD: the virtual environment of another build, e.g. main's, installed beside this one)
     .venv/bin/python benchmarks/bench_rectify.py --phases --lines 1400 --elements 512
         # ours only, one thread: CPU ms a job of the lattice, the model, paint and gather
     .venv/bin/python benchmarks/bench_rectify.py --memory          # 2048 x 20000 swing, peak RSS
@@ -47,7 +48,10 @@ from cputime import children_cpu  # noqa: E402
 
 from test_rectify import render, scene_model, texture  # noqa: E402
 
+from shifts import shift_report  # noqa: E402
 from swathflow.rectification import rectify as R  # noqa: E402
+from swathflow.rectification import tiles as T  # noqa: E402
+from swathflow.rectification.lattice import TOLERANCE_PX  # noqa: E402
 from swathflow.geometry.grid import ecef_to_map, footprint_grid  # noqa: E402
 from swathflow.geometry.terrain import ConstantHeight  # noqa: E402
 
@@ -67,7 +71,7 @@ def geoloc_arrays(model, terrain, crs, corner: bool = True, block: int = 256):
 
 
 def _score(name, out, truth, seconds, cores, cpu=float("nan")):
-    rep = R.shift_report(out, truth, tile=128, margin=16)
+    rep = shift_report(out, truth, tile=128, margin=16)
     ok = np.isfinite(out) & np.isfinite(truth)
     rms = float(np.sqrt(np.mean((out[ok] - truth[ok]) ** 2)))
     mpx = out.size / 1e6
@@ -171,12 +175,12 @@ def side_by_side(args, ratio=None):
     def ours(tol, sched, nw):
         def run():
             with dask.config.set(scheduler=sched, num_workers=nw):
-                return _timed(lambda: R.rectify(model, raw, grid, terrain, args.kernel,
+                return _timed(lambda: T.rectify(model, raw, grid, terrain, args.kernel,
                                                 tol=tol, tile=args.tile).compute())
         return run
 
-    ours(R.TOLERANCE_PX, "sync", 1)()                                         # warm-up
-    for tol in sorted({R.TOLERANCE_PX, *args.tolerance}, reverse=True):
+    ours(TOLERANCE_PX, "sync", 1)()                                         # warm-up
+    for tol in sorted({TOLERANCE_PX, *args.tolerance}, reverse=True):
         for sched, nw in (("sync", 1), ("threads", args.threads)):
             out, dt, cpu = _best(args.repeat, ours(tol, sched, nw))
             rows.append(_score(f"swathflow exact (bound {tol:g} px, {nw} thr)", out, truth,
@@ -246,7 +250,7 @@ def phases(args, ratio=None, jobs=20):
             for i in range(jobs + 1):
                 acc.clear()
                 c0 = time.process_time()
-                R.rectify(model, raw, grid, terrain, args.kernel, tile=args.tile).compute()
+                T.rectify(model, raw, grid, terrain, args.kernel, tile=args.tile).compute()
                 acc["job"] = time.process_time() - c0
                 if i and (not best or acc["job"] < best["job"]):
                     best = dict(acc)
@@ -287,8 +291,7 @@ MEMORY_SCRIPT = r"""
 import json, resource, sys, time, os
 import numpy as np
 sys.path.insert(0, {tests!r})
-from test_rectify import scene_model
-from swathflow.rectification import rectify as R
+from test_rectify import rectify_to_files, scene_model
 from swathflow.geometry.grid import footprint_grid
 from swathflow.geometry.terrain import ConstantHeight
 import dask
@@ -311,7 +314,7 @@ if nb == 1:
 grid = footprint_grid(model, terrain, gsd)
 t0 = time.perf_counter()
 with dask.config.set(scheduler="threads", num_workers={threads}):
-    s = R.rectify_image(model, raw, terrain, os.path.join(out_dir, "big.tif"), grid=grid,
+    s = rectify_to_files(model, raw, terrain, os.path.join(out_dir, "big.tif"), grid=grid,
                         kernel="bilinear", tile=512)
 dt = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -6,7 +6,7 @@ Reproduce:
     .venv/bin/python benchmarks/bench_reference.py --preset demo --seed 1 --factor 3
     .venv/bin/python benchmarks/bench_reference.py --preset tiny --seed 6 --factor 3 \
         --swings 4 --along-overlap 0.5 --ties --rounds 3
-(needs ../shared/data/real/autzen/autzen.jpg; the mission is rendered from it). The
+(the mission is rendered from tests/data/real/autzen/autzen.jpg). The
 reference is the truth ortho degraded (``--factor`` x coarser, blur, gamma 0.8, 8-bit noise,
 3 changed patches). Prints the matching time per swing and per round, the whole calibration
 time, and per parameter the sigma and the error against the truth (in sigmas) of both
@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-AUTZEN = [HERE.parents[1] / "shared/data/real/autzen/autzen.jpg",
-          Path("/work/shared/data/real/autzen/autzen.jpg")]
+AUTZEN = [HERE.parent / "tests/data/real/autzen/autzen.jpg"]
 
 
 def main():

@@ -361,6 +361,30 @@ def explain_os_error(exc: BaseException, out=None) -> str | None:
     return None
 
 
+def band_problems(parts: dict) -> list:
+    """``[rectify] bands`` of a mission that does not fit one of its images (the
+    ``validate`` command's check: the selection's syntax and wavelengths are the
+    rectification's, :func:`swathflow.rectification.mission.mission_bands`)."""
+    from types import SimpleNamespace
+
+    from swathflow.errors import FormatError
+    from swathflow.ingest.problems import Problem
+    cfg, images = parts.get("config") or {}, parts.get("images") or {}
+    if not isinstance(cfg.get("rectify"), dict) or not images:
+        return []
+    from swathflow.rectification.mission import mission_bands
+    m = SimpleNamespace(config=cfg, path=parts["root"], images=images)
+    toml = str(parts["root"] / "mission.toml")
+    for iid in images:
+        try:
+            mission_bands(m, iid)
+        except (FormatError, OSError, ValueError) as exc:
+            return [Problem(toml, "[rectify].bands", str(exc).split("mission.toml: ", 1)[-1],
+                            "select bands the images have: 1-based numbers, ranges "
+                            "(\"1,4-6\") or wavelengths (\"550nm\")")]
+    return []
+
+
 def check_run_inputs(mission, calibration=None):
     """``swathflow run``'s inputs, checked before Prefect or Dask start: the mission (every
     problem listed at once) and the calibration file (readable, for the mission's

@@ -35,7 +35,7 @@ STALE = 4
 
 #: the standby: import the server's code and build its app (Prefect's uvicorn factory
 #: returns the cached app), build its routes' request handling (:func:`warm_routes`), all
-#: without the garbage collector's passes (``startup.uncollected``: the objects made then
+#: without the garbage collector's passes (``collector.uncollected``: the objects made then
 #: live as long as the server; 0.1-1.5 of 3.5-6 CPU-s, in each of six alternated pairs),
 #: give a new Prefect home its database (flows/prefectdb.py), then wait for ``{"port",
 #: "settings"}`` on stdin and serve that app as ``python -m uvicorn ...`` (Prefect's own
@@ -44,7 +44,7 @@ STALE = 4
 #: database is at the revision of this Prefect's migrated template (flows/prefectdb.py)
 _CODE = r"""
 import json, os, sys
-from swathflow.startup import uncollected
+from swathflow.collector import uncollected
 with uncollected():     # no collector passes over the server's code and app as they are made
     import prefect
     import prefect.server.api.server as server

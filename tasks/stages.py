@@ -15,7 +15,7 @@ from prefect.cache_policies import NO_CACHE
 
 from swathflow.cache import is_fresh, mark_done, stage_key
 from swathflow.errors import SwathflowError
-from swathflow.tasks import ahead, swings
+from swathflow.tasks import swings
 
 
 _load = swings.load
@@ -171,7 +171,6 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
     if is_fresh(out, key):
         return str(out)
     control = mosaic_control(mission_path, calibration) if use_gcp else None
-    ahead.wait()        # a new install: the kernels being compiled ahead, loaded instead
     strips = {iid: e.strip for iid, e in m.images.items()} if m is not None else None
     write_mosaic(list(rectified), out, control=control, strips=strips)
     mark_done(out, key)
@@ -182,8 +181,6 @@ def mosaic(rectified: list[str], out_dir: str, mission_path: str | None = None,
 def catalog(mission_path: str, rectified: list[str], mosaic_path: str | None, calibration: str,
             out_dir: str) -> str:
     """The STAC catalogue of the run's products: ``OUT/stac/catalog.json``."""
-    import datetime as dt
-
     from swathflow.formats.stac import write_catalog
     m = _load(mission_path)
     out = Path(out_dir) / "stac" / "catalog.json"
@@ -194,21 +191,18 @@ def catalog(mission_path: str, rectified: list[str], mosaic_path: str | None, ca
                          mos.with_suffix(".png")] if mos else []) if p.exists()]
     key = stage_key("catalog", list(rectified) + [mos, cal, report if report.exists() else None]
                     + side + [m.path / "mission.toml"])
-    if is_fresh(out, key):
+    # the manifest sits beside the catalogue's folder (OUT/stac.swathflow.json), not in it
+    if is_fresh(out.parent, key) and out.exists():
         return str(out)
-    date = m.config.get("mission", {}).get("date")
-    acquired = None
-    if date:
-        acquired = dt.datetime.fromisoformat(str(date))
-        if acquired.tzinfo is None:
-            acquired = acquired.replace(tzinfo=dt.UTC)
+    spans = {iid: span for iid in m.image_ids
+             if (span := m.acquisition_span(iid)) is not None}
     html = mos.with_suffix(".html") if mos else None
     path = write_catalog(
         rectified, mos, out.parent, calibration=cal, report=report if report.exists() else None,
         mosaic_report=html if html and html.exists() else (mos.with_suffix(".json") if mos else None),
         quicklook=mos.with_suffix(".png") if mos else None, title=f"swathflow run of {m.name}",
-        catalog_id=f"swathflow-{m.name}", acquired=acquired,
+        catalog_id=f"swathflow-{m.name}", spans=spans,
         facts={Path(p).stem: f for p in rectified
                if (f := swings.recorded_facts(p)) is not None})
-    mark_done(out, key)
+    mark_done(out.parent, key)
     return path

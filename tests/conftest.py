@@ -21,62 +21,6 @@ sys.path.insert(0, str(Path(__file__).parent))
 import pytest  # noqa: E402
 
 
-def _one_compile_at_a_time(folder: Path, wait_s: float = 900.0) -> None:
-    """pytest-xdist workers on a cold numba cache: a kernel being compiled by one worker is
-    not compiled again by another at the same time (some take minutes of CPU); the second
-    waits on a lock file, then numba loads the first one's result from its cache. Only
-    compilations called from Python take the lock (not those nested inside another, so
-    no wait can hold another lock), and a wait longer than ``wait_s`` compiles anyway."""
-    import fcntl
-    import threading
-    import time
-    from numba.core import sigutils
-    from numba.core.dispatcher import Dispatcher
-    compile_ = Dispatcher.compile
-    nested = threading.local()
-
-    def compile(self, sig):
-        if getattr(nested, "depth", 0) or tuple(sigutils.normalize_signature(sig)[0]) \
-                in self.overloads:
-            return compile_(self, sig)
-        name = f"{self.py_func.__module__}.{self.py_func.__qualname__}"
-        try:
-            lock = open(folder / f"{name}.lock", "w")
-        except OSError:
-            return compile_(self, sig)
-        with lock:
-            end = time.monotonic() + wait_s
-            while time.monotonic() < end:
-                try:
-                    fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    break
-                except BlockingIOError:
-                    time.sleep(0.2)
-            nested.depth = 1
-            try:
-                return compile_(self, sig)
-            finally:
-                nested.depth = 0
-
-    Dispatcher.compile = compile
-
-
-def pytest_configure(config):
-    """The xdist controller makes the lock folder (its workers inherit the environment);
-    each worker takes its compilations through it."""
-    if hasattr(config, "workerinput"):
-        if os.environ.get("SWATHFLOW_TEST_NUMBA_LOCKS"):
-            _one_compile_at_a_time(Path(os.environ["SWATHFLOW_TEST_NUMBA_LOCKS"]))
-    elif getattr(config.option, "numprocesses", None):
-        os.environ["SWATHFLOW_TEST_NUMBA_LOCKS"] = tempfile.mkdtemp(prefix="swathflow-numba-")
-
-
-def pytest_unconfigure(config):
-    if not hasattr(config, "workerinput") and os.environ.get("SWATHFLOW_TEST_NUMBA_LOCKS"):
-        import shutil
-        shutil.rmtree(os.environ.pop("SWATHFLOW_TEST_NUMBA_LOCKS"), ignore_errors=True)
-
-
 def _xdist_group(item) -> str:
     """The item's pytest-xdist group: its module, or "prefect" for every module that uses
     the Prefect test server."""

@@ -39,3 +39,23 @@ def validate_extensions(doc: dict, reg=None) -> list[str]:
         Draft7Validator(schema, registry=reg).validate(doc)
         used.append(url)
     return used
+
+
+def validator_schema_map() -> dict[str, str]:
+    """stac-validator's ``schema_map``: every schema a catalogue of ours refers to, by its
+    URL, mapped to a local file (the STAC core and GeoJSON schemas from pystac's wheel, the
+    extensions from SCHEMAS). stac-validator looks the core schemas' relative ``$ref``s up
+    in the map as written ("common.json", "../../item-spec/json-schema/common.json"), so
+    those are mapped too."""
+    import pystac
+    shipped = Path(pystac.__file__).parent / "validation" / "jsonschemas"
+    core = sorted((shipped / "stac-spec" / "v1.1.0").glob("*.json"))
+    out = {f"https://schemas.stacspec.org/v1.1.0/{kind}-spec/json-schema/{p.name}": str(p)
+           for kind in ("item", "catalog", "collection") for p in core}
+    out.update({p.name: str(p) for p in core})
+    out.update({f"../../item-spec/json-schema/{p.name}": str(p) for p in core})
+    out.update({f"https://geojson.org/schema/{p.name}": str(p)
+                for p in (shipped / "geojson").glob("*.json")})
+    out.update({"https://" + p.relative_to(SCHEMAS).as_posix(): str(p)
+                for p in SCHEMAS.rglob("*.json")})
+    return out

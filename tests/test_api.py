@@ -57,7 +57,7 @@ def test_open_mission_band_and_wavelength_coordinates(tiny_mission, tmp_path):
 
 def _against_truth(arr, mission, tol_px=0.25):
     """Phase shift of a georeferenced DataArray against the truth ortho's same window."""
-    from swathflow.rectification.rectify import phase_shift
+    from shifts import phase_shift
     with rasterio.open(mission / "truth" / "ortho.tif") as t:
         truth = t.read(1, masked=True).astype(float).filled(np.nan)
         tt, tcrs = t.transform, t.crs

@@ -40,8 +40,7 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
     out = tmp_path / "out"
     code = ("import sys\nfrom swathflow.flows.cli import main\n"
             f"rc = main(['rectify', {str(tiny_mission)!r}, '--out', {str(out)!r}, '-q'])\n"
-            "print(rc, sorted(m for m in sys.modules if m.split('.')[0] == 'distributed'\n"
-            "                 or m.startswith(('scipy.fft', 'scipy.special', 'scipy.linalg'))))\n")
+            "print(rc, sorted(m for m in sys.modules if m.split('.')[0] == 'distributed'))\n")
     r = _python(code)
     assert r.stdout.strip() == "0 []", r.stdout + r.stderr
     assert "Traceback" not in r.stderr, r.stderr
@@ -51,120 +50,23 @@ def test_rectify_forks_its_workers_quietly_and_without_distributed(tiny_mission,
     assert len(ids) >= 2 and all((out / f"{i}.tif").exists() for i in ids)
 
 
-def test_rectify_loads_dask_array_without_scipy_fft_sparse_linalg():
-    """The rectify command loads dask.array without scipy.fftpack (and scipy.fft,
-    scipy.special behind it), scipy.sparse and jinja2, and no longer loads numba's array
-    target up front (cached kernels need none; one whose environment names it loads it
-    through swathflow.startup.blas_probe_alone); all still work afterwards:
-    dask.array's FFTs, scipy.sparse, cffi, jinja2 and a compiled np.dot (numba imports
-    scipy's BLAS when it compiles one)."""
-    code = ("import sys\nfrom swathflow.flows.cli import commands\n"
-            "commands._lean_imports()\n"
-            "print(*(m in sys.modules for m in ('dask.array', 'numba.np.arraymath',\n"
-            "                                   'scipy.fft', 'scipy.linalg', 'scipy.sparse',\n"
-            "                                   'jinja2')))\n"
-            "import numba, numpy as np, scipy.fftpack, scipy.sparse, cffi, jinja2\n"
-            "import dask.array as da\n"
-            "x = np.arange(8.0)\n"
-            "print(np.allclose(da.fft.fft(da.from_array(x)).compute(), scipy.fftpack.fft(x)),\n"
-            "      numba.njit(lambda a: np.dot(a, a))(x) == 140.0,\n"
-            "      scipy.sparse.eye(3).sum() == 3.0, cffi.FFI().sizeof('int') > 0,\n"
-            "      jinja2.Template('{{ 1 + 1 }}').render() == '2')\n")
-    r = _python(code)
-    assert r.stdout.split() == ["True", "False", "False", "False", "False", "False",
-                                "True", "True", "True", "True", "True"], \
-        r.stdout + r.stderr
 
 
-def test_rectify_loads_dask_array_without_building_its_docstrings_from_numpys():
-    """dask.array's functions keep their own docstrings in the rectify command's process
-    (numpy's are not copied into them), dask's derivation is restored after (a function
-    derived later gets numpy's text), and inside the block a method numpy's class lacks
-    still gives dask's function that raises NotImplementedError."""
-    code = ("import sys\nimport numpy as np\nfrom swathflow.flows.cli import commands\n"
-            "commands._lean_imports()\n"
-            "import dask.array as da, dask.utils as U\n"
-            "from swathflow.startup import underived_docstrings\n"
-            "def nansum():\n    'Dask: the own text.'\n"
-            "def no_such_numpy_function():\n    pass\n"
-            "with underived_docstrings():\n"
-            "    missing = U.derived_from(np.ndarray)(no_such_numpy_function)\n"
-            "try:\n    missing()\n    raised = False\n"
-            "except NotImplementedError:\n    raised = True\n"
-            "print('copied from numpy' in (da.sum.__doc__ or ''),\n"
-            "      'copied from numpy' in U.derived_from(np)(nansum).__doc__,\n"
-            "      'the own text' in nansum.__doc__, raised,\n"
-            "      float(da.ones(4, chunks=2).sum().compute()))\n")
-    r = _python(code)
-    assert r.stdout.split() == ["False", "True", "True", "True", "4.0"], \
-        r.stdout + r.stderr
 
 
-def test_import_without_imports_the_module_when_a_held_one_is_loaded_already():
-    """With a module held back loaded already, the module is still imported (the usual
-    way), not skipped."""
-    code = ("import sys, json\nfrom swathflow.startup import import_without\n"
-            "import_without(('json', 'csv'), 'xml.dom.minidom')\n"
-            "print('xml.dom.minidom' in sys.modules)\n")
-    r = _python(code)
-    assert r.stdout.split() == ["True"], r.stdout + r.stderr
 
 
-def test_import_without_falls_back_to_the_usual_import():
-    """A module that cannot do without the module held back is imported the usual way."""
-    code = ("import sys\nfrom swathflow.startup import import_without\n"
-            "import_without('xml.dom', 'xml.dom.minidom')\n"
-            "import xml.dom.minidom\n"
-            "print(sys.modules['xml.dom'] is not None, xml.dom.minidom.parseString('<a/>')"
-            ".documentElement.tagName)\n")
-    r = _python(code)
-    assert r.stdout.split() == ["True", "a"], r.stdout + r.stderr
 
 
-def test_import_without_holds_back_several_modules_and_leaves_them_importable(tmp_path):
-    """Every module named is held back while the module loads (its optional import of
-    each fails), and each is importable after."""
-    (tmp_path / "optional_users.py").write_text(
-        "try:\n    import json\nexcept ImportError:\n    json = None\n"
-        "try:\n    import csv\nexcept ImportError:\n    csv = None\n")
-    code = ("import sys\nsys.path.insert(0, sys.argv[1])\n"
-            "from swathflow.startup import import_without\n"
-            "import_without(('json', 'csv'), 'optional_users')\n"
-            "import optional_users as m\nprint(m.json, m.csv)\n"
-            "import json, csv\nprint(json.dumps(1), csv.QUOTE_ALL)\n")
-    r = _python(code, str(tmp_path))
-    assert r.stdout.split() == ["None", "None", "1", "1"], r.stdout + r.stderr
 
 
-def test_run_imports_the_flow_without_running_prefects_notification_blocks():
-    """`swathflow run`'s flow module is imported with Prefect's notification and webhook
-    block modules bound but not run (their pydantic models are not built); the first use
-    of one of their names runs the module, complete (a block class, registered with
-    Prefect's block registry as usual); a flow still runs, on Prefect's own engine."""
-    code = ("import sys, importlib.util\nfrom swathflow.flows.cli import commands\n"
-            "run = commands._flow_run()\n"
-            "n = sys.modules['prefect.blocks.notifications']\n"
-            "w = sys.modules['prefect.blocks.webhook']\n"
-            "print(type(n).__name__, type(w).__name__, run.__module__)\n"
-            "from prefect.blocks.core import Block\n"
-            "slack = n.SlackWebhook\n"
-            "print(type(n).__name__, issubclass(slack, Block),\n"
-            "      Block.get_block_class_from_key('slack-webhook') is slack, 'url' in slack.model_fields)\n"
-            "from swathflow.startup import lazy_modules\n"
-            "with lazy_modules(('prefect.blocks.notifications', 'json')):\n"
-            "    import prefect.blocks.notifications, json\n"
-            "print(type(sys.modules['json']).__name__, json.dumps([1]))\n")
-    r = _python(code)
-    assert r.stdout.split() == ["_UnrunModule", "_UnrunModule", "swathflow.flows.mission",
-                                "module", "True", "True", "True", "module", "[1]"], \
-        r.stdout + r.stderr
 
 
 def test_rectify_imports_its_engine_without_collector_passes():
     """The rectify command's imports (1,500 modules) run without the collector's passes
     (265 of them, 0.1-0.2 CPU-s on its serial start), and their objects are frozen after;
     the collector is on again after."""
-    code = ("import gc, sys\nfrom swathflow.startup import uncollected\n"
+    code = ("import gc, sys\nfrom swathflow.collector import uncollected\n"
             "passes = []\ngc.callbacks.append(lambda phase, info: passes.append(phase))\n"
             "with uncollected():\n"
             "    import xarray\n"
@@ -221,3 +123,47 @@ def test_the_program_keeps_openblas_on_one_thread():
     assert r.stdout.splitlines()[-1].split() == ["1", "1"], r.stdout + r.stderr
     r = _python(code, env=dict(env, OPENBLAS_NUM_THREADS="2"))
     assert r.stdout.splitlines()[-1].split()[0] == "2", r.stdout + r.stderr
+
+
+def test_demo_summary_names_the_products_to_open_first(tmp_path):
+    """The demo's closing lines give the mosaic's HTML report and quicklook and the
+    calibration report with their paths, and leave out what was not written."""
+    from swathflow.flows.cli.commands import demo_products, demo_summary
+    products = tmp_path / "products"
+    (products / "calibration").mkdir(parents=True)
+    for name in ("mosaic.tif", "mosaic.html", "mosaic.png", "calibration/report.html"):
+        (products / name).write_text("x")
+    result = {"mosaic": str(products / "mosaic.tif"),
+              "report": str(products / "calibration" / "report.html")}
+    assert demo_products(result) == [
+        ("mosaic report", str(products / "mosaic.html")),
+        ("mosaic quicklook", str(products / "mosaic.png")),
+        ("calibration report", str(products / "calibration" / "report.html"))]
+    text = demo_summary(result, 61.4)
+    assert text.startswith("demo finished in 61 s")
+    assert all(str(p) in text for p in (products / "mosaic.html", products / "mosaic.png"))
+    (products / "mosaic.png").unlink()
+    assert [w for w, _ in demo_products(result)] == ["mosaic report", "calibration report"]
+    assert demo_products({"mosaic": None, "report": None}) == []
+
+
+def test_demo_folder_inside_a_clone_leaves_git_status_clean(tmp_path):
+    """The demo's folder marks itself ignored by git (what it writes, its lock included);
+    a folder holding a person's own files is left alone."""
+    from swathflow.flows.cli.commands import ignored_by_git
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    demo = tmp_path / "swathflow-demo"
+    demo.mkdir()
+    (demo / ".swathflow.lock").write_text("1\n")
+    ignored_by_git(demo)
+    for name in ("mission/mission.toml", "products/mosaic.tif"):
+        (demo / name).parent.mkdir(exist_ok=True)
+        (demo / name).write_text("x")
+    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"],
+                            cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert status.stdout == ""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    ignored_by_git(mine)
+    assert not (mine / ".gitignore").exists()

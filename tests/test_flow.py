@@ -23,7 +23,7 @@ def _outputs(out: Path) -> dict:
 
 def _check_against_truth(mission: Path, result: dict, tol_px: float = 0.25):
     from swathflow.ingest.mission import load_mission
-    from swathflow.rectification.rectify import phase_shift
+    from shifts import phase_shift
     m = load_mission(mission)
     with rasterio.open(mission / "truth" / "ortho.tif") as t:
         truth = t.read(1, masked=True).astype(float).filled(np.nan)
@@ -64,7 +64,7 @@ def _check_catalog(result: dict):
     from shapely.ops import transform
     from stac_schemas import validate_extensions
     cat = pystac.Catalog.from_file(result["catalog"])
-    items = {i.id: i for i in cat.get_items()}
+    items = {i.properties["swathflow:image_id"]: i for i in cat.get_items(recursive=True)}
     products = {Path(p).stem: p for p in result["rectified"]} | {"mosaic": result["mosaic"]}
     assert set(items) == set(products)
     for iid, path in products.items():
@@ -75,6 +75,9 @@ def _check_catalog(result: dict):
             to = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
         area = transform(to.transform, shape(items[iid].geometry)).area
         assert abs(area - valid) < 0.03 * valid, (iid, area, valid)
+        # acquired on the simulated flight's date (GPS seconds of week from Wednesday noon)
+        start = items[iid].common_metadata.start_datetime
+        assert start.date().isoformat() == "2024-06-05" and start.hour in (11, 12), start
 
 
 def _check_same_as_cli_and_api(mission: Path, result: dict, cal: str, out: Path):

@@ -143,7 +143,7 @@ def test_mapped_window_pages_are_released_after_resampling(tmp_path):
     """Resident memory bounded by the tile: the pages of a memory-mapped ENVI window that
     the kernel touched are dropped from the process afterwards (the swing's file is not
     kept resident as tiles go by)."""
-    from swathflow.rectification.rawimage import release_pages
+    from swathflow.rectification.pages import release_pages
     nb, nl, ne = 16, 1024, 1024                     # 32 MB of uint16, BIL
     path = tmp_path / "big.bil"
     b, li, ei = np.ogrid[0:nb, 0:nl, 0:ne]

@@ -4,8 +4,8 @@ import numpy as np
 
 from spec_vectors import DATA
 from swathflow.geometry.geodesy import ecef_to_geodetic, geodetic_to_ecef, up_vector
+from swathflow.geometry.geodesy_kernel import geodetic_of_points
 from swathflow.geometry.intersect import intersect
-from swathflow.geometry.march import geodetic_of_points
 from swathflow.geometry.terrain import DEM
 
 

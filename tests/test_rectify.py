@@ -11,13 +11,24 @@ from __future__ import annotations
 
 import json
 import math
+import os
+from collections.abc import Mapping
 
 import numpy as np
 import pytest
 
 from spec_vectors import load_cases, pos_dataset
 from truth_ortho import overlap_with_truth
+from shifts import phase_shift, shift_report
+from swathflow.geometry.terrain import open_terrain
+from swathflow.rectification import lattice as L
 from swathflow.rectification import rectify as R
+from swathflow.rectification import tiles as T
+from swathflow.rectification.lattice import TOLERANCE_PX
+from swathflow.rectification.rawimage import open_raw_image
+from swathflow.rectification.tiles import (KERNELS, check_inputs, glt_blocks, output_plan,
+                                           rectify_blocks)
+from swathflow.rectification.writing import write_cog, write_cogs
 from swathflow.geometry.grid import Grid, ecef_to_map, footprint_grid
 from swathflow.formats.pos import Trajectory
 from swathflow.geometry.terrain import DEM, ConstantHeight
@@ -90,6 +101,114 @@ def hills_dem(path, grid: Grid, base=5.0, relief=120.0, cell=4.0):
     return DEM.open(path)
 
 
+# ----------------------------------------------------------------------------------------
+# instruments: a numpy reference resampler, and one swing of a bare model written to files
+# ----------------------------------------------------------------------------------------
+def _keys(t):
+    """Keys cubic convolution weights (a = -0.5) for offsets t (|t| < 2)."""
+    a = -0.5
+    t = np.abs(t)
+    return np.where(t <= 1, (a + 2) * t ** 3 - (a + 3) * t ** 2 + 1,
+                    np.where(t < 2, a * t ** 3 - 5 * a * t ** 2 + 8 * a * t - 4 * a, 0.0))
+
+
+def _taps(x, n, kernel):
+    """Tap indices ``(N, k)`` (clamped to [0, n-1]) and weights ``(N, k)``."""
+    if kernel == "nearest":
+        i = np.floor(x + 0.5)
+        return np.clip(i, 0, n - 1).astype(np.intp)[:, None], np.ones((x.size, 1))
+    i0 = np.floor(x)
+    f = x - i0
+    if kernel == "bilinear":
+        idx = i0[:, None] + np.array([0, 1])
+        wts = np.stack([1 - f, f], axis=-1)
+    elif kernel == "cubic":
+        off = np.array([-1, 0, 1, 2])
+        idx = i0[:, None] + off
+        wts = _keys(f[:, None] - off)
+    else:
+        raise ValueError(f"unknown resampling kernel {kernel!r}")
+    return np.clip(idx, 0, n - 1).astype(np.intp), wts
+
+
+def resample(raw: np.ndarray, line, element, kernel: str = "bilinear") -> np.ndarray:
+    """Values of ``raw`` (2-D, NaN = nodata) at continuous (line, element) coordinates
+    (pixel centres at integers). NaN where a coordinate is NaN, off the image by more than
+    half a pixel, or where a tap with non-zero weight is nodata. Off-edge taps repeat the
+    edge pixel."""
+    line = np.asarray(line, float)
+    element = np.asarray(element, float)
+    shape = line.shape
+    li, ei = line.ravel(), element.ravel()
+    nl, ne = raw.shape
+    ok = (li >= -0.5) & (li <= nl - 0.5) & (ei >= -0.5) & (ei <= ne - 0.5)
+    out = np.full(li.size, np.nan)
+    k = np.flatnonzero(ok)
+    if k.size and nl and ne:
+        il, wl = _taps(li[k], nl, kernel)
+        ie, we = _taps(ei[k], ne, kernel)
+        acc = np.zeros(k.size)
+        for a in range(il.shape[1]):
+            for b in range(ie.shape[1]):
+                wgt = wl[:, a] * we[:, b]
+                v = raw[il[:, a], ie[:, b]]
+                acc += np.where(wgt != 0, wgt * v, 0.0)
+        out[k] = acc
+    return out.reshape(shape)
+
+
+def rectify_to_files(model, image, terrain, out_path, grid: Grid, kernel: str = "bilinear",
+                     tile: int = 512, products=(), tags: Mapping | None = None, bands=None,
+                     dtype=None, mask_band: bool = False) -> dict:
+    """One raw image of a bare model (no mission) rectified by the exact method to a COG at
+    ``out_path``, and ``<stem>.glt.tif`` / ``<stem>.igm.tif`` for ``products`` (the
+    product's API does this for a mission's swing: rectify, geolocation and to_cog), from
+    the engine's pieces. Every band (or the ``bands`` selected), in the raw dtype
+    (``dtype`` overrides; integer nodata, or a mask band with ``mask_band``: see
+    :func:`~swathflow.rectification.tiles.output_plan`), with the bands' descriptions,
+    wavelengths and units. Returns a small summary dict."""
+    import dask
+    import dask.array as da
+
+    from swathflow._version import __version__
+    terrain = open_terrain(terrain)
+    base = {"software": f"swathflow {__version__}", "method": "exact", "kernel": kernel,
+            "sensor": getattr(model, "name", ""), "tolerance_px": TOLERANCE_PX,
+            "terrain": str(terrain.state()), **{k: str(v) for k, v in (tags or {}).items()}}
+    stem = os.path.splitext(os.fspath(out_path))[0]
+    source = open_raw_image(image, bands=bands)
+    check_inputs(model, source, kernel)
+    dt, out_nodata, use_mask = output_plan(source, dtype, mask_band)
+    arr = rectify_blocks(model, source, grid, terrain, kernel, TOLERANCE_PX, tile, dtype=dtype,
+                         mask_plane=use_mask)
+    outs = [{"path": out_path, "array": arr, "grid": grid, "nodata": out_nodata, "tags": base,
+             "mask": use_mask, "bands": source.band_info}]
+    if "glt" in products:
+        outs.append({"path": stem + ".glt.tif", "grid": grid, "nodata": 0, "dtype": np.int32,
+                     "array": glt_blocks(model, source, grid, terrain, kernel, TOLERANCE_PX,
+                                         tile),
+                     "tags": {**base, "product": "GLT", "bands": "element+1,line+1",
+                              "convention": "ENVI GLT, 1-based, 0 = none"}})
+    write_cogs(outs, blocksize=tile)
+    if "igm" in products:
+        nl, ne = model.shape
+        blk = max(1, min(nl, 2_000_000 // max(ne, 1)))
+        parts = [da.from_delayed(dask.delayed(R.igm_block, pure=True)(
+            model, terrain, grid.crs, l0, min(l0 + blk, nl)),
+            shape=(3, min(l0 + blk, nl) - l0, ne), dtype=np.float64) for l0 in range(0, nl, blk)]
+        write_cog(stem + ".igm.tif", da.concatenate(parts, axis=1).rechunk((3, tile, tile)),
+                  None, nodata=float("nan"), blocksize=tile,
+                  tags={**base, "product": "IGM", "crs": grid.pyproj_crs.to_string(),
+                        "bands": "x,y,h_ellipsoidal", "geometry": "raw (line, element)"})
+    return {"path": os.fspath(out_path), "bands": source.count, "dtype": dt.name,
+            "nodata": "mask band" if use_mask else str(out_nodata)}
+
+
+def _delayed(f):
+    import dask
+    return dask.delayed(f, pure=True)
+
+
 @pytest.fixture(scope="module")
 def flat():
     model = scene_model()
@@ -97,7 +216,7 @@ def flat():
     grid = footprint_grid(model, terrain, GSD)
     raw = render(model, terrain, grid.crs)
     truth = texture(*grid.centres())
-    exact = R._exact_raw(model, grid, terrain, *np.indices(grid.shape))
+    exact = L.exact_raw(model, grid, terrain, *np.indices(grid.shape))
     return dict(model=model, terrain=terrain, grid=grid, raw=raw, truth=truth, exact=exact)
 
 
@@ -121,7 +240,7 @@ def test_phase_shift_recovers_imposed_shifts(shift):
     ref = texture(x * GSD, -y * GSD)
     moved = texture((x - shift[1]) * GSD, -(y - shift[0]) * GSD)   # content moved by +shift
     moved[(x + y) > 300] = np.nan                                    # a ragged footprint
-    d = R.phase_shift(moved, ref)
+    d = phase_shift(moved, ref)
     assert abs(d[0] - shift[0]) < 2e-3 and abs(d[1] - shift[1]) < 2e-3
 
 
@@ -135,26 +254,26 @@ def test_kernels_on_closed_forms():
     rng = np.random.default_rng(1)
     pl = rng.uniform(2, 17, 200)
     pe = rng.uniform(2, 27, 200)
-    assert np.allclose(R.resample(lin, pl, pe, "bilinear"), 3 + 0.7 * pl - 1.3 * pe)
+    assert np.allclose(resample(lin, pl, pe, "bilinear"), 3 + 0.7 * pl - 1.3 * pe)
     # Keys cubic convolution (a = -0.5) reproduces quadratics exactly
-    assert np.allclose(R.resample(quad, pl, pe, "cubic"),
+    assert np.allclose(resample(quad, pl, pe, "cubic"),
                        0.05 * pl ** 2 - 0.03 * pe ** 2 + 0.02 * pl * pe + pl)
-    near = R.resample(lin, pl, pe, "nearest")
+    near = resample(lin, pl, pe, "nearest")
     assert np.allclose(near, 3 + 0.7 * np.round(pl) - 1.3 * np.round(pe))
     # off the image by more than half a pixel -> NaN; within half a pixel -> edge value
-    v = R.resample(lin, np.array([-0.6, -0.4, 19.4, 19.6]), np.array([5.0, 5, 5, 5]), "bilinear")
+    v = resample(lin, np.array([-0.6, -0.4, 19.4, 19.6]), np.array([5.0, 5, 5, 5]), "bilinear")
     assert np.isnan(v[0]) and np.isnan(v[3]) and np.allclose(v[1:3], [lin[0, 5], lin[19, 5]])
 
 
 def test_kernels_are_nodata_aware():
     img = np.arange(100.0).reshape(10, 10)
     img[4, 4] = np.nan
-    v = R.resample(img, np.array([4.0, 4.5, 3.0, 4.0, 6.0]), np.array([5.0, 5.0, 3.0, 3.4, 6.0]),
+    v = resample(img, np.array([4.0, 4.5, 3.0, 4.0, 6.0]), np.array([5.0, 5.0, 3.0, 3.4, 6.0]),
                    "bilinear")
     assert v[0] == img[4, 5]            # a NaN neighbour with zero weight does not count
     assert v[1] == pytest.approx((img[4, 5] + img[5, 5]) / 2)
     assert np.isnan(v[3])               # the NaN pixel carries weight 0.6
-    c = R.resample(img, np.array([6.0, 5.5]), np.array([6.0, 5.5]), "cubic")
+    c = resample(img, np.array([6.0, 5.5]), np.array([6.0, 5.5]), "cubic")
     assert c[0] == img[6, 6] and np.isnan(c[1])
 
 
@@ -163,18 +282,18 @@ def test_kernels_are_nodata_aware():
 # ----------------------------------------------------------------------------------------
 def test_inverse_map_within_bound_of_the_exact_model(flat):
     st = {}
-    co = R.inverse_map(flat["model"], flat["grid"], flat["terrain"], tol=0.05, stats=st)
+    co = L.inverse_map(flat["model"], flat["grid"], flat["terrain"], tol=0.05, stats=st)
     ex = flat["exact"]
     assert np.array_equal(np.isnan(co[..., 0]), np.isnan(ex[..., 0]))   # same footprint
     assert np.nanmax(np.abs(co - ex)) < 0.05
     assert st["exact_evaluations"] < 0.2 * st["pixels"]                  # and cheap
 
 
-@pytest.mark.parametrize("kernel", R.KERNELS)
+@pytest.mark.parametrize("kernel", KERNELS)
 def test_exact_method_matches_truth(flat, kernel):
-    out = R.rectify(flat["model"], flat["raw"], flat["grid"], flat["terrain"], kernel,
+    out = T.rectify(flat["model"], flat["raw"], flat["grid"], flat["terrain"], kernel,
                     tile=256).compute()
-    rep = R.shift_report(out, flat["truth"], tile=64, margin=16)
+    rep = shift_report(out, flat["truth"], tile=64, margin=16)
     assert rep["tiles"] >= 10
     assert rep["whole_px"] < 0.1 and rep["worst_tile_px"] < 0.1, rep
     # gap-free: every pixel whose exact raw coordinate is on the image has a value
@@ -189,7 +308,7 @@ def test_exact_method_matches_truth(flat, kernel):
     # radiometry: the kernel alone explains the error. Resampling the raw image at the
     # exact coordinates with the same kernel gives the kernel's own error; ours is within
     # what a 0.05 px coordinate error can add (max raw gradient x 0.05).
-    ref = R.resample(flat["raw"], ex[..., 0], ex[..., 1], kernel)
+    ref = resample(flat["raw"], ex[..., 0], ex[..., 1], kernel)
     both = np.isfinite(out) & np.isfinite(ref)
     grad = max(np.abs(np.diff(flat["raw"], axis=0)).max(), np.abs(np.diff(flat["raw"], axis=1)).max())
     extra = np.abs(out[both] - ref[both])
@@ -207,8 +326,8 @@ def test_exact_method_matches_truth(flat, kernel):
 
 def test_kernel_error_ordering(flat):
     errs = {}
-    for k in R.KERNELS:
-        out = R.rectify(flat["model"], flat["raw"], flat["grid"], flat["terrain"], k,
+    for k in KERNELS:
+        out = T.rectify(flat["model"], flat["raw"], flat["grid"], flat["terrain"], k,
                         tile=512).compute()
         ok = np.isfinite(out)
         errs[k] = float(np.sqrt(np.mean((out[ok] - flat["truth"][ok]) ** 2)))
@@ -216,15 +335,15 @@ def test_kernel_error_ordering(flat):
 
 
 def test_exact_method_over_relief(hilly):
-    out = R.rectify(hilly["model"], hilly["raw"], hilly["grid"], hilly["terrain"],
+    out = T.rectify(hilly["model"], hilly["raw"], hilly["grid"], hilly["terrain"],
                     "bilinear", tile=256).compute()
-    rep = R.shift_report(out, hilly["truth"], tile=64, margin=16)
+    rep = shift_report(out, hilly["truth"], tile=64, margin=16)
     assert rep["tiles"] >= 4
     assert rep["whole_px"] < 0.1 and rep["worst_tile_px"] < 0.1, rep
     # the same swing rectified on a flat terrain is visibly displaced: the test can fail
-    flat_out = R.rectify(hilly["model"], hilly["raw"], hilly["grid"], ConstantHeight(5.0),
+    flat_out = T.rectify(hilly["model"], hilly["raw"], hilly["grid"], ConstantHeight(5.0),
                          "bilinear", tile=256).compute()
-    bad = R.shift_report(flat_out, hilly["truth"], tile=64, margin=16)
+    bad = shift_report(flat_out, hilly["truth"], tile=64, margin=16)
     assert bad["worst_tile_px"] > 1.0
 
 
@@ -249,11 +368,11 @@ def test_polynomial_method_vs_truth(flat):
                                stats=st)
     # gaps inside the footprint are filled
     assert st["holes_after_fill"] <= 0.01 * st["footprint_pixels"]
-    rep = R.shift_report(out, flat["truth"], tile=64, margin=16)
+    rep = shift_report(out, flat["truth"], tile=64, margin=16)
     assert rep["whole_px"] < 0.2, rep
     ok = np.isfinite(out)
     rms_poly = float(np.sqrt(np.mean((out[ok] - flat["truth"][ok]) ** 2)))
-    exact = R.rectify(flat["model"], flat["raw"], flat["grid"], flat["terrain"],
+    exact = T.rectify(flat["model"], flat["raw"], flat["grid"], flat["terrain"],
                       "bilinear").compute()
     ok2 = np.isfinite(exact)
     rms_exact = float(np.sqrt(np.mean((exact[ok2] - flat["truth"][ok2]) ** 2)))
@@ -268,7 +387,7 @@ def test_rectify_image_writes_cog_glt_igm(flat, tmp_path):
     import rasterio
     model, grid, terrain = flat["model"], flat["grid"], flat["terrain"]
     out = tmp_path / "L1.tif"
-    R.rectify_image(model, flat["raw"], terrain, out, grid=grid, kernel="bilinear", tile=256,
+    rectify_to_files(model, flat["raw"], terrain, out, grid=grid, kernel="bilinear", tile=256,
                     products=("glt", "igm"), tags={"calibration": "cal.json"})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["L1.glt.tif", "L1.igm.tif", "L1.tif"]
     with rasterio.open(out) as src:
@@ -281,7 +400,7 @@ def test_rectify_image_writes_cog_glt_igm(flat, tmp_path):
         assert tags["sensor"] == "pendulum" and tags["calibration"] == "cal.json"
         assert tags["software"].startswith("swathflow ")
         img = src.read(1)
-    mem = R.rectify(model, flat["raw"], grid, terrain, "bilinear", tile=256).compute()
+    mem = T.rectify(model, flat["raw"], grid, terrain, "bilinear", tile=256).compute()
     assert np.array_equal(np.isnan(img), np.isnan(mem))
     assert np.allclose(img[np.isfinite(img)], mem[np.isfinite(mem)])
     # GLT: the raw pixel it names lies within a raw pixel of the exact coordinate
@@ -348,7 +467,7 @@ def _compare_with_truth(mission_dir, out_dir, tile=32):
             t = src.transform
         # place the image's window inside the truth grid (both snapped to the GSD)
         sub_r, sub_t = overlap_with_truth(rect, t, truth)
-        reports[tif.stem] = R.shift_report(sub_r, sub_t, tile=tile, margin=tile // 4)
+        reports[tif.stem] = shift_report(sub_r, sub_t, tile=tile, margin=tile // 4)
         print(tif.stem, reports[tif.stem])
     return reports
 
@@ -421,11 +540,11 @@ def test_cli_rectify_real_texture_over_real_dem(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         co = np.concatenate([np.concatenate(
-            [R.inverse_map(model, grid.window(rs, cs), m.terrain) for rs, cs in
+            [L.inverse_map(model, grid.window(rs, cs), m.terrain) for rs, cs in
              [(rs, slice(c, min(c + 512, grid.width))) for c in range(0, grid.width, 512)]],
             axis=1) for rs in [slice(r, min(r + 512, grid.height))
                                for r in range(0, grid.height, 512)]], axis=0)
-        ex = R._exact_raw(model, grid, m.terrain, *np.indices(grid.shape))
+        ex = L.exact_raw(model, grid, m.terrain, *np.indices(grid.shape))
     err = np.abs(co - ex).max(axis=-1)
     print("raw-coordinate error over the real DEM: max", np.nanmax(err),
           "p99.9", np.nanpercentile(err, 99.9))

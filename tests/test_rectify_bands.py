@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from swathflow.geometry.grid import ecef_to_map, footprint_grid
 from swathflow.geometry.terrain import ConstantHeight
-from swathflow.rectification import rectify as R
-from test_rectify import scene_model, texture
+from shifts import shift_report
+from swathflow.rectification import tiles as T
+from test_rectify import rectify_to_files, scene_model, texture
 
 BANDS = [(0.0, 1.0, 0.0, 0.0), (400.0, -1.0, 7.0, -3.0), (200.0, 0.5, -11.0, 5.0)]
 
@@ -50,7 +51,7 @@ def _as(kind, cube):
 
 def _check_bands(out, truth, limit=0.1):
     for k in range(truth.shape[0]):
-        rep = R.shift_report(out[k], truth[k], tile=64, margin=16)
+        rep = shift_report(out[k], truth[k], tile=64, margin=16)
         assert rep["tiles"] >= 4, (k, rep)
         assert rep["whole_px"] < limit and rep["worst_tile_px"] < limit, (k, rep)
         # and not another band's truth: the bands differ by far more than the kernel's own
@@ -65,12 +66,12 @@ def _check_bands(out, truth, limit=0.1):
 
 @pytest.mark.parametrize("kind", ["numpy", "dask"])
 def test_float_cube_every_band_matches_its_truth(scene, kind):
-    out = R.rectify(scene["model"], _as(kind, scene["cube"].astype(np.float32)), scene["grid"],
+    out = T.rectify(scene["model"], _as(kind, scene["cube"].astype(np.float32)), scene["grid"],
                     scene["terrain"], "bilinear", tile=256).compute()
     assert out.shape == (3,) + scene["grid"].shape and out.dtype == np.float32
     _check_bands(out.astype(float), scene["truth"])
     # band selection by wavelength and index reads those bands only
-    sub = R.rectify(scene["model"], _as("dask", scene["cube"].astype(np.float32)),
+    sub = T.rectify(scene["model"], _as("dask", scene["cube"].astype(np.float32)),
                     scene["grid"], scene["terrain"], "bilinear", tile=256, bands="3").compute()
     assert sub.shape == (1,) + scene["grid"].shape
     _check_bands(sub.astype(float), scene["truth"][[2]])
@@ -85,11 +86,11 @@ def test_integer_cube_keeps_its_dtype_and_matches_truth(scene, kind, dtype, lo, 
     offset = lo - cmin * scale
     raw = np.floor(scene["cube"] * scale + offset + 0.5)
     info = np.iinfo(dtype)
-    out = R.rectify(scene["model"], _as(kind, raw.astype(dtype)), scene["grid"],
+    out = T.rectify(scene["model"], _as(kind, raw.astype(dtype)), scene["grid"],
                     scene["terrain"], "bilinear", tile=256).compute()
     assert out.dtype == dtype
     # nodata: the geometric footprint (the float rectification's) is the valid area
-    ref = R.rectify(scene["model"], scene["cube"][:1], scene["grid"], scene["terrain"],
+    ref = T.rectify(scene["model"], scene["cube"][:1], scene["grid"], scene["terrain"],
                     "bilinear", tile=256).compute()[0]
     valid = np.isfinite(ref)
     assert (out[:, ~valid] == info.min).all()          # nodata: the type's lowest value
@@ -101,9 +102,9 @@ def test_integer_cube_keeps_its_dtype_and_matches_truth(scene, kind, dtype, lo, 
 def test_cubic_integer_output_is_clamped_not_wrapped(scene):
     # a cube at the edges of the uint8 range: cubic overshoots must clamp to 0 / 255
     raw = np.where(scene["cube"][0] > 100, 255, 0).astype(np.uint8)
-    out = R.rectify(scene["model"], raw, scene["grid"], scene["terrain"], "cubic",
+    out = T.rectify(scene["model"], raw, scene["grid"], scene["terrain"], "cubic",
                     tile=256).compute()
-    f = R.rectify(scene["model"], raw.astype(np.float32), scene["grid"], scene["terrain"],
+    f = T.rectify(scene["model"], raw.astype(np.float32), scene["grid"], scene["terrain"],
                   "cubic", tile=256).compute()
     ok = np.isfinite(f)
     assert np.nanmin(f) < -1 and np.nanmax(f) > 256             # the float result rings
@@ -127,7 +128,7 @@ def test_envi_cube_to_cog_with_band_metadata_and_mask(scene, tmp_path):
         "band names = {blue, green, red}\nwavelength units = Nanometers\n"
         "wavelength = {450.0, 550.0, 650.0}\nfwhm = {20.0, 20.0, 20.0}\n")
     out = tmp_path / "swing.tif"
-    s = R.rectify_image(scene["model"], data, scene["terrain"], out, grid=scene["grid"],
+    s = rectify_to_files(scene["model"], data, scene["terrain"], out, grid=scene["grid"],
                         tile=256, bands="650nm,1", mask_band=True)
     assert s["dtype"] == "uint16" and s["bands"] == 2 and s["nodata"] == "mask band"
     with rasterio.open(out) as src:

@@ -53,7 +53,7 @@ def _rectified_shift(mission, calibration, out):
     import rasterio
     from swathflow.formats.raster import read_raster
     from swathflow.rectification.mission import rectify_mission
-    from swathflow.rectification.rectify import shift_report
+    from shifts import shift_report
     from truth_ortho import overlap_with_truth
     toml = mission / "mission.toml"
     text = re.sub(r'\[pos\]\nfile = "[^"]*"\nformat = "[^"]*"',

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.usefixtures("prefect_harness")
 def test_flow_calibrates_from_mission_reference(tmp_path):
     from swathflow.flows.mission import run
     from swathflow.ingest.mission import load_mission
-    from swathflow.rectification.rectify import phase_shift
+    from shifts import phase_shift
     mission, info = _mission(tmp_path)                 # tiny seed 3, reference 2x coarser
     toml = mission / "mission.toml"
     toml.write_text(toml.read_text() + '\n[reference]\northo = "ref.tif"\n')

@@ -127,7 +127,7 @@ def _mirror_vs_truth(rect_dir, mission):
     import numpy as np
     import rasterio
     from swathflow.formats.raster import read_raster
-    from swathflow.rectification.rectify import shift_report
+    from shifts import shift_report
     from truth_ortho import overlap_with_truth
     truth = read_raster(mission / "truth" / "ortho.tif", masked_to_nan=True)
     with rasterio.open(rect_dir / "M1.tif") as src:

@@ -63,7 +63,7 @@ def test_geometry_only_bundle_and_truth(tmp_path):
 def test_cli_simulate_validate_rectify_nadir_against_truth(tmp_path):
     from swathflow.flows.cli import main
     from swathflow.formats.raster import read_raster
-    from swathflow.rectification.rectify import phase_shift
+    from shifts import phase_shift
     import rasterio
     mission = tmp_path / "mission"
     assert main(["simulate", str(mission), "--preset", "pushbroom", "--seed", "3"]) == 0

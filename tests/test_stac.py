@@ -93,14 +93,16 @@ def test_catalogue_validates_and_describes_the_products(tmp_path, offline):
     assert Path(path) == run / "stac" / "catalog.json"
     assert not [p for p in run.iterdir() if p.name.startswith(".")]   # no temporary left
     cat = pystac.Catalog.from_file(path)
-    items = {i.id: i for i in cat.get_items()}
+    # ids in lower case (catalogue linters ask for it), the image id as given beside
+    items = {i.properties["swathflow:image_id"]: i for i in cat.get_items(recursive=True)}
     assert set(items) == {"L1", "R1", "mosaic"}
+    assert {i.id for i in items.values()} == {"l1", "r1", "mosaic"}
     for item in items.values():
         d = json.loads(Path(item.self_href).read_text())
         validate_dict(d, extensions=[])          # STAC core item schema, shipped in pystac
         used = validate_extensions(d)           # extension schemas, held offline
         assert {u.split("/")[3] for u in used} >= {"projection", "raster", "processing"}
-        assert ("eo" in {u.split("/")[3] for u in used}) == (item.id == "L1")
+        assert {u.split("/")[3] for u in used} >= {"eo", "file"}
         assert PROCESSING_SCHEMA in d["stac_extensions"]
         assert d["properties"]["processing:software"]["swathflow"]
         assert d["properties"]["processing:level"]
@@ -121,7 +123,8 @@ def test_catalogue_validates_and_describes_the_products(tmp_path, offline):
     validate_dict(json.loads(Path(path).read_text()), extensions=[])
     # wavelengths where known (L1 has a band tag), none invented for R1
     assert EOExtension.ext(items["L1"].assets["data"]).bands[0].center_wavelength == 10.5
-    assert "eo:bands" not in items["R1"].assets["data"].extra_fields
+    assert [b.center_wavelength for b in EOExtension.ext(items["R1"].assets["data"]).bands] \
+        == [None]
     assert items["mosaic"].assets["mosaic-report"].get_absolute_href() == str(run / "mosaic.json")
     # footprints are the valid data, not the bounding box
     for iid, c in {**corners, "mosaic": mosaic_corners}.items():
@@ -143,9 +146,9 @@ def test_rewrite_replaces_the_catalogue_whole(tmp_path, offline):
     write_catalog([tmp_path / "rectified" / "A.tif", tmp_path / "rectified" / "B.tif"],
                   None, tmp_path / "stac")
     path = write_catalog([tmp_path / "rectified" / "A.tif"], None, tmp_path / "stac")
-    ids = {i.id for i in pystac.Catalog.from_file(path).get_items()}
-    assert ids == {"A"}
-    assert not (tmp_path / "stac" / "B").exists()
+    ids = {i.id for i in pystac.Catalog.from_file(path).get_items(recursive=True)}
+    assert ids == {"a"}
+    assert not list((tmp_path / "stac").rglob("b.json"))
 
 
 @pytest.mark.parametrize("where, key, bad", [
@@ -164,7 +167,7 @@ def test_extension_schemas_reject_wrong_fields(tmp_path, offline, where, key, ba
     _write_swing(tmp_path / "r" / "L1.tif", _rotated(300, 200, 400, 100, 10),
                  band_tags={"wavelength": "10.5"})
     path = write_catalog([tmp_path / "r" / "L1.tif"], None, tmp_path / "stac")
-    item = next(pystac.Catalog.from_file(path).get_items())
+    item = next(pystac.Catalog.from_file(path).get_items(recursive=True))
     d = json.loads(Path(item.self_href).read_text())
     validate_extensions(d)
     if where == "properties":
@@ -190,13 +193,13 @@ def test_facts_recorded_with_a_swing_describe_it_until_it_changes(tmp_path, offl
     assert facts is not None
     when = dt.datetime(2026, 5, 1, tzinfo=dt.UTC)
     cat = write_catalog([path], None, tmp_path / "stac", facts={"L1": facts}, acquired=when)
-    item = next(pystac.Catalog.from_file(cat).get_items())
+    item = next(pystac.Catalog.from_file(cat).get_items(recursive=True))
     validate_dict(item.to_dict(), extensions=[])
     validate_extensions(item.to_dict())
     assert _iou(shape(item.geometry), _truth_lonlat(corners)) > 0.98
     assert item.properties["swathflow:image_id"] == "L1"
     again = write_catalog([path], None, tmp_path / "stac2", acquired=when)   # from the file
-    read = next(pystac.Catalog.from_file(again).get_items()).to_dict()
+    read = next(pystac.Catalog.from_file(again).get_items(recursive=True)).to_dict()
     given = item.to_dict()
     for d in (read, given):
         d["properties"].pop("created")
@@ -204,3 +207,152 @@ def test_facts_recorded_with_a_swing_describe_it_until_it_changes(tmp_path, offl
     assert read == given
     _write_swing(path, _rotated(300, 200, 400, 100, -10))     # the swing rewritten
     assert recorded_facts(path) is None
+
+
+# ---- the ecosystem's conventions (issue 46) --------------------------------------------
+GPS_WEEK_2317 = dt.datetime(2024, 6, 2, tzinfo=dt.UTC)      # GPS week 2317 began on Sunday
+
+
+def _swings_with_times(tmp_path, n=3):
+    """``n`` synthetic swings over one scene (different DN so that slices differ) and
+    their acquisition spans, one minute apart."""
+    (tmp_path / "r").mkdir(exist_ok=True)
+    paths, spans = [], {}
+    for k in range(n):
+        p = tmp_path / "r" / f"S{k}.tif"
+        _write_swing(p, _rotated(300, 200, 520, 140, 10 * k),
+                     tags={"image_id": f"S{k}"})
+        with rasterio.open(p, "r+", IGNORE_COG_LAYOUT_BREAK="YES") as dst:
+            dst.set_band_description(1, "red")
+            dst.update_tags(1, fwhm="0.05", wavelength="0.66")
+        start = dt.datetime(2024, 6, 5, 12, k, tzinfo=dt.UTC)
+        spans[f"S{k}"] = (start, start + dt.timedelta(seconds=20))
+        paths.append(p)
+    return paths, spans
+
+
+def test_items_carry_acquisition_times_bands_files_and_a_collection(tmp_path, offline):
+    import hashlib
+    paths, spans = _swings_with_times(tmp_path)
+    (tmp_path / "m.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    cat = write_catalog(paths, paths[0], tmp_path / "stac", spans=spans,
+                        quicklook=tmp_path / "m.png", catalog_id="Sim Mission")
+    root = pystac.Catalog.from_file(cat)
+    (col,) = list(root.get_children())
+    assert isinstance(col, pystac.Collection) and col.id == "sim-mission-products"
+    items = {i.properties["swathflow:image_id"]: i for i in col.get_items()}
+    for name, (start, end) in spans.items():
+        item = items[name]
+        assert item.common_metadata.start_datetime == start
+        assert item.common_metadata.end_datetime == end
+        assert item.datetime == start + (end - start) / 2
+        eo = EOExtension.ext(item.assets["data"]).bands
+        assert [(b.name, b.center_wavelength, b.full_width_half_max) for b in eo] == \
+            [("red", 0.66, 0.05)]
+        data = item.assets["data"]
+        raw = Path(data.get_absolute_href()).read_bytes()
+        assert data.extra_fields["file:size"] == len(raw)
+        assert data.extra_fields["file:checksum"] == "1220" + hashlib.sha256(raw).hexdigest()
+        assert item.properties["proj:code"] == CRS
+    mos = items["mosaic"]
+    assert mos.common_metadata.start_datetime == min(s for s, _ in spans.values())
+    assert mos.common_metadata.end_datetime == max(e for _, e in spans.values())
+    assert "thumbnail" in mos.assets["thumbnail"].roles
+    assert col.extent.temporal.intervals == [[min(s for s, _ in spans.values()),
+                                             max(e for _, e in spans.values())]]
+    assert col.item_assets["data"].media_type.startswith("image/tiff")
+    assert col.summaries.get_list("proj:code") == [CRS]
+    assert col.summaries.get_list("eo:bands") == [{"name": "red"}]
+    assert not [p.name for p in (tmp_path / "stac").rglob("*") if "swathflow" in p.name]
+
+
+def test_odc_stac_and_stackstac_load_the_pixels_of_the_cogs(tmp_path, offline):
+    """The real clients, no extra arguments: odc-stac keeps one time slice per swing
+    (groupby time), and both give the files' pixels on the files' grid."""
+    import odc.stac
+    import stackstac
+    paths, spans = _swings_with_times(tmp_path)
+    cat = write_catalog(paths, None, tmp_path / "stac", spans=spans)
+    items = list(pystac.Catalog.from_file(cat).get_items(recursive=True))
+    truth = {}
+    for p in paths:
+        with rasterio.open(p) as src:
+            truth[p.stem.lower()] = src.read(1)
+    ds = odc.stac.load(items, groupby="time")
+    assert ds.sizes["time"] == len(paths)
+    order = sorted(items, key=lambda i: i.datetime)
+    for k, item in enumerate(order):
+        got = ds["data"].isel(time=k).values
+        assert got.shape == truth[item.id].shape
+        assert np.array_equal(got, truth[item.id])
+    # stackstac 0.5.1 reads only projection v1's proj:epsg, which the projection v2.0.0
+    # schema the items declare forbids (and pystac's reader migrates away): without it, it
+    # needs the grid given (epsg=, resolution=, bounds=), read here from the items' own
+    # proj fields
+    epsg = {int(i.properties["proj:code"].split(":")[1]) for i in items}
+    bounds = {tuple(i.properties["proj:bbox"]) for i in items}
+    res = {i.properties["proj:transform"][0] for i in items}
+    assert len(epsg) == len(bounds) == len(res) == 1
+    for item in items:              # stackstac opens the hrefs as they are: resolve them
+        item.make_asset_hrefs_absolute()
+    arr = stackstac.stack(items, epsg=epsg.pop(), resolution=res.pop(), bounds=bounds.pop(),
+                          dtype="uint16", fill_value=np.uint16(0), rescale=False).compute()
+    assert arr.sizes["time"] == len(paths)
+    for k, iid in enumerate(arr["id"].values):
+        assert np.array_equal(arr.isel(time=k, band=0).values, truth[str(iid)])
+
+
+class _LocalSchemas(pystac.stac_io.DefaultStacIO):
+    """pystac's reader with the extension schemas held in tests/data/stac-schemas."""
+
+    def read_text(self, source, *args, **kwargs):
+        from stac_schemas import SCHEMAS
+        href = str(source)
+        if href.startswith("https://stac-extensions.github.io/"):
+            return (SCHEMAS / href.removeprefix("https://")).read_text(encoding="utf-8")
+        return super().read_text(source, *args, **kwargs)
+
+
+def test_catalogue_validates_offline_with_pystac_and_stac_validator(tmp_path, offline):
+    from stac_schemas import validator_schema_map
+    from stac_validator.stac_validator import StacValidate
+    paths, spans = _swings_with_times(tmp_path)
+    cat = write_catalog(paths, paths[0], tmp_path / "stac", spans=spans)
+    pystac.StacIO.set_default(_LocalSchemas)
+    try:
+        root = pystac.Catalog.from_file(cat)
+        assert root.validate_all() == len(paths) + 1          # items validated
+    finally:
+        pystac.StacIO.set_default(pystac.stac_io.DefaultStacIO)
+    schema_map = validator_schema_map()
+    docs = sorted((tmp_path / "stac").rglob("*.json"))
+    assert len(docs) == 1 + 1 + len(paths) + 1          # catalogue, collection, items
+    for doc in docs:
+        v = StacValidate(str(doc), schema_map=schema_map)
+        assert v.run(), (doc, v.message)
+    # and it can fail: a field the projection schema forbids
+    bad = json.loads(docs[-1].read_text())
+    bad["properties"]["proj:epsg"] = 32633
+    docs[-1].write_text(json.dumps(bad))
+    v = StacValidate(str(docs[-1]), schema_map=schema_map)
+    assert not v.run() and "proj:epsg" in v.message[0]["error_message"]
+
+
+@pytest.mark.parametrize("seconds, day, expected", [
+    (302400.0, dt.date(2024, 6, 5), dt.datetime(2024, 6, 5, 11, 59, 42, tzinfo=dt.UTC)),
+    (0.0, dt.date(2024, 6, 2), GPS_WEEK_2317 - dt.timedelta(seconds=18)),
+    (86400.0 * 6 + 3600, dt.date(2016, 12, 31),                    # before the 2017 leap
+     dt.datetime(2016, 12, 31, 0, 59, 43, tzinfo=dt.UTC)),
+])
+def test_gps_seconds_of_week_on_the_flight_date(seconds, day, expected):
+    from swathflow.formats.gpstime import gps_seconds_of_week_to_utc, week_start
+    assert week_start(dt.date(2024, 6, 5)) == dt.datetime(1980, 1, 6, tzinfo=dt.UTC) \
+        + dt.timedelta(weeks=2317)
+    assert gps_seconds_of_week_to_utc(seconds, day) == expected
+
+
+def test_a_flight_date_that_does_not_hold_the_pos_is_refused():
+    from swathflow.formats.gpstime import date_mismatch
+    assert date_mismatch(302400.0, dt.date(2024, 6, 5)) is None
+    assert "Wednesday" in date_mismatch(302400.0, dt.date(2024, 6, 4))
+    assert "GPS second of week" in date_mismatch(-5.0, dt.date(2024, 6, 5))

@@ -8,7 +8,7 @@ import sys
 
 SCRIPT = r"""
 import sys
-from numba.core.registry import CPUDispatcher
+from numba.extending import is_jitted
 from swathflow.ingest.mission import load_mission
 from swathflow.rectification import api, halve
 m = load_mission(sys.argv[1])
@@ -18,7 +18,7 @@ from swathflow.rectification import tifflayout
 
 def state():
     kernels = {n: len(getattr(halve, n).overloads) for n in dir(halve)
-               if isinstance(getattr(halve, n), CPUDispatcher)}
+               if is_jitted(getattr(halve, n))}
     return (len(api._RIO_TEMPLATES), sorted(map(repr, tifflayout._NODATA_TILES)), kernels,
             sorted(m for m in sys.modules if m.startswith("swathflow")))
 

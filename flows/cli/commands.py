@@ -35,6 +35,9 @@ def validate(args) -> int:
     """``swathflow validate MISSION``: every problem with its fix; exit 2 if any."""
     from swathflow.ingest.mission import format_problems, inspect_mission
     problems, p = inspect_mission(args.mission)
+    if not [pr for pr in problems if pr.level != "warning"]:
+        from swathflow.flows.guard import band_problems
+        problems += band_problems(p)        # what rectify would refuse
     errors = [pr for pr in problems if pr.level != "warning"]
     if errors:
         print(format_problems(args.mission, problems))
@@ -118,9 +121,8 @@ def calibrate(args) -> int:
 def rectify(args) -> int:
     """``swathflow rectify MISSION [--calibration FILE] --out DIR``: one COG per image,
     each ``swathflow.to_cog(swathflow.rectify(...))`` (through ``rectify_mission``)."""
-    from swathflow.startup import uncollected
+    from swathflow.collector import uncollected
     with uncollected():
-        _lean_imports()
         from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
     if not args.calibration and not getattr(args, "quiet", False):
@@ -137,29 +139,9 @@ def rectify(args) -> int:
     return 0
 
 
-def _lean_imports() -> None:
-    """Load ``dask.array`` without the parts it imports for features no rectification
-    uses (``scipy.fftpack``, ``scipy.sparse``, and ``jinja2`` of dask's notebook HTML
-    views: 0.15 CPU-s on the command's serial start, before its workers fork), and
-    without building its docstrings from numpy's (0.16 CPU-s more; see
-    :mod:`swathflow.startup`). Only the process of the command (rectify, run, demo) is
-    concerned; the modules held back stay importable (Prefect imports jinja2 later).
-    numba's compiled kernels load from their cache without its compiler's contexts
-    (:mod:`swathflow.jit`)."""
-    from swathflow.startup import import_without, underived_docstrings
-    held = ("scipy.fftpack", "scipy.sparse", "jinja2")
-    import_without(held, "dask")            # dask.utils, for underived_docstrings
-    with underived_docstrings():
-        import_without(held, "dask.array")
-
-
 def _flow_run():
-    """The flow's ``run``, its module imported with Prefect's notification and webhook
-    block models left unrun until used (``import prefect`` defines them, 0.3-0.7 CPU-s on
-    the run's serial start; a flow run never uses them; see :mod:`swathflow.startup`)."""
-    from swathflow.startup import lazy_modules
-    with lazy_modules(("prefect.blocks.notifications", "prefect.blocks.webhook")):
-        from swathflow.flows.mission import run
+    """The flow's ``run``."""
+    from swathflow.flows.mission import run
     return run
 
 
@@ -243,24 +225,21 @@ def run(args) -> int:
               f"(products in {os.path.abspath(args.out)})")
         return 0
     _checked(args.mission, args.calibration)
-    from swathflow.tasks.ahead import in_background
-    with in_background():       # a new install: the mosaic's kernels compiled meanwhile
-        run_flow = _served_flow()
-        result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
-                          args.cluster, args.jobs)
+    run_flow = _served_flow()
+    result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
+                      args.cluster, args.jobs)
     _print_summary(result, args)
     return 0
 
 
 def _checked(mission, calibration) -> None:
     """The first steps of ``swathflow run``: Prefect's standby spawned (its server code
-    imported from now on, on the other core), ``dask.array`` imported lean, and the inputs
-    checked (bad input is told here, before Prefect and Dask start)."""
+    imported from now on, on the other core) and the inputs checked (bad input is told
+    here, before Prefect and Dask start)."""
     from swathflow.flows import standby
     standby.start()
-    from swathflow.startup import uncollected
+    from swathflow.collector import uncollected
     with uncollected(freeze=False):
-        _lean_imports()
         from swathflow.flows.guard import check_run_inputs
         check_run_inputs(mission, calibration)
 
@@ -270,7 +249,7 @@ def _served_flow():
     modules are imported) and the flow's ``run``; the objects made until then (the
     checked mission, Prefect's modules) frozen out of the collector's reach."""
     from swathflow.flows import standby
-    from swathflow.startup import uncollected
+    from swathflow.collector import uncollected
     with uncollected():
         standby.serve()
         return _flow_run()
@@ -279,7 +258,7 @@ def _served_flow():
 def _first_run_notice(args) -> None:
     """Say so when numba's cache is empty (a new install or clone): the kernels are
     compiled for this machine during the run, once."""
-    from swathflow.jit import cached
+    from swathflow.kernelcache import cached
     from swathflow.rectification.paint import paint_window    # every run calls it
     if not cached(paint_window):
         _echo(args, "first run of this install: numba compiles swathflow's kernels for this "
@@ -287,25 +266,58 @@ def _first_run_notice(args) -> None:
               "load them from its cache)", file=sys.stderr)
 
 
+#: what ``swathflow demo`` writes into its folder (and the output lock): the folder may be
+#: marked ignored by git only when it holds nothing else
+DEMO_ENTRIES = frozenset({"mission", "products", ".gitignore", ".swathflow.lock"})
+
+
+def ignored_by_git(folder: Path) -> None:
+    """Mark the demo's folder ignored by git (a ``.gitignore`` of ``*``, as pytest marks its
+    cache), so that a demo run inside a clone leaves ``git status`` clean. A folder holding
+    anything the demo does not write (a person's own folder given as ``--out``) is left
+    alone."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if {p.name for p in folder.iterdir()} <= DEMO_ENTRIES and not (folder / ".gitignore").exists():
+        from swathflow.io import write_text
+        write_text(folder / ".gitignore", "# written by 'swathflow demo': ignore this folder\n*\n")
+
+
+def demo_products(result: dict) -> list[tuple[str, str]]:
+    """(what, path) of the products a person opens first after the demo, those that exist:
+    the mosaic's HTML report and quicklook, then the calibration report."""
+    found = []
+    mosaic = result.get("mosaic")
+    if mosaic:
+        stem = os.path.splitext(os.path.abspath(mosaic))[0]
+        found += [("mosaic report", stem + ".html"), ("mosaic quicklook", stem + ".png")]
+    if result.get("report"):
+        found.append(("calibration report", os.path.abspath(result["report"])))
+    return [(what, path) for what, path in found if os.path.exists(path)]
+
+
+def demo_summary(result: dict, seconds: float) -> str:
+    """The demo's closing lines: its time and the products to open first, with paths."""
+    lines = [f"demo finished in {seconds:.0f} s; open these first:"]
+    lines += [f"  {what:<19} {path}" for what, path in demo_products(result)]
+    return "\n".join(lines)
+
+
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
     from swathflow.flows import standby
     standby.start()     # Prefect's server code imported meanwhile, on the other core
-    _lean_imports()
+    out = Path(args.out).resolve()
+    ignored_by_git(out)
     run_flow = _flow_run()
     from swathflow.simulation import simulate as simulate_mission
-    out = Path(args.out).resolve()
     mission = out / "mission"
     t0 = time.perf_counter()
     _first_run_notice(args)
-    from swathflow.tasks.ahead import in_background
-    with in_background():       # a new install: the mosaic's kernels compiled meanwhile
-        if not (mission / "mission.toml").exists():
-            _echo(args, f"simulating the {args.preset} mission into {mission} ...",
-                  file=sys.stderr)
-            simulate_mission(mission, preset=args.preset, seed=0)
-        result = run_flow(mission, out / "products")
+    if not (mission / "mission.toml").exists():
+        _echo(args, f"simulating the {args.preset} mission into {mission} ...",
+              file=sys.stderr)
+        simulate_mission(mission, preset=args.preset, seed=0)
+    result = run_flow(mission, out / "products")
     _print_summary(result, args)
-    _echo(args, f"demo finished in {time.perf_counter() - t0:.0f} s; open "
-          f"{result.get('report') or ''}")
+    _echo(args, demo_summary(result, time.perf_counter() - t0))
     return 0

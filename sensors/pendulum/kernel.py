@@ -11,7 +11,7 @@ import numpy as np
 
 from swathflow.geometry.navkernel import body_to_ecef, line_at, pos_epoch
 from swathflow.geometry.planesolve import bracket_one
-from swathflow.jit import njit
+from numba import njit
 
 DEG = math.pi / 180.0
 

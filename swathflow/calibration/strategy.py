@@ -155,6 +155,8 @@ def _dropped(result) -> list[tuple[str, str]]:
     """(point id, image id) of the control observations a result could not compute."""
     inner = getattr(result, "result", result)       # a reference calibration wraps one
     res = getattr(inner, "residuals", None)
+    if res is None:
+        return []
     try:
         after = res[(res["stage"] == "after") & (res["role"] != "check")]
         bad = after[after["x"].isna() | after["y"].isna()]

@@ -13,52 +13,17 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from swathflow.errors import FormatError, OutOfRangeError
+from swathflow.errors import OutOfRangeError
+from swathflow.formats.navigation import read
+from swathflow.formats.navigation.csv import read_pos_csv, write_pos_csv
+from swathflow.formats.navigation.sbet import SBET_DTYPE, SBET_FIELDS, read_sbet, write_sbet
+from swathflow.formats.posdata import POS_VARIABLES, check_trajectory, pos_dataset
 from swathflow.geometry.geodesy import geodetic_to_ecef
-
-POS_VARIABLES = ("lat", "lon", "h", "roll", "pitch", "heading")
-
-
-def _dataset(time, lat, lon, h, roll, pitch, heading, source: str, check: bool = True) -> xr.Dataset:
-    # float64 ndarrays wrapped as they are (fastpath): xarray's general conversion asks
-    # whether each array is a dask array, which imports dask.array (0.4-1 CPU-s) in a
-    # process that needs no dask, e.g. the mission check of `swathflow run`
-    data = {k: xr.Variable(("time",), np.asarray(v, dtype=float), fastpath=True) for k, v in
-            zip(POS_VARIABLES, (lat, lon, h, roll, pitch, heading))}
-    ds = xr.Dataset(data, coords={"time": xr.Variable(("time",), np.asarray(time, dtype=float),
-                                                      fastpath=True)},
-                    attrs={"source": source})
-    for k in ("lat", "lon", "roll", "pitch", "heading"):
-        ds[k].attrs["units"] = "deg"
-    ds["h"].attrs["units"] = "m"
-    ds["h"].attrs["long_name"] = "ellipsoidal height"
-    ds["heading"].attrs["long_name"] = "true heading, clockwise from north"
-    ds["time"].attrs["units"] = "s"
-    return check_trajectory(ds, source) if check else ds
-
-
-def check_trajectory(ds: xr.Dataset, source: str = "trajectory") -> xr.Dataset:
-    """Raise :class:`FormatError` unless times increase strictly and values are finite."""
-    t = ds["time"].values
-    if t.size < 2:
-        raise FormatError(f"{source}: a trajectory needs at least 2 epochs, found {t.size}")
-    bad = np.flatnonzero(np.diff(t) <= 0)
-    if bad.size:
-        raise FormatError(f"{source}: times must increase strictly; epoch {bad[0] + 1} "
-                          f"(t={t[bad[0] + 1]!r}) does not follow {t[bad[0]]!r}")
-    for k in POS_VARIABLES:
-        nan = np.flatnonzero(~np.isfinite(ds[k].values))
-        if nan.size:
-            raise FormatError(f"{source}: {k} is not finite at epoch {nan[0]} "
-                              f"({nan.size} epochs in all)")
-    return ds
-
 
 def read_pos(path, format: str | None = None, **options) -> xr.Dataset:
     """Read a POS trajectory with the registered reader for ``format`` (a name such as
     ``"sbet"``, ``"csv"``, ``"lcf"``, ``"ascii"`` or a plugin's; default: from the suffix).
     ``options`` go to the reader (docs/navigation-formats.md)."""
-    from swathflow.formats.navigation import read
     return read(path, format, **options)
 
 
@@ -140,11 +105,11 @@ class Trajectory:
 
     def to_dataset(self) -> xr.Dataset:
         if self.source is not None:
-            return _dataset(self.time, *(self.source[k] for k in POS_VARIABLES), "trajectory")
+            return pos_dataset(self.time, *(self.source[k] for k in POS_VARIABLES), "trajectory")
         from swathflow.geometry.geodesy import ecef_to_geodetic
         llh = ecef_to_geodetic(self.ecef)
         heading = (self.attitude[:, 2] + 180.0) % 360.0 - 180.0
-        return _dataset(self.time, llh[:, 0], llh[:, 1], llh[:, 2], self.attitude[:, 0],
+        return pos_dataset(self.time, llh[:, 0], llh[:, 1], llh[:, 2], self.attitude[:, 0],
                         self.attitude[:, 1], heading, "trajectory")
 
 
@@ -153,7 +118,7 @@ def interpolate_pos(ds: xr.Dataset | Trajectory, times, max_gap: float = 1.0) ->
     one, e.g. ``Mission.trajectory``) to ``times``; returns a Dataset over ``time``
     (:func:`pos_columns` wrapped)."""
     cols = pos_columns(ds, times, max_gap)
-    return _dataset(np.asarray(times, dtype=float), *(cols[k] for k in POS_VARIABLES),
+    return pos_dataset(np.asarray(times, dtype=float), *(cols[k] for k in POS_VARIABLES),
                     "interpolated", check=False)
 
 
@@ -167,10 +132,6 @@ def pos_columns(ds: xr.Dataset | Trajectory, times, max_gap: float = 1.0) -> dic
             "h": ecef_to_geodetic(r["ecef"])[..., 2], "roll": r["roll"], "pitch": r["pitch"],
             "heading": (r["heading"] + 180.0) % 360.0 - 180.0}
 
-
-# the built-in readers, where they have always been importable from
-from swathflow.formats.navigation.csv import read_pos_csv, write_pos_csv  # noqa: E402
-from swathflow.formats.navigation.sbet import SBET_DTYPE, SBET_FIELDS, read_sbet, write_sbet  # noqa: E402
 
 __all__ = ["POS_VARIABLES", "SBET_DTYPE", "SBET_FIELDS", "Trajectory", "check_trajectory",
            "interpolate_pos", "pos_columns", "read_pos", "read_pos_csv", "read_sbet",

@@ -1,10 +1,19 @@
-"""A STAC catalogue of a run's products (pystac): one item per rectified swing, one for
-the mosaic.
+"""A STAC catalogue of a run's products (pystac): a root catalogue (``catalog.json``) holding
+one collection (the mission), with one item per rectified swing and one for the mosaic.
 
-Each item carries the projection extension (code, shape, transform, native bbox), the raster
-extension on its data asset (per band: nodata, data type, resolution), the eo extension where
-wavelengths are known, and the processing extension v1.0.0 (software, level, lineage; the
-processing time is the core ``created`` field); the calibration and its report are assets.
+Each item's ``datetime`` is its acquisition time (the middle of its lines' times, GPS seconds
+of week placed on the mission's ``[mission] date``; see :mod:`swathflow.formats.gpstime`),
+with ``start_datetime``/``end_datetime``; without a date, the processing time. Each item
+carries the projection extension v2.0.0 (``proj:code``, shape, transform, native bbox; its
+schema forbids v1's ``proj:epsg``, which stackstac 0.5 reads: give it ``epsg=``), the
+raster extension on its
+data asset (per band: nodata, data type, resolution), the eo extension with the file's band
+names (and centre wavelength and FWHM where known), the file extension (size and sha256
+multihash of every local asset) and the processing extension v1.0.0 (software, level,
+lineage; the processing time is the core ``created`` field); the calibration, its report
+and the mosaic's quicklook (role ``thumbnail``) are assets. The collection declares
+``item_assets`` and summaries. Ids are lower case (``[a-z0-9_-]``); the image id as given is
+the item's ``swathflow:image_id``.
 Footprints are polygons of the valid data (the nodata mask traced with
 ``rasterio.features.shapes`` on a decimated mask, simplified to about one decimated pixel,
 in EPSG:4326), not bounding boxes. The catalogue folder is written beside the products and
@@ -16,6 +25,7 @@ import contextlib
 import datetime as dt
 import math
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -25,6 +35,7 @@ import numpy as np
 #: v1.0.0: the version whose JSON schema the tests hold offline (tests/data/stac-schemas);
 #: it has no processing:datetime, so the processing time is the core ``created`` field
 PROCESSING_SCHEMA = "https://stac-extensions.github.io/processing/v1.0.0/schema.json"
+FILE_SCHEMA = "https://stac-extensions.github.io/file/v2.1.0/schema.json"
 COG = "image/tiff; application=geotiff; profile=cloud-optimized"
 MAX_MASK = 1024          # footprints are traced on a mask at most this many pixels across
 
@@ -93,6 +104,10 @@ def _raster_bands(src) -> list:
     return bands
 
 
+def _micrometres(value: str, units: str) -> float:
+    return float(value) / 1000.0 if units.lower().startswith("nan") else float(value)
+
+
 def _wavelengths(src, given) -> list | None:
     """Band centre wavelengths (micrometres): given, else band tags ``wavelength``."""
     if given is not None:
@@ -102,10 +117,22 @@ def _wavelengths(src, given) -> list | None:
         tags = {k.lower(): v for k, v in src.tags(b).items()}
         if "wavelength" not in tags:
             return None
-        w = float(tags["wavelength"])
-        units = tags.get("wavelength_units", "micrometers").lower()
-        found.append(w / 1000.0 if units.startswith("nan") else w)
+        found.append(_micrometres(tags["wavelength"], tags.get("wavelength_units", "um")))
     return found
+
+
+def _eo_bands(src) -> list[dict]:
+    """Per band: its name (the file's band description, else ``b<i>``) and, from the band
+    tags, its full width at half maximum in micrometres where known."""
+    out = []
+    for b in range(1, src.count + 1):
+        tags = {k.lower(): v for k, v in src.tags(b).items()}
+        band = {"name": (src.descriptions[b - 1] or f"b{b}")}
+        if "fwhm" in tags:
+            band["full_width_half_max"] = _micrometres(tags["fwhm"],
+                                                       tags.get("wavelength_units", "um"))
+        out.append(band)
+    return out
 
 
 def raster_facts(path, valid=None) -> dict:
@@ -122,12 +149,37 @@ def raster_facts(path, valid=None) -> dict:
         return {"geometry": geom, "resolution": res, "proj": _proj(src),
                 "bands": [b.to_dict() for b in _raster_bands(src)],
                 "wavelengths": _wavelengths(src, None), "count": src.count,
+                "eo_bands": _eo_bands(src),
                 "tags": {k: v for k, v in src.tags().items()
                          if k in ("image_id", "strip", "direction", "mission", "sensor")}}
 
 
-def _item(path: str, item_id: str, when: dt.datetime, level: str, lineage: str,
+def item_id(image_id: str) -> str:
+    """The STAC id of a product named ``image_id``: lower case, ``[a-z0-9_-]`` (what
+    catalogue linters ask for); the name as given stays in ``swathflow:image_id``."""
+    return re.sub(r"[^a-z0-9_-]+", "-", image_id.lower()).strip("-") or "item"
+
+
+def _iso(when: dt.datetime) -> str:
+    return when.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
+
+
+def _file_fields(path: str) -> dict:
+    """The file extension's size and checksum (sha256 as a multihash) of a local file."""
+    from swathflow.cache import file_digest
+    return {"file:size": os.path.getsize(path), "file:checksum": "1220" + file_digest(path)}
+
+
+def _asset(path: str, media: str, roles: list[str], title: str):
+    import pystac
+    return pystac.Asset(os.path.abspath(path), media_type=media, roles=roles, title=title,
+                        extra_fields=_file_fields(path))
+
+
+def _item(path: str, name: str, span, when: dt.datetime, level: str, lineage: str,
           wavelengths=None, properties: Mapping | None = None, facts: Mapping | None = None):
+    """The item of the COG ``path`` named ``name``: acquired over ``span`` (start, end: UTC
+    datetimes) or, without one, at ``when``."""
     import pystac
     from pystac.extensions.eo import Band, EOExtension
     from pystac.extensions.projection import ProjectionExtension
@@ -139,30 +191,34 @@ def _item(path: str, item_id: str, when: dt.datetime, level: str, lineage: str,
     waves = [float(w) for w in wavelengths] if wavelengths is not None else facts["wavelengths"]
     count = facts["count"]
     props = {"processing:software": {"swathflow": __version__}, "processing:level": level,
-             "processing:lineage": lineage,
-             "created": dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z"),
+             "processing:lineage": lineage, "created": _iso(dt.datetime.now(dt.UTC)),
              "swathflow:footprint_resolution": res}
     props.update({f"swathflow:{k}": v for k, v in facts["tags"].items()})
+    props["swathflow:image_id"] = name
     props.update(properties or {})
-    item = pystac.Item(item_id, geom, _bbox(geom), when, props)
-    item.stac_extensions.append(PROCESSING_SCHEMA)
+    if span is not None:
+        start, end = span
+        when = start + (end - start) / 2
+        props.update(start_datetime=_iso(start), end_datetime=_iso(end))
+    item = pystac.Item(item_id(name), geom, _bbox(geom), when, props)
+    item.stac_extensions += [PROCESSING_SCHEMA, FILE_SCHEMA]
     ProjectionExtension.ext(item, add_if_missing=True).apply(**proj)
-    asset = pystac.Asset(os.path.abspath(path), media_type=COG, roles=["data"],
-                         title=os.path.basename(path))
+    asset = _asset(path, COG, ["data"], os.path.basename(path))
     item.add_asset("data", asset)
     RasterExtension.ext(asset, add_if_missing=True).apply(bands)
-    if waves is not None and len(waves) == count:
-        EOExtension.ext(asset, add_if_missing=True).apply(bands=[
-            Band.create(name=f"b{i + 1}", center_wavelength=w) for i, w in enumerate(waves)])
+    named = facts.get("eo_bands") or [{"name": f"b{i + 1}"} for i in range(count)]
+    eo = [Band.create(name=b["name"], full_width_half_max=b.get("full_width_half_max"),
+                      center_wavelength=(waves[i] if waves is not None and len(waves) == count
+                                         else None))
+          for i, b in enumerate(named)]
+    EOExtension.ext(asset, add_if_missing=True).apply(bands=eo)
     return item
 
 
-def _side_assets(item, assets: Mapping[str, tuple[str, str, str]]) -> None:
-    import pystac
-    for key, (path, media, title) in assets.items():
+def _side_assets(item, assets: Mapping[str, tuple[str, str, str, list[str]]]) -> None:
+    for key, (path, media, title, roles) in assets.items():
         if path and os.path.exists(path):
-            item.add_asset(key, pystac.Asset(os.path.abspath(path), media_type=media,
-                                             roles=["metadata"], title=title))
+            item.add_asset(key, _asset(os.fspath(path), media, roles, title))
 
 
 def _swap_in(tmp: str, out: str) -> None:
@@ -177,51 +233,99 @@ def _swap_in(tmp: str, out: str) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def _collection(collection_id: str, title: str, items: list):
+    """The mission's collection: its extents from the items, ``item_assets`` describing
+    the items' data asset, and summaries of their bands, CRS codes and resolutions."""
+    import pystac
+    from pystac.extensions.projection import ProjectionExtension  # noqa: F401 (fields)
+    from shapely.geometry import shape
+    import shapely
+    whole = shapely.union_all([shape(i.geometry) for i in items if i.geometry])
+    starts = [i.common_metadata.start_datetime or i.datetime for i in items]
+    ends = [i.common_metadata.end_datetime or i.datetime for i in items]
+    extent = pystac.Extent(pystac.SpatialExtent([[float(v) for v in whole.bounds]]),
+                           pystac.TemporalExtent([[min(starts), max(ends)]]))
+    col = pystac.Collection(collection_id, f"Products of {title}: rectified swings and "
+                            "mosaic", extent, title=title, license="other")
+    data = [i.assets["data"] for i in items]
+    names = sorted({b["name"] for a in data for b in a.extra_fields.get("eo:bands", [])})
+    col.summaries.add("proj:code", sorted({i.properties["proj:code"] for i in items
+                                           if "proj:code" in i.properties}))
+    col.summaries.add("eo:bands", [{"name": n} for n in names])
+    col.summaries.add("processing:level", sorted({i.properties["processing:level"]
+                                                  for i in items}))
+    col.item_assets = {"data": pystac.ItemAssetDefinition.create(
+        title="the product (COG)", description="orthorectified swing or mosaic",
+        media_type=COG, roles=["data"])}
+    col.stac_extensions += [PROCESSING_SCHEMA, FILE_SCHEMA]
+    return col
+
+
 def write_catalog(rectified: Sequence, mosaic=None, out="stac", *, calibration=None,
                   report=None, mosaic_report=None, quicklook=None, title: str = "swathflow run",
                   catalog_id: str = "swathflow", acquired: dt.datetime | None = None,
-                  wavelengths: Mapping | None = None, facts: Mapping | None = None) -> str:
+                  spans: Mapping | None = None, wavelengths: Mapping | None = None,
+                  facts: Mapping | None = None) -> str:
     """Write a self-contained STAC catalogue of a run's products into the folder ``out``
-    and return the path of its ``catalog.json``.
+    and return the path of its ``catalog.json``: the root catalogue, holding the
+    collection ``catalog_id`` with the items.
 
-    ``rectified``: the per-swing COGs (item id: the file stem); ``mosaic``: the mosaic COG
-    (item ``mosaic``); ``calibration``, ``report``: assets of every item; ``mosaic_report``
-    (JSON or HTML) and ``quicklook`` (PNG): assets of the mosaic item. ``acquired``: the
-    acquisition time (the mission format has no date: default the processing time).
-    ``wavelengths``: item id -> band centre wavelengths in micrometres (default: band tags
-    ``wavelength``). ``facts``: item id -> :func:`raster_facts` of that product, already
-    known (the flow's rectify task records them); the others are read from the files.
+    ``rectified``: the per-swing COGs (named by their file stem); ``mosaic``: the mosaic
+    COG (item ``mosaic``); ``calibration``, ``report``: assets of every item;
+    ``mosaic_report`` (JSON or HTML) and ``quicklook`` (PNG, the thumbnail): assets of the
+    mosaic item. ``spans``: name -> (start, end) acquisition times (UTC datetimes) of the
+    swings; the mosaic spans them all. Items without a span are dated ``acquired``,
+    default the processing time. ``wavelengths``: name -> band centre wavelengths in
+    micrometres (default: band tags ``wavelength``). ``facts``: name -> :func:`raster_facts`
+    of that product, already known (the flow's rectify task records them); the others are
+    read from the files.
     """
     import pystac
     when = acquired or dt.datetime.now(dt.UTC)
+    spans = dict(spans or {})
     out = os.path.abspath(os.fspath(out))
     if "#" in out or "?" in out:    # pystac reads them as a URL's fragment or query: the
         from swathflow.errors import SwathflowError     # files would land elsewhere
         raise SwathflowError(f"{out}: a STAC catalogue cannot be written to a path with "
                              f"'#' or '?' (read as part of a URL): choose another folder")
-    cal_assets = {"calibration": (calibration, "application/json", "calibration parameters"),
-                  "report": (report, "text/html", "calibration report")}
-    catalog = pystac.Catalog(catalog_id, f"Products of {title}: rectified swings and mosaic",
-                             title=title)
+    cal_assets = {"calibration": (calibration, "application/json", "calibration parameters",
+                                  ["metadata"]),
+                  "report": (report, "text/html", "calibration report", ["metadata"])}
     wavelengths = wavelengths or {}
     facts = facts or {}
+    items, names = [], {}
     for path in rectified:
-        iid = os.path.splitext(os.path.basename(os.fspath(path)))[0]
-        item = _item(os.fspath(path), iid, when, "orthorectified swing",
+        name = os.path.splitext(os.path.basename(os.fspath(path)))[0]
+        item = _item(os.fspath(path), name, spans.get(name), when, "orthorectified swing",
                      "one swing orthorectified onto the terrain with the per-direction "
-                     "calibration", wavelengths.get(iid), facts=facts.get(iid))
+                     "calibration", wavelengths.get(name), facts=facts.get(name))
         _side_assets(item, cal_assets)
-        catalog.add_item(item)
+        items.append(item)
     if mosaic is not None:
-        item = _item(os.fspath(mosaic), "mosaic", when, "mosaic",
+        known = [spans[n] for n in (os.path.splitext(os.path.basename(os.fspath(p)))[0]
+                                    for p in rectified) if n in spans]
+        span = (min(s for s, _ in known), max(e for _, e in known)) if known else None
+        item = _item(os.fspath(mosaic), "mosaic", span, when, "mosaic",
                      f"{len(rectified)} rectified swings strip-matched and blended",
                      wavelengths.get("mosaic"), {"swathflow:swings": len(rectified)},
                      facts=facts.get("mosaic"))
         _side_assets(item, {**cal_assets,
                             "mosaic-report": (mosaic_report, _media(mosaic_report),
-                                              "mosaic report"),
-                            "overview": (quicklook, "image/png", "quicklook")})
-        catalog.add_item(item)
+                                              "mosaic report", ["metadata"]),
+                            "thumbnail": (quicklook, "image/png", "quicklook",
+                                          ["thumbnail", "overview"])})
+        items.append(item)
+    for item in items:
+        if item.id in names:
+            raise ValueError(f"products {names[item.id]!r} and "
+                             f"{item.properties['swathflow:image_id']!r} have the same STAC "
+                             f"id {item.id!r}: rename one of the images")
+        names[item.id] = item.properties["swathflow:image_id"]
+    catalog = pystac.Catalog(item_id(catalog_id), f"Products of {title}", title=title)
+    if items:
+        collection = _collection(item_id(catalog_id) + "-products", title, items)
+        collection.add_items(items)
+        catalog.add_child(collection)
     parent = os.path.dirname(out)
     os.makedirs(parent, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}-", dir=parent)

@@ -17,7 +17,8 @@ import weakref
 from dataclasses import dataclass
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
+from swathflow.geometry.geodesy_kernel import geodetic_of_points
 
 #: the frame's largest error (m) in position and height, checked when it is fitted
 FRAME_TOL = 1e-6
@@ -58,7 +59,6 @@ class DemFrame:
 def _exact(terrain, enu, origin, rot, inv):
     """Column, row and ellipsoidal height of local ENU points (Heikkinen, pyproj)."""
     from swathflow.geometry.geodesy import transformer
-    from swathflow.geometry.march import geodetic_of_points
     ecef = origin + enu @ rot
     llh = geodetic_of_points(np.ascontiguousarray(ecef))
     x, y = transformer("EPSG:4326", terrain.crs_wkt).transform(llh[:, 1], llh[:, 0])
@@ -84,7 +84,6 @@ def _bracket_heights(h_min: float, h_max: float) -> tuple[float, float]:
 
 def _fit_frame(terrain, h_lo, h_hi):
     from swathflow.geometry.geodesy import geodetic_to_ecef, transformer
-    from swathflow.geometry.march import geodetic_of_points
     a, b, c, dd, e, f = terrain.transform
     det = a * e - b * dd
     inv = np.array([e / det, -b / det, (b * f - e * c) / det,

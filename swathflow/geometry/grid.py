@@ -19,7 +19,7 @@ from affine import Affine
 from swathflow.errors import FormatError
 from swathflow.geometry.geodesy import ecef_to_geodetic, transformer, utm_crs_for
 from swathflow.geometry.terrain import bilinear_one
-from swathflow.jit import njit
+from numba import njit
 
 
 def resolve_crs(spec, lat: float, lon: float) -> str:

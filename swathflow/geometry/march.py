@@ -20,53 +20,10 @@ import math
 
 import numpy as np
 
+from numba import njit
+
 from swathflow.geometry.demframe import BLOCK, dem_frame, poly, poly3, tile_of
-from swathflow.jit import njit
-
-_A = 6378137.0
-_F = 1 / 298.257223563
-_E2 = _F * (2 - _F)
-_B = _A * (1 - _F)
-_EP2 = (_A * _A - _B * _B) / (_B * _B)
-
-
-@njit(cache=True, nogil=True)
-def _lat_lon_h(x, y, z):
-    """Heikkinen (1982) closed-form ECEF -> geodetic (radians, metres)."""
-    p = math.sqrt(x * x + y * y)
-    if p < 1e-9:
-        return math.copysign(math.pi / 2, z), 0.0, abs(z) - _B
-    f = 54.0 * _B * _B * z * z
-    g = p * p + (1 - _E2) * z * z - _E2 * (_A * _A - _B * _B)
-    c = _E2 * _E2 * f * p * p / (g * g * g)
-    s = (1 + c + math.sqrt(c * c + 2 * c)) ** (1.0 / 3.0)
-    k = s + 1 + 1 / s
-    pp = f / (3 * k * k * g * g)
-    q = math.sqrt(1 + 2 * _E2 * _E2 * pp)
-    r0 = (-pp * _E2 * p / (1 + q)
-          + math.sqrt(max(0.5 * _A * _A * (1 + 1 / q) - pp * (1 - _E2) * z * z / (q * (1 + q))
-                          - 0.5 * pp * p * p, 0.0)))
-    t = p - _E2 * r0
-    u = math.sqrt(t * t + z * z)
-    v = math.sqrt(t * t + (1 - _E2) * z * z)
-    z0 = _B * _B * z / (_A * v)
-    h = u * (1 - _B * _B / (_A * v))
-    lat = math.atan((z + _EP2 * z0) / p)
-    lon = math.atan2(y, x)
-    return lat, lon, h
-
-
-@njit(cache=True, nogil=True)
-def geodetic_of_points(pts):
-    """ECEF ``(n, 3)`` -> lat, lon (degrees), h ``(n, 3)``."""
-    out = np.empty_like(pts)
-    for i in range(pts.shape[0]):
-        la, lo, h = _lat_lon_h(pts[i, 0], pts[i, 1], pts[i, 2])
-        out[i, 0] = math.degrees(la)
-        out[i, 1] = math.degrees(lo)
-        out[i, 2] = h
-    return out
-
+from swathflow.geometry.geodesy_kernel import WGS84_A, WGS84_B, lat_lon_h
 
 @njit(cache=True, nogil=True)
 def shell_hits(o, d, h):
@@ -74,8 +31,8 @@ def shell_hits(o, d, h):
     (ellipsoid hit, then Newton on the exact height); NaN on a miss."""
     n = o.shape[0]
     out = np.full(n, np.nan)
-    a = _A + h
-    b = _B + h
+    a = WGS84_A + h
+    b = WGS84_B + h
     for i in range(n):
         ox, oy, oz = o[i, 0] / a, o[i, 1] / a, o[i, 2] / b
         dx, dy, dz = d[i, 0] / a, d[i, 1] / a, d[i, 2] / b
@@ -93,7 +50,7 @@ def shell_hits(o, d, h):
             continue
         for _ in range(6):
             px, py, pz = o[i, 0] + lam * d[i, 0], o[i, 1] + lam * d[i, 1], o[i, 2] + lam * d[i, 2]
-            la, lo, hh = _lat_lon_h(px, py, pz)
+            la, lo, hh = lat_lon_h(px, py, pz)
             err = hh - h
             rate = (d[i, 0] * math.cos(la) * math.cos(lo) + d[i, 1] * math.cos(la) * math.sin(lo)
                     + d[i, 2] * math.sin(la))
@@ -112,8 +69,8 @@ PIECE = 500.0
 def _shell(ox, oy, oz, dx, dy, dz, h):
     """Entry ``lam`` of a ray into the inflated ellipsoid (a + h, b + h) (NaN: missed),
     and whether the origin is inside it."""
-    a = _A + h
-    b = _B + h
+    a = WGS84_A + h
+    b = WGS84_B + h
     px, py, pz = ox / a, oy / a, oz / b
     qx, qy, qz = dx / a, dy / a, dz / b
     qa = qx * qx + qy * qy + qz * qz

@@ -13,7 +13,7 @@ import numpy as np
 
 from swathflow.errors import FormatError, SwathflowError
 from swathflow.geometry.geodesy import transformer
-from swathflow.jit import njit
+from numba import njit
 
 GEOID_GRIDS = {"egm96": "egm96_15.gtx", "egm2008": "egm08_25.gtx"}
 

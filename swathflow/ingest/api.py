@@ -17,8 +17,8 @@ CHUNK_LINES = 2048
 def _wavelengths(path) -> tuple[list[float] | None, str | None]:
     """Band centre wavelengths from the band tags (ENVI headers give them), if every band
     has one."""
-    from swathflow.ingest.mission import _open_raw
-    with _open_raw(path) as src:
+    from swathflow.ingest.images import open_raw
+    with open_raw(path) as src:
         tags = [{k.lower(): v for k, v in src.tags(b).items()} for b in range(1, src.count + 1)]
     if not tags or not all("wavelength" in t for t in tags):
         return None, None

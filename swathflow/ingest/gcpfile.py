@@ -5,7 +5,8 @@ import numpy as np
 import pandas as pd
 
 from swathflow.errors import SwathflowError
-from swathflow.ingest.validate import Collector, check_crs, check_keys, first_rows, rel
+from swathflow.ingest.keys import KNOWN_KEYS
+from swathflow.ingest.problems import Collector, check_crs, check_keys, first_rows, rel
 
 GCP_COLUMNS = ("gcp_id", "image_id", "line", "element", "x", "y", "z", "role")
 GCP_ROLES = ("control", "check")
@@ -13,7 +14,6 @@ GCP_ROLES = ("control", "check")
 
 def check_gcps(cfg, root, toml, parts, c: Collector):
     """The GCP table with lat, lon, h and X, Y, Z added, or None (absent or bad)."""
-    from swathflow.ingest.validate import KNOWN_KEYS
     gc = cfg.get("gcp")
     if gc is None:
         if not (root / "gcp.csv").exists():

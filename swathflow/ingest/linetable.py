@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from swathflow.ingest.validate import Collector, first_rows
+from swathflow.ingest.problems import Collector, first_rows
 
 
 def plain_table(path) -> dict[str, np.ndarray] | None:

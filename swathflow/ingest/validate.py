@@ -8,7 +8,6 @@ in :mod:`swathflow.plausible`, GCP tables in :mod:`swathflow.gcpfile`.
 """
 from __future__ import annotations
 
-import difflib
 import math
 import os
 import tomllib
@@ -18,61 +17,11 @@ from typing import Any
 import numpy as np
 
 from swathflow.errors import SwathflowError
-from swathflow.ingest.mission import (
-    BASE_LINE_COLUMNS,
-    IMAGE_KEYS,
-    ImageEntry,
-    Problem,
-)
 from swathflow.formats.pos import Trajectory, read_pos
 from swathflow.geometry.terrain import DEM, ConstantHeight
-
-#: the keys of each mission.toml table that swathflow reads (spec/mission-format.md)
-KNOWN_KEYS = {
-    "": ("mission", "sensor", "pos", "terrain", "gcp", "images", "calibration", "ties",
-         "rectify", "reference"),
-    "reference": ("ortho", "dem", "ties"),
-    "mission": ("name", "crs", "gsd", "max_pixels", "description"),
-    "pos": ("file", "format", "max_gap"),
-    "terrain": ("dem", "height", "vertical", "geoid", "undulation"),
-    "gcp": ("file", "crs"),
-    "rectify": ("bands",),
-    "images": IMAGE_KEYS + ("view",),
-}
-
-
-class Collector:
-    """Problems found so far."""
-
-    def __init__(self):
-        self.problems: list[Problem] = []
-
-    def add(self, file, where, message, fix="", level="error"):
-        self.problems.append(Problem(str(file), where, message, fix, level))
-
-    def warn(self, file, where, message, fix=""):
-        self.add(file, where, message, fix, "warning")
-
-
-def rel(root: Path, p) -> Path:
-    p = Path(str(p))
-    return p if p.is_absolute() else root / p
-
-
-def check_crs(crs) -> str | None:
-    import pyproj
-    try:
-        pyproj.CRS.from_user_input(crs)
-        return None
-    except (pyproj.exceptions.CRSError, TypeError, ValueError) as exc:
-        return str(exc).splitlines()[0][:200]
-
-
-def first_rows(mask, limit=5) -> str:
-    idx = np.flatnonzero(mask)
-    s = ", ".join(str(i + 2) for i in idx[:limit])
-    return s + (f" (and {idx.size - limit} more)" if idx.size > limit else "")
-
+from swathflow.ingest.images import ImageEntry, raster_check
+from swathflow.ingest.keys import BASE_LINE_COLUMNS, IMAGE_KEYS, KNOWN_KEYS
+from swathflow.ingest.problems import Collector, Problem, check_crs, check_keys, rel
 
 # ------------------------------------------------------------------------------------------
 # mission.toml
@@ -97,23 +46,6 @@ def read_toml(root: Path, c: Collector) -> dict | None:
     except OSError as exc:
         c.add(toml, "", f"cannot be read: {exc.strerror or exc}", "check the file's permissions")
     return None
-
-
-def check_keys(table, known, file, where: str, c: Collector, strict: bool = True) -> None:
-    """Unknown keys of a table: a near miss of a known key is an error naming it (a typo
-    silently changes the result), any other unknown key a warning (``strict``) or nothing."""
-    if not isinstance(table, dict):
-        return
-    for key in table:
-        if key in known:
-            continue
-        near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.75)
-        loc = f"{where}.{key}" if where else str(key)
-        if near:
-            c.add(file, loc, f"unknown key {key!r}", f"did you mean {near[0]!r}? rename it")
-        elif strict:
-            c.warn(file, loc, f"unknown key {key!r}, ignored",
-                   f"known keys here: {', '.join(known)}")
 
 
 def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -> None:
@@ -156,6 +88,28 @@ def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: 
               f"{MAX_PIXELS_LIMIT:g}, got {mp!r}", "max_pixels = 2e9")
         mp = 2e9
     parts["max_pixels"] = float(mp)
+    parts["date"] = check_date(m.get("date"), toml, c)
+
+
+def check_date(value, toml, c: Collector):
+    """``[mission] date``: the flight's UTC date (a TOML date or an ISO string), or None."""
+    from swathflow.formats.gpstime import flight_date
+    try:
+        return flight_date(value)
+    except ValueError:
+        c.add(toml, "[mission].date", f"must be the flight's UTC date, got {value!r}",
+              "date = 2024-06-05 (the UTC date of the first POS epoch)")
+        return None
+
+
+def check_date_against_pos(date, traj, toml, c: Collector) -> None:
+    """The flight date must hold the POS's first epoch (GPS seconds of week)."""
+    from swathflow.formats.gpstime import date_mismatch
+    why = date_mismatch(float(traj.time[0]), date)
+    if why:
+        c.add(toml, "[mission].date", why,
+              "give the UTC date of the flight's first POS epoch, or remove the date (the "
+              "catalogue then dates the products by their processing time)")
 
 
 #: the largest ``[mission] max_pixels`` a user may set: a swing's output grid of 10^12
@@ -354,8 +308,8 @@ def check_images(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -
                       f"{key} of image {other!r}", "give every image its own file")
         shape = _image_shape(entry, parts, c)
         if shape is not None:
-            from swathflow.ingest.bands import check_bands
-            check_bands(entry, cfg, toml, c)
+            from swathflow.ingest.bands import check_envi
+            check_envi(entry, c)
         cols = line_table(entry, need, shape, parts.get("trajectory"), c)
         if cols is None:
             continue
@@ -410,7 +364,6 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
 
 
 def _image_shape(entry: ImageEntry, parts: dict, c: Collector):
-    from swathflow.ingest.mission import raster_check
     where = f"[[images]] id={entry.id!r}"
     ip = entry.file
     if not ip.exists():
@@ -462,6 +415,8 @@ def inspect(path) -> tuple[list[Problem], dict]:
     from swathflow.ingest.refcheck import check_reference
     check_reference(cfg, root, toml, c, parts.get("pos"))
     traj = parts["trajectory"]
+    if parts.get("date") is not None and traj is not None:
+        check_date_against_pos(parts["date"], traj, toml, c)
     crs = parts["crs"]
     if isinstance(crs, str) and crs.lower() == "auto-utm" and traj is not None:
         from swathflow.geometry.geodesy import utm_crs_for

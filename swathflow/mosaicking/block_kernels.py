@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from swathflow.jit import njit
+from numba import njit
 from swathflow.mosaicking.match_kernels import _grad, _median
 
 __all__ = ["gaussian", "erode", "weakest_gradient", "noise_texture", "block_mean"]

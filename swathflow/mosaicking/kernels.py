@@ -24,7 +24,7 @@ All release the GIL, so the tiles of a mosaic render on every core through threa
 from __future__ import annotations
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 
 __all__ = ["fill_rows", "sample_clip", "capped_distance", "accumulate", "fill_rows_into",
            "sample_clip_into", "capped_distance_into", "prefilter_into"]

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from swathflow.jit import njit
+from numba import njit
 from swathflow.mosaicking.kernels import _b3  # the cubic B-spline, written once
 
 __all__ = ["mmgd_costs", "shift_block", "gauss_newton", "polish"]

@@ -188,10 +188,10 @@ def load_kernels(matching: bool = False) -> None:
     """Load the mosaic's compiled kernels (numba's start and its cache: the blend's, and
     with ``matching`` the matching's) without the collector's passes (numba makes some
     100 000 objects as it starts, all of which live to the end: 0.15-0.2 CPU-s of passes
-    on the 48-swing benchmark) and without numba's compiler contexts (:mod:`swathflow.jit`).
+    on the 48-swing benchmark; :mod:`swathflow.collector`).
     The first time in a process the objects then alive are frozen: the 48-swing mosaic's
     exit cost 0.20-0.23 CPU-s, now about 0.03."""
-    from swathflow.startup import uncollected
+    from swathflow.collector import uncollected
     first = not _FROZEN
     with uncollected(freeze=first):
         from swathflow.mosaicking import kernels

@@ -250,13 +250,13 @@ _TURN_TAKEN = False
 def taking_turns():
     """A process's rectifications on a new install (numba's cache without the lattice's
     cell tests, which every tile calls), until one has ended: inside
-    :func:`swathflow.jit.compiling_alone`, so that the processes rectifying together (a
+    :func:`swathflow.kernelcache.compiling_alone`, so that the processes rectifying together (a
     local cluster's workers, and the threads of each) take turns: the first compiles the
     engine's kernels, the others wait and load what it cached instead of compiling them
     again side by side (25-50 CPU-s each). Afterwards, and with the cache full, the block
     runs at once. Yields whether the kernels were missing."""
     global _TURN_TAKEN
-    from swathflow.jit import compiling_alone
+    from swathflow.kernelcache import compiling_alone
     from swathflow.rectification.cells import _cell_tests
     if _TURN_TAKEN:
         yield False

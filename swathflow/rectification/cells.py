@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 
 #: least distance (raw pixels) beyond the raw image's edge of a cell left unrefined
 OFF_MARGIN_PX = 4.0

@@ -19,53 +19,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
-from swathflow.rectification.rawimage import _memmap_of, release_pages
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _taps_1d(x, n, nearest):
-    """(index of the first tap, weight of the second tap) along one axis: bilinear taps
-    are ``i`` and ``i + 1`` with ``i`` in ``[0, n - 2]`` and the weight clamped to
-    ``[0, 1]`` (the same values as clamping each tap to the image); nearest: one tap."""
-    if nearest:
-        i = math.floor(x + 0.5)
-        return min(max(i, 0), n - 1), 0.0
-    i = math.floor(x)
-    i = min(max(i, 0), max(n - 2, 0))
-    f = x - i
-    if f < 0.0:
-        f = 0.0
-    elif f > 1.0 or n == 1:
-        f = 1.0 if n > 1 else 0.0
-    return i, f
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _tap(flat, k, wgt, check, has_nodata, nodata):
-    """One weighted tap; NaN when ``check`` and the tap is nodata (NaN or ``nodata``)."""
-    v = flat[k]
-    if check:
-        if wgt == 0.0:
-            return 0.0
-        if v != v or (has_nodata and v == nodata):
-            return np.nan
-    return wgt * v
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _pixel_taps(li, ei, nl, ne, sl, se, nearest):
-    """Taps of one pixel: (flat offset of its first tap, the four weights). Inside the
-    image (NaN is not) bilinear taps truncate and need no clamp: :func:`_taps_1d`'s values,
-    30 % faster (gather_one, gather_bands' rows; in gather_int's loop nest it measured 8 %
-    slower on the cube)."""
-    if not nearest and li >= 0 and li < nl - 1 and ei >= 0 and ei < ne - 1:
-        i, j = int(li), int(ei)
-        p, q = li - i, ei - j
-    else:
-        i, p = _taps_1d(li, nl, nearest)
-        j, q = _taps_1d(ei, ne, nearest)
-    return i * sl + j * se, (1 - p) * (1 - q), (1 - p) * q, p * (1 - q), p * q
+from numba import njit
+from swathflow.rectification import gather1
+from swathflow.rectification.pages import memmap_of, release_pages
+from swathflow.rectification.taps import checked_tap, finish, pixel_taps, step_off, taps_1d
 
 
 @njit(cache=True, nogil=True)
@@ -89,7 +46,7 @@ def _row_taps(coords, r, nl, ne, sl, se, nearest, offs, wts, has, valid):
             continue
         has[c] = True
         valid[r, c] = 255
-        k, wts[0, c], wts[1, c], wts[2, c], wts[3, c] = _pixel_taps(li, ei, nl, ne, sl, se,
+        k, wts[0, c], wts[1, c], wts[2, c], wts[3, c] = pixel_taps(li, ei, nl, ne, sl, se,
                                                                     nearest)
         offs[0, c] = k
         offs[1, c] = k + de
@@ -98,31 +55,10 @@ def _row_taps(coords, r, nl, ne, sl, se, nearest, offs, wts, has, valid):
     return bad
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata):
-    """Round half up (integer output), clamp when the output type is narrower than the
-    raw one, and step off the nodata value (as :func:`.kernel._to_int`)."""
-    if is_int:
-        acc = math.floor(acc + 0.5)
-        if clamp:
-            acc = min(max(acc, lo), hi)
-        if avoid and acc == out_nodata:
-            acc = acc + 1 if acc < hi else acc - 1
-    return acc
-
-
 #: output block of the cube kernels (rows, columns): its taps stay in L1, and neighbouring
 #: rows of a block read the same raw cache lines band after band (16 x 64 measured 5-10 %
 #: faster than 8 x 64, 4 x 128 or 32 x 32 on the 100-band benchmark)
 BLOCK_ROWS, BLOCK_COLS = 16, 64
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _step(acc, nd_cmp):
-    """A value landing on ``nd_cmp`` moves up by one."""
-    if acc == nd_cmp:
-        return acc + 1
-    return acc
 
 
 @njit(cache=True, nogil=True)
@@ -170,8 +106,8 @@ def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, va
                         continue
                     ok[t] = True
                     valid[r0 + rr, c0 + cc] = 255
-                    i, p = _taps_1d(li, nl, False)
-                    j, q = _taps_1d(ei, ne, False)
+                    i, p = taps_1d(li, nl, False)
+                    j, q = taps_1d(ei, ne, False)
                     offs[t] = i * sl + j * se
                     wts[t, 0] = (1 - p) * (1 - q)
                     wts[t, 1] = (1 - p) * q
@@ -214,10 +150,10 @@ def gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, nd_cmp, va
                         a1 = math.floor(a1 + 0.5)
                         a2 = math.floor(a2 + 0.5)
                         a3 = math.floor(a3 + 0.5)
-                        o0[c0 + cc] = _step(a0, nd_cmp)
-                        o1[c0 + cc] = _step(a1, nd_cmp)
-                        o2[c0 + cc] = _step(a2, nd_cmp)
-                        o3[c0 + cc] = _step(a3, nd_cmp)
+                        o0[c0 + cc] = step_off(a0, nd_cmp)
+                        o1[c0 + cc] = step_off(a1, nd_cmp)
+                        o2[c0 + cc] = step_off(a2, nd_cmp)
+                        o3[c0 + cc] = step_off(a3, nd_cmp)
                 b0 += 4
             if bad:
                 for b in range(nb):
@@ -251,7 +187,7 @@ def gather_int_bip(flat, nb, sl, se, nl, ne, coords, out, out_nodata, nd_cmp, va
                         acc[t, b] = np.nan
                     continue
                 valid[r, c] = 255
-                k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se, False)
+                k, w0, w1, w2, w3 = pixel_taps(li, ei, nl, ne, sl, se, False)
                 for b in range(nb):
                     acc[t, b] = (w0 * flat[k + b] + w1 * flat[k + de + b]
                                  + w2 * flat[k + dl + b] + w3 * flat[k + dl + de + b])
@@ -325,7 +261,7 @@ def gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodat
                            + wts[1, c] * flat[base + offs[1, c]]
                            + wts[2, c] * flat[base + offs[2, c]]
                            + wts[3, c] * flat[base + offs[3, c]])
-                    out[b, r, c] = _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
+                    out[b, r, c] = finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
         elif is_int:
             for b in range(nb):
                 _band_row_int(flat, b * sb, offs, wts, out[b, r], lo, hi, out_nodata, step)
@@ -343,12 +279,12 @@ def gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodat
 
 @njit(cache=True, nogil=True, inline="always")
 def _checked4(flat, base, offs, wts, c, has_nodata, nodata):
-    """The four bilinear taps of output column ``c``, each tested (:func:`_tap`): NaN
+    """The four bilinear taps of output column ``c``, each tested (:func:`checked_tap`): NaN
     where one of non-zero weight is nodata."""
-    return (_tap(flat, base + offs[0, c], wts[0, c], True, has_nodata, nodata)
-            + _tap(flat, base + offs[1, c], wts[1, c], True, has_nodata, nodata)
-            + _tap(flat, base + offs[2, c], wts[2, c], True, has_nodata, nodata)
-            + _tap(flat, base + offs[3, c], wts[3, c], True, has_nodata, nodata))
+    return (checked_tap(flat, base + offs[0, c], wts[0, c], True, has_nodata, nodata)
+            + checked_tap(flat, base + offs[1, c], wts[1, c], True, has_nodata, nodata)
+            + checked_tap(flat, base + offs[2, c], wts[2, c], True, has_nodata, nodata)
+            + checked_tap(flat, base + offs[3, c], wts[3, c], True, has_nodata, nodata))
 
 
 @njit(cache=True, nogil=True)
@@ -373,14 +309,14 @@ def _row_checked(flat, sb, nb, offs, wts, has, r, nearest, has_nodata, nodata, o
                 if acc != acc:
                     acc = _checked4(flat, base, offs, wts, c, False, 0.0)
             elif nearest:
-                acc = _tap(flat, base + offs[0, c], 1.0, True, has_nodata, nodata)
+                acc = checked_tap(flat, base + offs[0, c], 1.0, True, has_nodata, nodata)
             else:
                 acc = _checked4(flat, base, offs, wts, c, True, nodata)
             if acc != acc:
                 valid[r, c] = 0
                 out[b, r, c] = out_nodata
                 continue
-            out[b, r, c] = _finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
+            out[b, r, c] = finish(acc, is_int, clamp, lo, hi, avoid, out_nodata)
 
 
 def storage_view(raw: np.ndarray):
@@ -414,7 +350,7 @@ def gather(raw, coords, nearest: bool, has_nodata: bool, nodata: float, out, out
     clamp = is_int and not (raw_int and lo <= np.iinfo(raw.dtype).min
                             and hi >= np.iinfo(raw.dtype).max)
     check = has_nodata or raw.dtype.kind == "f"
-    mapped = _memmap_of(raw) is not None
+    mapped = memmap_of(raw) is not None
     h, w = coords.shape[1:]
     step = SUBTILE if mapped and flat.nbytes > MAPPED_WINDOW_BYTES else max(h, w, 1)
     for r0 in range(0, h, step):
@@ -440,11 +376,9 @@ def _gather(flat, strides, shape, coords, nearest, check, clamp, has_nodata, nod
             gather_int(flat, sb, sl, se, nb, nl, ne, coords, out, out_nodata, cmp, valid)
             return
         if nb == 1:
-            from swathflow.rectification import gather1
             gather1.gather_int_one(flat, sl, se, nl, ne, coords, out, out_nodata, cmp, valid)
             return
     if nb == 1 and not (nearest or has_nodata or is_int):
-        from swathflow.rectification import gather1
         gather1.gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid)
         return
     gather_bands(flat, sb, sl, se, nb, nl, ne, coords, nearest, check, has_nodata,

@@ -1,19 +1,19 @@
 """Compiled gather of ONE band, bilinear, in one pass a pixel (numba, ``cache=True``): the
 single-band swings' hot path, without the row buffers of taps of :mod:`.gather`'s
-multi-band kernels (the same taps, weights and rounding: :func:`.gather._pixel_taps`).
+multi-band kernels (the same taps, weights and rounding: :func:`.taps.pixel_taps`).
 :func:`.gather.gather` chooses them."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from swathflow.jit import njit
-from swathflow.rectification.gather import _pixel_taps, _step
+from numba import njit
+from swathflow.rectification.taps import pixel_taps, step_off
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _tap_v(v, wgt):
-    """:func:`.gather._tap` of a loaded value (``check`` on, no nodata value)."""
+    """:func:`.taps.checked_tap` of a loaded value (``check`` on, no nodata value)."""
     if wgt == 0.0:
         return 0.0
     if v != v:
@@ -26,7 +26,7 @@ def gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid):
     """:func:`.gather.gather_bands` for one band, bilinear, float output, without a
     nodata value (NaN the only nodata of a float raw type), in one pass per pixel, no row
     buffers (12-15 % less time than the row form; the same arithmetic, so the same
-    values). A NaN sum is redone with each tap tested (:func:`.gather._tap`): nodata where
+    values). A NaN sum is redone with each tap tested (:func:`.taps.checked_tap`): nodata where
     a tap of non-zero weight is NaN. (Integer output: :func:`gather_int_one`.)"""
     _, h, w = coords.shape
     dl = sl if nl > 1 else 0
@@ -40,7 +40,7 @@ def gather_one(flat, sl, se, nl, ne, coords, out, out_nodata, valid):
                 valid[r, c] = 0
                 o[r, c] = out_nodata
                 continue
-            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se, False)
+            k, w0, w1, w2, w3 = pixel_taps(li, ei, nl, ne, sl, se, False)
             v0 = flat[k]
             v1 = flat[k + de]
             v2 = flat[k + dl]
@@ -78,9 +78,9 @@ def gather_int_one(flat, sl, se, nl, ne, coords, out, out_nodata, nd_cmp, valid)
                 valid[r, c] = 0
                 o[r, c] = out_nodata
                 continue
-            k, w0, w1, w2, w3 = _pixel_taps(li, ei, nl, ne, sl, se, False)
+            k, w0, w1, w2, w3 = pixel_taps(li, ei, nl, ne, sl, se, False)
             acc = (w0 * flat[k] + w1 * flat[k + de] + w2 * flat[k + dl]
                    + w3 * flat[k + dl + de])
             valid[r, c] = 255
-            o[r, c] = _step(math.floor(acc + 0.5), nd_cmp)
+            o[r, c] = step_off(math.floor(acc + 0.5), nd_cmp)
     return out

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 
 
 def halve(src, nodata: float, use_nodata: bool, average: bool, is_int: bool, out,

@@ -23,7 +23,7 @@ import sys
 import threading
 
 import numpy as np
-from swathflow.jit import njit
+from numba import njit
 
 #: kernel codes
 NEAREST, BILINEAR, CUBIC = 0, 1, 2
@@ -225,7 +225,7 @@ def resample_window(raw, coords, kernel: str, nodata, out_dtype, out_nodata):
         gather(raw, coords, kernel == "nearest", has_nodata, nd, out, ond, lo, hi, is_int,
                avoid, valid)
     else:
-        from swathflow.rectification.rawimage import release_pages
+        from swathflow.rectification.pages import release_pages
         resample_bands(np.ascontiguousarray(raw), coords, KERNEL_CODES[kernel], has_nodata,
                        nd, out, ond, lo, hi, is_int, avoid, valid)
         release_pages(raw)

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from swathflow.geometry.grid import tile_frame
-from swathflow.jit import njit
+from numba import njit
 from swathflow.rectification.cells import (_cell_tests, _cell_unknown, _children, _inside,
                                            _items, _off_image, _rows, _store, _unknown,
                                            corner_bounds)

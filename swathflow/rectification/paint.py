@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from swathflow.jit import njit
+from numba import njit
 from swathflow.rectification.kernel import _bil  # one bilinear rule for both painters
 
 

@@ -3,8 +3,10 @@
 Sources: a numpy array (2-D ``(line, element)`` or 3-D ``(band, line, element)``, memmaps
 included), an xarray DataArray / Dataset (data var ``dn``, dims ``line``, ``element`` and
 optionally ``band``), a dask array, or a file: ENVI BSQ / BIL / BIP with its ``.hdr``
-(memory-mapped, any interleave, either byte order) or anything rasterio reads (multi-band
-GeoTIFF...). Reads return the native dtype, ``(bands, lines, elements)``.
+(memory-mapped, any interleave, either byte order: :mod:`swathflow.formats.envi`) or
+anything rasterio reads (multi-band GeoTIFF...). Reads return the native dtype,
+``(bands, lines, elements)``; a memory-mapped window's pages are released by
+:mod:`.pages`.
 
 Band metadata (names, wavelengths, their units, FWHM) comes from the ENVI header or from
 GDAL band descriptions / metadata, and selection works by 1-based index (``"1,4-6"``) or
@@ -21,14 +23,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from swathflow.errors import FormatError
+from swathflow.formats.envi import envi_header_path, map_envi
+from swathflow.ingest.images import open_raw
 
 #: a raster file (read through rasterio) of at most this many bytes in its selected bands
 #: is read whole, once, and its tiles' windows are views of it (:meth:`RawImage._whole`)
 WHOLE_READ_BYTES = 256 << 20
 _WHOLE_LOCK = threading.Lock()
 
-ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8",
-               15: "u8"}
 _UNITS_NM = {"nm": 1.0, "nanometers": 1.0, "nanometer": 1.0, "um": 1e3, "µm": 1e3,
              "micrometers": 1e3, "micrometer": 1e3, "microns": 1e3, "micron": 1e3,
              "mm": 1e6, "millimeters": 1e6}
@@ -46,6 +48,7 @@ class BandInfo:
     units: str | None = None
 
     def tags(self) -> dict:
+        """The band's GDAL tags in an output COG: its source band, wavelength and FWHM."""
         t = {"source_band": str(self.index)}
         if self.wavelength is not None:
             t["wavelength"] = repr(self.wavelength)
@@ -55,130 +58,6 @@ class BandInfo:
         return t
 
 
-def _open_raw(path):
-    """rasterio.open for raw (non-georeferenced) images, without the warning."""
-    import warnings
-
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        return rasterio.open(os.fspath(path))
-
-
-# ----------------------------------------------------------------------------------------
-# ENVI headers
-# ----------------------------------------------------------------------------------------
-def envi_header_path(path) -> str | None:
-    """The ``.hdr`` of an ENVI data file (``x.bil.hdr`` or ``x.hdr``), or None."""
-    path = os.fspath(path)
-    if path.lower().endswith(".hdr"):
-        return path
-    for cand in (path + ".hdr", os.path.splitext(path)[0] + ".hdr"):
-        if os.path.exists(cand):
-            return cand
-    return None
-
-
-def read_envi_header(path) -> dict:
-    """Parse an ENVI header into ``{key (lower case): str | list[str]}`` (brace lists
-    split on commas). Raises :class:`FormatError` naming the file when it is not one."""
-    with open(path, encoding="utf-8", errors="replace") as f:
-        text = f.read()
-    if not text.lstrip().upper().startswith("ENVI"):
-        raise FormatError(f"{path}: not an ENVI header (the first line must be 'ENVI')")
-    out: dict = {}
-    for m in re.finditer(r"^\s*([^=\n]+?)\s*=\s*(\{[^}]*\}|[^\n]*)", text, re.MULTILINE):
-        key, val = m.group(1).strip().lower(), m.group(2).strip()
-        if val.startswith("{"):
-            inner = val[1:-1].strip()
-            out[key] = [v.strip() for v in inner.split(",")] if key != "description" else inner
-        else:
-            out[key] = val
-    return out
-
-
-def _int(hdr, key, path, default=None):
-    try:
-        return int(hdr[key]) if key in hdr else default
-    except ValueError:
-        raise FormatError(f"{path}: '{key} = {hdr[key]}' is not an integer") from None
-
-
-def _floats(hdr, key, n, path):
-    if key not in hdr:
-        return [None] * n
-    vals = hdr[key] if isinstance(hdr[key], list) else [hdr[key]]
-    try:
-        vals = [float(v) for v in vals if v != ""]
-    except ValueError:
-        raise FormatError(f"{path}: '{key}' holds a value that is not a number") from None
-    if len(vals) != n:
-        raise FormatError(f"{path}: '{key}' lists {len(vals)} values for {n} bands; give "
-                          f"one per band")
-    return vals
-
-
-def _envi_bands(hdr, n, path) -> list[BandInfo]:
-    names = hdr.get("band names") or []
-    names = names if isinstance(names, list) else [names]
-    wl = _floats(hdr, "wavelength", n, path)
-    fw = _floats(hdr, "fwhm", n, path)
-    units = hdr.get("wavelength units")
-    units = units if isinstance(units, str) and units.lower() != "unknown" else None
-    return [BandInfo(i + 1, names[i] if i < len(names) else "", wl[i], fw[i],
-                     units if wl[i] is not None else None) for i in range(n)]
-
-
-def open_envi(path) -> RawImage:
-    """An ENVI image (BSQ, BIL or BIP; ``path`` the data file or its ``.hdr``)."""
-    path = os.fspath(path)
-    hdr_path = envi_header_path(path)
-    if hdr_path is None:
-        raise FormatError(f"{path}: no ENVI header beside it (expected {path}.hdr)")
-    hdr = read_envi_header(hdr_path)
-    data = path if not path.lower().endswith(".hdr") else _envi_data_path(hdr_path)
-    ns, nl, nb = (_int(hdr, k, hdr_path) for k in ("samples", "lines", "bands"))
-    if not (ns and nl and nb):
-        raise FormatError(f"{hdr_path}: 'samples', 'lines' and 'bands' are required")
-    code = _int(hdr, "data type", hdr_path)
-    if code not in ENVI_DTYPES:
-        raise FormatError(f"{hdr_path}: 'data type = {hdr.get('data type')}' is not "
-                          f"supported; use one of {sorted(ENVI_DTYPES)}")
-    order = ">" if _int(hdr, "byte order", hdr_path, 0) == 1 else "<"
-    dtype = np.dtype(order + ENVI_DTYPES[code])
-    inter = str(hdr.get("interleave", "bsq")).lower()
-    shapes = {"bsq": ((nb, nl, ns), (0, 1, 2)), "bil": ((nl, nb, ns), (1, 0, 2)),
-              "bip": ((nl, ns, nb), (2, 0, 1))}
-    if inter not in shapes:
-        raise FormatError(f"{hdr_path}: 'interleave = {inter}' is not bsq, bil or bip")
-    offset = _int(hdr, "header offset", hdr_path, 0)
-    need = offset + nb * nl * ns * dtype.itemsize
-    if not os.path.exists(data) or os.path.getsize(data) < need:
-        have = os.path.getsize(data) if os.path.exists(data) else 0
-        raise FormatError(f"{data}: {have} bytes but the header {hdr_path} describes "
-                          f"{need} ({nb} bands x {nl} lines x {ns} samples of {dtype.name}, "
-                          f"offset {offset}); fix the header or the file")
-    shape, axes = shapes[inter]
-    mm = np.memmap(data, dtype=dtype, mode="r", offset=offset, shape=shape)
-    nodata = hdr.get("data ignore value")
-    nodata = float(nodata) if isinstance(nodata, str) and nodata else None
-    return RawImage(mm.transpose(axes), nodata, _envi_bands(hdr, nb, hdr_path), path=data,
-                    interleave=inter)
-
-
-def _envi_data_path(hdr_path: str) -> str:
-    stem = os.path.splitext(hdr_path)[0]
-    for ext in ("", ".bil", ".bip", ".bsq", ".img", ".dat", ".raw"):
-        if os.path.exists(stem + ext) and not (stem + ext).lower().endswith(".hdr"):
-            return stem + ext
-    raise FormatError(f"{hdr_path}: no data file beside the header (tried {stem}.bil/.bip/"
-                      f".bsq/.img/.dat)")
-
-
-# ----------------------------------------------------------------------------------------
-# the raw image
-# ----------------------------------------------------------------------------------------
 @dataclass(eq=False)
 class RawImage:
     """A raw image ``(bands, lines, elements)`` with windowed native-dtype reads.
@@ -212,10 +91,12 @@ class RawImage:
 
     @property
     def count(self) -> int:
+        """The number of bands read (selected)."""
         return len(self.selected)
 
     @property
     def band_info(self) -> list[BandInfo]:
+        """The selected bands' metadata, in the order they are read."""
         return [self.bands[i] for i in self.selected]
 
     def select(self, spec) -> RawImage:
@@ -235,7 +116,7 @@ class RawImage:
             if whole is not None:
                 return whole[:, l0:l1, e0:e1]
             from rasterio.windows import Window
-            with _open_raw(self.path) as src:
+            with open_raw(self.path) as src:
                 a = src.read([i + 1 for i in self.selected],
                              window=Window(e0, l0, e1 - e0, l1 - l0))
             return a
@@ -266,7 +147,7 @@ class RawImage:
         with _WHOLE_LOCK:
             whole = self.__dict__.get("_whole_cache")
             if whole is None:
-                with _open_raw(self.path) as src:
+                with open_raw(self.path) as src:
                     whole = src.read([i + 1 for i in self.selected])
                 whole.setflags(write=False)
                 self.__dict__["_whole_cache"] = whole
@@ -278,6 +159,7 @@ class RawImage:
         return state
 
     def token(self):
+        """What identifies the image's content for dask (file or array, bands, type)."""
         return (self.path or id(self.data), self.selected, str(self.dtype), self.nodata)
 
 
@@ -299,6 +181,8 @@ def _native_window(data: np.ndarray, sel: list, l0, l1, e0, e1) -> np.ndarray:
 
 
 def _with_rasterio(img: RawImage, sel) -> RawImage:
+    """A file read through rasterio with other bands selected (its cached whole read not
+    shared)."""
     out = RawImage.__new__(RawImage)
     out.__dict__.update(img.__getstate__())
     out.selected = sel
@@ -307,9 +191,11 @@ def _with_rasterio(img: RawImage, sel) -> RawImage:
 
 
 def _open_rasterio(path: str, nodata=None) -> RawImage:
+    """Any raster rasterio reads (multi-band GeoTIFF...), its band metadata from the GDAL
+    band descriptions and tags; the pixels are read per window (:meth:`RawImage.read`)."""
     import rasterio
     try:
-        with _open_raw(path) as src:
+        with open_raw(path) as src:
             shape3 = (src.count, src.height, src.width)
             dtype = np.dtype(src.dtypes[0])
             nd = src.nodata if nodata is None else nodata
@@ -343,6 +229,7 @@ class RawSource:
         self.nodata = self.image.nodata
 
     def read(self, l0: int, l1: int, e0: int, e1: int) -> np.ndarray:
+        """``(l1 - l0, e1 - e0)`` of band 1 as float64, NaN for nodata."""
         a = self.image.read(l0, l1, e0, e1)[0].astype(np.float64)
         nd = self.nodata
         if nd is not None and not (isinstance(nd, float) and math.isnan(nd)):
@@ -350,6 +237,7 @@ class RawSource:
         return a
 
     def token(self):
+        """:meth:`RawImage.token` of the image read."""
         return self.image.token()
 
 
@@ -365,7 +253,7 @@ def open_raw_image(image, nodata=None, bands=None) -> RawImage:
         path = os.fspath(image)
         if not os.path.exists(path):
             raise FormatError(f"{path}: raw image not found")
-        img = open_envi(path) if envi_header_path(path) else _open_rasterio(path, nodata)
+        img = _open_envi(path) if envi_header_path(path) else _open_rasterio(path, nodata)
         if nodata is not None:
             img.nodata = nodata
     else:
@@ -373,7 +261,20 @@ def open_raw_image(image, nodata=None, bands=None) -> RawImage:
     return img.select(bands) if bands not in (None, "", ()) else img
 
 
+def _open_envi(path: str) -> RawImage:
+    """An ENVI image (BSQ, BIL or BIP, memory-mapped: :func:`~swathflow.formats.envi.map_envi`)
+    with its bands' names, wavelengths and FWHM."""
+    e = map_envi(path)
+    bands = [BandInfo(i + 1, e.names[i] if i < len(e.names) else "", e.wavelengths[i],
+                      e.fwhm[i], e.units if e.wavelengths[i] is not None else None)
+             for i in range(e.data.shape[0])]
+    return RawImage(e.data, e.nodata, bands, path=e.path, interleave=e.interleave)
+
+
 def _from_array(data, nodata) -> RawImage:
+    """An array source: numpy (memmaps included) or dask, 2-D ``(line, element)`` or 3-D
+    ``(band, line, element)``, or an xarray DataArray / Dataset (``dn``) with those dims,
+    its wavelengths and nodata (``_FillValue`` or ``nodata``) from its metadata."""
     infos = []
     if hasattr(data, "data_vars"):          # xarray Dataset
         data = data["dn"]
@@ -456,39 +357,7 @@ def _by_wavelength(nm: float, tok: str, infos, where) -> int:
 
 
 def _to_nm(b: BandInfo) -> float:
+    """A band's wavelength in nanometres (NaN: none, or units unknown)."""
     if b.wavelength is None or not b.units:
         return math.nan
     return b.wavelength * _UNITS_NM.get(b.units.lower(), math.nan)
-
-
-def _memmap_of(a):
-    """The :class:`numpy.memmap` an array is a view of: the one made over the open mmap
-    (its ``base``), whose data start ``offset % ALLOCATIONGRANULARITY`` bytes into the
-    mapping (views of a memmap are memmaps too, but start elsewhere); or None."""
-    import mmap
-    while a is not None:
-        if isinstance(a, np.memmap) and isinstance(a.base, mmap.mmap):
-            return a
-        a = a.base
-    return None
-
-
-def release_pages(window: np.ndarray) -> None:
-    """Drop the pages of a memory-mapped window from the process (``madvise`` with
-    ``MADV_DONTNEED``; the file's data stay in the page cache and a later read maps them
-    again). Without it every page a tile touched stays mapped, so the resident memory of
-    a rectification grows with the swing (an 8 GB ENVI cube: 8 GB), not with the tile."""
-    import mmap
-    mm = _memmap_of(window)
-    if mm is None or not hasattr(mmap, "MADV_DONTNEED") or window.size == 0 or \
-            min(window.strides) < 0:
-        return
-    nbytes = window.itemsize + sum((n - 1) * st for n, st in zip(window.shape, window.strides))
-    base = mm.ctypes.data - (mm.offset % mmap.ALLOCATIONGRANULARITY)
-    start = window.__array_interface__["data"][0] - base
-    mm = mm.base
-    page = mmap.PAGESIZE
-    lo = max(start // page * page, 0)
-    hi = min(-(-(start + nbytes) // page) * page, len(mm))
-    if hi > lo:
-        mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)

@@ -69,7 +69,11 @@ class Plan:
     swing_period: float
     strip_duration: float
     strip_length: float
-    t0: float = 302400.0     # GPS seconds of week (Wednesday 12:00)
+    t0: float = 302400.0     # GPS seconds of week (Wednesday 12:00, on FLIGHT_DATE)
+
+
+#: the simulated flights' UTC date ([mission] date): a Wednesday, as Plan.t0 is
+FLIGHT_DATE = "2024-06-05"
 
 
 def make_trajectory(cfg, plan: Plan, terrain_mean: float, rng):
@@ -79,7 +83,7 @@ def make_trajectory(cfg, plan: Plan, terrain_mean: float, rng):
     On a strip the aircraft flies the planned line at constant ground speed with sway,
     altitude wander, roll/pitch/heading oscillations and a constant crab angle; between
     strips it follows a smooth turn (cubic Hermite in position, banked by its curvature)."""
-    from swathflow.formats.pos import _dataset
+    from swathflow.formats.posdata import pos_dataset
     to_ll = transformer(plan.crs, "EPSG:4326")
     az = math.radians(cfg.heading)
     fwd = np.array([math.sin(az), math.cos(az)])         # E, N unit vector along strip 1
@@ -140,7 +144,7 @@ def make_trajectory(cfg, plan: Plan, terrain_mean: float, rng):
     bank = np.degrees(np.arctan(speed * np.gradient(track, t) / 9.80665))
     heading = np.degrees(track) + crab + dpsi
     heading = (heading + 180.0) % 360.0 - 180.0
-    ds = _dataset(t, lat, lon, h, roll + bank, pitch, heading, source="simulated truth")
+    ds = pos_dataset(t, lat, lon, h, roll + bank, pitch, heading, source="simulated truth")
     return ds, strips
 
 
@@ -279,7 +283,8 @@ def write_mission_toml(out, preset, crs, gsd, pos_name, sensor_lines, priors, im
     the [sensor] section's lines, ``images`` (id, file, lines file, ``image_key`` value,
     strip) tuples."""
     L = [f"# simulated by swathflow simulate (preset {preset}); the truth is in truth/", "",
-         "[mission]", f'name = "sim-{preset}"', f'crs = "{crs}"', f"gsd = {gsd!r}", "",
+         "[mission]", f'name = "sim-{preset}"', f'crs = "{crs}"', f"gsd = {gsd!r}",
+         f"date = {FLIGHT_DATE}", "",
          "[sensor]", *sensor_lines]
     L += ["", "[pos]", f'file = "{pos_name}"',
           f'format = "{"sbet" if pos_name.endswith(".sbet") else "csv"}"', "",
@@ -323,7 +328,7 @@ def write_truth_ortho(out: Path, cfg, crs, models, terrain, texture, to_map, say
     ortho (``truth/ortho.tif``: the texture averaged over each output pixel, in expected DN
     ``cfg.offset + cfg.gain * T``)."""
     from swathflow.formats.raster import write_geotiff
-    from swathflow.ingest.mission import image_border
+    from swathflow.ingest.plausible import image_border
     from swathflow.simulation.texture import area_average
     gsd = cfg.gsd
     parts = []

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from swathflow.geometry.navkernel import body_to_ecef, line_at, nav_trig, pos_from
-from swathflow.jit import njit
+from numba import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

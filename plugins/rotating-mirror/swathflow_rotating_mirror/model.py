@@ -72,9 +72,11 @@ class RotatingMirrorModel(SensorModel):
 
     @classmethod
     def simulator(cls):
-        """The plugin's mission simulator (preset ``rotating-mirror``)."""
-        from swathflow_rotating_mirror import simulate
-        return simulate
+        """The plugin's mission simulator (presets ``rotating-mirror``,
+        ``rotating-mirror-demo``), building its true images with this class."""
+        # imported here: pandas and the simulation's writers stay out of loading the plugin
+        from swathflow_rotating_mirror.simulate import Simulator
+        return Simulator(cls)
 
     # --- configuration and parameters -----------------------------------------------------
     @classmethod

@@ -1,6 +1,7 @@
 """Simulated rotating-mirror missions with their truth (``swathflow simulate OUT --preset
 rotating-mirror``): the plugin's simulator, found by swathflow through
-``RotatingMirrorModel.simulator()``.
+``RotatingMirrorModel.simulator()``, which returns a :class:`Simulator` holding the model
+class (this module does not import the model).
 
 A rotating-mirror scanner flies parallel strips over swathflow's procedural terrain and
 texture. One mirror turn per row (one facet): the row period is one along-track ground
@@ -24,6 +25,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pandas as pd
@@ -164,14 +166,28 @@ def prior_table(cfg: MirrorConfig) -> dict:
 
 
 # --- the simulation --------------------------------------------------------------------------
-def simulate(out, preset: str = "rotating-mirror", seed: int = 0, progress=None,
-             **options) -> dict:
-    """Write a simulated rotating-mirror mission to ``out``; returns the truth summary
-    (what ``truth/truth.json`` holds; ``swathflow simulate`` prints its ``images``,
-    ``gcp_counts`` and ``images_rendered``)."""
+@dataclass(frozen=True)
+class Simulator:
+    """The plugin's simulator as swathflow asks for it (``RotatingMirrorModel.simulator()``
+    returns one): the :data:`PRESETS` and :meth:`simulate`. ``model`` is the scanner's model
+    class, handed over by that hook, which builds the true images."""
+
+    model: type
+    PRESETS: ClassVar[dict[str, dict]] = PRESETS
+
+    def simulate(self, out, preset: str = "rotating-mirror", seed: int = 0, progress=None,
+                 **options) -> dict:
+        """Write a simulated rotating-mirror mission to ``out``; returns the truth summary
+        (what ``truth/truth.json`` holds; ``swathflow simulate`` prints its ``images``,
+        ``gcp_counts`` and ``images_rendered``)."""
+        return simulate_mission(self.model, out, preset, seed, progress, **options)
+
+
+def simulate_mission(model, out, preset: str = "rotating-mirror", seed: int = 0, progress=None,
+                     **options) -> dict:
+    """:meth:`Simulator.simulate` with the model class ``model`` (``RotatingMirrorModel``)."""
     from swathflow.formats.calibfile import write_calibration
     from swathflow.simulation.texture import ProceduralTexture
-    from swathflow_rotating_mirror.model import RotatingMirrorModel
     say = progress or (lambda msg: None)
     clock = time.perf_counter()
     cfg = preset_config(preset, **options)
@@ -188,9 +204,9 @@ def simulate(out, preset: str = "rotating-mirror", seed: int = 0, progress=None,
     traj = Trajectory.from_dataset(pos_ds)
     sensor = sensor_table(cfg, plan)
     params = true_parameters(cfg)
-    pset = RotatingMirrorModel.default_parameters(sensor).updated(params)
+    pset = model.default_parameters(sensor).updated(params)
     lines = {f"M{s['strip']}": (s["strip"], line_table(cfg, plan, s, rng)) for s in strips}
-    models = {iid: RotatingMirrorModel.build(sensor, lt, traj, pset, image_id=iid, strip=k)
+    models = {iid: model.build(sensor, lt, traj, pset, image_id=iid, strip=k)
               for iid, (k, lt) in lines.items()}
     gcps = _control_points(cfg, plan, models, terrain, rng)
     nadir_gsd = cfg.ifov * cfg.agl

@@ -14,7 +14,7 @@ import re
 import numpy as np
 import xarray as xr
 from swathflow.errors import FormatError
-from swathflow.formats.pos import POS_VARIABLES, _dataset
+from swathflow.formats.posdata import POS_VARIABLES, pos_dataset
 
 from .registry import PosFormat
 
@@ -145,7 +145,7 @@ def read_pos_ascii(path, columns=None, header_line=None, delimiter=None, angle_u
     roll, pitch, heading = (_angles(col[k], angle_units, "angle_units", path)
                             for k in ("roll", "pitch", "heading"))
     heading = (heading + 180.0) % 360.0 - 180.0
-    ds = _dataset(col["time"], lat, lon, col["h"], roll, pitch, heading, path)
+    ds = pos_dataset(col["time"], lat, lon, col["h"], roll, pitch, heading, path)
     ds.attrs["format"] = "ascii"
     return ds
 

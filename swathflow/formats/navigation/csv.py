@@ -6,7 +6,7 @@ import os
 import pandas as pd
 import xarray as xr
 from swathflow.errors import FormatError
-from swathflow.formats.pos import POS_VARIABLES, _dataset
+from swathflow.formats.posdata import POS_VARIABLES, pos_dataset
 from swathflow.io import atomic_path
 
 from .registry import PosFormat
@@ -30,7 +30,7 @@ def read_pos_csv(path) -> xr.Dataset:
         cols = {c: pd.to_numeric(df[c]).to_numpy(float) for c in ("time",) + POS_VARIABLES}
     except (ValueError, TypeError) as exc:
         raise FormatError(f"{path}: non-numeric value: {exc}") from None
-    return _dataset(cols["time"], *(cols[k] for k in POS_VARIABLES), source=path)
+    return pos_dataset(cols["time"], *(cols[k] for k in POS_VARIABLES), source=path)
 
 
 def write_pos_csv(ds: xr.Dataset, path) -> None:

@@ -12,7 +12,7 @@ import os
 import numpy as np
 import xarray as xr
 from swathflow.errors import FormatError
-from swathflow.formats.pos import _dataset
+from swathflow.formats.posdata import pos_dataset
 from swathflow.io import atomic_path
 
 from .registry import PosFormat
@@ -85,7 +85,7 @@ def read_lcf(path, times=None) -> xr.Dataset:
     col = {k: v[use] for k, v in col.items()}
     att = {k: np.degrees(col[k]) for k in ("roll", "pitch", "heading")}
     heading = (att["heading"] + 180.0) % 360.0 - 180.0
-    ds = _dataset(col["time"], col["lat"], col["lon"], col["h"], att["roll"], att["pitch"],
+    ds = pos_dataset(col["time"], col["lat"], col["lon"], col["h"], att["roll"], att["pitch"],
                   heading, path)
     ds.attrs["format"] = "lcf"
     times = find_times(path) if times is None else os.fspath(times)

@@ -18,6 +18,7 @@ from importlib.metadata import entry_points
 
 from swathflow.entrypoints import discover
 from swathflow.errors import FormatError, SwathflowWarning
+from swathflow.formats.posdata import POS_VARIABLES, check_trajectory
 
 GROUP = "swathflow.pos_formats"
 _PKG = __name__.rpartition(".")[0]
@@ -105,7 +106,6 @@ def read(path, format: str | None = None, **options):
         raise FormatError(f"{path}: option(s) {', '.join(unknown)} not understood by the "
                           f"{fmt.name!r} POS reader; it accepts: {allowed}")
     ds = fmt.read(path, **options)
-    from swathflow.formats.pos import POS_VARIABLES, check_trajectory
     missing = [k for k in POS_VARIABLES if k not in ds]
     if missing:
         raise FormatError(f"{path}: the {fmt.name!r} reader returned no {', '.join(missing)}")

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import xarray as xr
 from swathflow.errors import FormatError
-from swathflow.formats.pos import _dataset
+from swathflow.formats.posdata import pos_dataset
 from swathflow.io import atomic_path
 
 from .registry import PosFormat
@@ -38,7 +38,7 @@ def read_sbet(path) -> xr.Dataset:
     rec = np.fromfile(path, dtype=SBET_DTYPE)
     heading = np.degrees(rec["platform_heading"] - rec["wander"])
     heading = (heading + 180.0) % 360.0 - 180.0
-    return _dataset(rec["time"], np.degrees(rec["lat"]), np.degrees(rec["lon"]), rec["h"],
+    return pos_dataset(rec["time"], np.degrees(rec["lat"]), np.degrees(rec["lon"]), rec["h"],
                     np.degrees(rec["roll"]), np.degrees(rec["pitch"]), heading, path)
 
 
