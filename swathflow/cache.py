@@ -67,7 +67,7 @@ def is_fresh(output, key: str) -> bool:
         if not isinstance(doc, dict) or doc.get("key") != key:
             return False
         size, digest = doc.get("size"), doc.get("sha256")
-        return os.path.getsize(output) == size and file_digest(output) == digest
+        return _output_size(output) == size and _output_digest(output) == digest
     except (OSError, ValueError):
         return False
 
@@ -75,9 +75,35 @@ def is_fresh(output, key: str) -> bool:
 def mark_done(output, key: str, **info: Any) -> None:
     """Record that ``output`` is complete for ``key`` (call after writing the output),
     with its size and sha256 (:func:`is_fresh` checks the output is still whole)."""
-    doc = {"key": key, "size": os.path.getsize(output), "sha256": file_digest(output),
+    doc = {"key": key, "size": _output_size(output), "sha256": _output_digest(output),
            **info}
     write_text(manifest_path(output), json.dumps(doc, indent=2, default=str))
+
+
+def _folder_files(folder) -> list[str]:
+    """The files of an output folder (any depth, sorted), its temporaries aside."""
+    out = []
+    for root, _dirs, files in os.walk(folder):
+        out += [os.path.join(root, f) for f in files if ".tmp" not in f]
+    return sorted(out)
+
+
+def _output_size(output) -> int:
+    """Bytes of an output: a file's size, or the sum of a folder's files (a catalogue)."""
+    if os.path.isdir(output):
+        return sum(os.path.getsize(f) for f in _folder_files(output))
+    return os.path.getsize(output)
+
+
+def _output_digest(output) -> str:
+    """sha256 of an output file, or of a folder's files (their relative names and
+    contents)."""
+    if not os.path.isdir(output):
+        return file_digest(output)
+    h = hashlib.sha256()
+    for f in _folder_files(output):
+        h.update(os.path.relpath(f, output).encode() + b"\0" + file_digest(f).encode())
+    return h.hexdigest()
 
 
 def fingerprints(paths: Iterable) -> dict[str, list]:

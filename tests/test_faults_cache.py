@@ -64,3 +64,19 @@ def test_run_is_not_up_to_date_after_an_input_changed_with_its_stamp_kept(tmp_pa
     assert fresh_result(m, out) is not None
     _same_stamp_rewrite(m / "pos.csv", b"time,lat\n1,11.0\n")
     assert fresh_result(m, out) is None
+
+
+def test_a_folder_output_is_trusted_only_while_every_file_is_whole(tmp_path):
+    """A stage whose output is a folder (the STAC catalogue): a file of it cut short or
+    removed makes it stale."""
+    out = tmp_path / "stac"
+    (out / "L1").mkdir(parents=True)
+    (out / "catalog.json").write_text('{"id": "c"}')
+    (out / "L1" / "L1.json").write_text('{"id": "L1"}')
+    mark_done(out, "k")
+    assert is_fresh(out, "k")
+    (out / "L1" / "L1.json").write_text('{"id"')
+    assert not is_fresh(out, "k")
+    mark_done(out, "k")
+    (out / "L1" / "L1.json").unlink()
+    assert not is_fresh(out, "k")
