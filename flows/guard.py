@@ -75,19 +75,189 @@ def _writable_folder(folder: str, what: str) -> None:
 
 
 def check_outputs(args) -> None:
-    """The --out of a command must be writable, of the right kind, and not an input."""
+    """The --out of a command must be writable, of the right kind, and never on or over an
+    input: no input file of the command (the mission.toml, every file it names, the
+    calibration, the reference) may be the output file or lie in the output folder."""
     out = getattr(args, "out", None)
     if out is None:
         return
-    if args.command in OUT_FOLDER:
+    _plain_path(out)
+    if args.command == "simulate":     # its --texture and --dem must not be in OUT
+        _not_over_inputs(args, out, folder=True)
+    elif args.command in OUT_FOLDER:
         _writable_folder(out, "the output folder")
         _not_inside_inputs(args, out)
+        _not_over_inputs(args, out, folder=True)
+        if args.command == "run":
+            _no_other_mission(args, out)
     elif args.command in OUT_FILE:
         if os.path.isdir(out):
             raise SwathflowError(f"{out}: --out is a folder; give a file name such as "
                                  f"{os.path.join(out, 'mosaic.tif')}")
         _writable_folder(os.path.dirname(os.path.abspath(out)), "the output folder")
         _not_an_input(args, out)
+        _not_over_inputs(args, out, folder=False)
+
+
+def _plain_path(out) -> None:
+    """An output path with ``#`` or ``?``: the STAC writer (URLs) and GDAL (``/vsi`` and
+    URL syntax) read those characters as a URL's fragment or query, so a product could be
+    written to another file (``/x/victim.txt#2`` -> ``/x/victim.txt``): refused."""
+    bad = [ch for ch in "#?" if ch in os.fspath(out)]
+    if bad:
+        raise SwathflowError(f"{out}: --out holds {' and '.join(repr(b) for b in bad)}, "
+                             f"which the STAC and GDAL writers read as part of a URL (the "
+                             f"products could land in another file): give a path without "
+                             f"them")
+
+
+#: the sidecar files written beside a mosaic ``NAME.tif``
+MOSAIC_SIDECARS = (".png", ".report.png", ".json", ".html")
+
+
+def mission_inputs(mission) -> list[str]:
+    """The files a mission's commands read: its mission.toml, every existing file its
+    string values name (any depth, also outside the folder), and the files beside each
+    that share its name (an ENVI image's header)."""
+    from swathflow.ingest.tomlfile import load
+    root = os.path.abspath(os.fspath(mission))
+    if os.path.isfile(root):
+        root = os.path.dirname(root)
+    toml = os.path.join(root, "mission.toml")
+    found = {toml} if os.path.isfile(toml) else set()
+    try:
+        cfg = load(toml)
+    except (OSError, ValueError):
+        return sorted(found)
+    stack = [cfg]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, dict):
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(v)
+        elif isinstance(v, str) and v and len(v) < 4096 and "\0" not in v:
+            p = os.path.join(root, v)
+            try:
+                if os.path.isfile(p):
+                    found.add(p)
+                    found.update(_namesakes(p))
+            except (OSError, ValueError):
+                continue
+    return sorted(found)
+
+
+def _namesakes(path: str) -> list[str]:
+    """Files beside ``path`` with the same name before the extension (ENVI .img/.hdr)."""
+    folder, name = os.path.split(path)
+    stem = os.path.splitext(name)[0]
+    try:
+        return [os.path.join(folder, f) for f in os.listdir(folder)
+                if os.path.splitext(f)[0] == stem]
+    except OSError:
+        return []
+
+
+def command_inputs(args) -> list[str]:
+    """Every input file of a command (see :func:`mission_inputs`), its --calibration,
+    --reference and --reference-dem, and for ``mosaic`` its --mission's files (or those of
+    a mission folder given as SOURCE)."""
+    files: list[str] = []
+    mission = getattr(args, "mission", None)
+    if args.command == "mosaic":
+        src = os.fspath(getattr(args, "source", "") or "")
+        if mission is None and os.path.isfile(os.path.join(src, "mission.toml")):
+            mission = src
+    if mission:
+        files += mission_inputs(mission)
+    for key in ("calibration", "reference", "reference_dem", "texture", "dem"):
+        v = getattr(args, key, None)
+        if v:
+            files.append(os.fspath(v))
+    return files
+
+
+def _not_over_inputs(args, out, folder: bool) -> None:
+    real = os.path.realpath(out)
+    targets = {real}
+    if not folder:
+        base = os.path.splitext(real)[0]
+        targets.update(base + s for s in MOSAIC_SIDECARS)
+    for p in command_inputs(args):
+        rp = os.path.realpath(p)
+        if folder and _written_beside(args, real, rp, p):
+            continue
+        if folder and (rp == real or rp.startswith(real.rstrip(os.sep) + os.sep)):
+            raise SwathflowError(f"{out}: the output folder holds an input of the command "
+                                 f"({p}); its products could be written over it: give an "
+                                 f"output folder that holds none of the command's inputs")
+        if not folder and rp in targets:
+            raise SwathflowError(f"{out}: the mosaic (or its .png/.json sidecar) would be "
+                                 f"written over an input of the command ({p}): give another "
+                                 f"file name")
+
+
+#: where ``rectify`` and ``run --calibration`` write in their output folder (relative
+#: paths; a folder ends with "/"): a calibration file elsewhere in it stays untouched
+PRODUCT_PLACES = {"rectify": ("rectify.json", ".tif"),
+                  "run": ("pos/", "rectified/", "stac/", "mosaic.", "run.swathflow.json")}
+
+
+def _written_beside(args, out_real: str, real: str, given: str) -> bool:
+    """True for the --calibration file of ``rectify`` or ``run`` lying in the output folder
+    where the command writes nothing (``calibrate M --out O`` then ``rectify M
+    --calibration O/calibration.json --out O`` is the usual way): it is read, never
+    written over. Every other input inside the output folder is refused."""
+    cal = getattr(args, "calibration", None)
+    places = PRODUCT_PLACES.get(args.command)
+    if not cal or places is None or os.fspath(cal) != os.fspath(given):
+        return False
+    relpath = os.path.relpath(real, out_real)
+    if relpath.startswith(".."):
+        return False
+    return not any(relpath.startswith(pl) if pl.endswith(("/", ".")) else
+                   relpath == pl or relpath.endswith(pl) for pl in places)
+
+
+def _no_other_mission(args, out) -> None:
+    """``run --out`` holding the rectified swings of another mission: the run would keep
+    them beside its own, and a later ``swathflow mosaic`` of the folder blend both."""
+    from swathflow.ingest.tomlfile import load
+    folder = os.path.join(out, "rectified")
+    if not os.path.isdir(folder):
+        return
+    try:
+        cfg = load(os.path.join(args.mission, "mission.toml"))
+    except (OSError, ValueError):
+        return              # the command itself reports the mission
+    mission = cfg.get("mission") if isinstance(cfg.get("mission"), dict) else {}
+    name = str(mission.get("name", os.path.basename(os.path.abspath(args.mission))))
+    ids = {str(e.get("id")) for e in cfg.get("images", []) if isinstance(e, dict)}
+    others = []
+    for f in sorted(os.listdir(folder)):
+        if f.startswith(".") or not f.lower().endswith((".tif", ".tiff")):
+            continue
+        tags = _tags(os.path.join(folder, f))
+        if tags is None or "image_id" not in tags:
+            continue
+        if tags.get("mission", name) != name or tags["image_id"] not in ids:
+            others.append(f"{f} (mission {tags.get('mission', '?')!r}, image "
+                          f"{tags['image_id']!r})")
+    if others:
+        raise SwathflowError(f"{out}: holds rectified swings that are not this mission's "
+                             f"images ({', '.join(others[:3])}"
+                             f"{' ...' if len(others) > 3 else ''}); they would stay beside "
+                             f"this mission's and be mosaicked with them: give an empty "
+                             f"output folder (or this mission's own)")
+
+
+def _tags(path: str) -> dict | None:
+    import rasterio
+    try:
+        with rasterio.open(path) as src:
+            return src.tags()
+    except (rasterio.errors.RasterioError, OSError):
+        return None
 
 
 def _not_an_input(args, out: str) -> None:
@@ -106,12 +276,8 @@ def _not_an_input(args, out: str) -> None:
 
 def _is_swing(path: str) -> bool:
     """A rectified swing (tagged with its image id), not an earlier mosaic."""
-    import rasterio
-    try:
-        with rasterio.open(path) as src:
-            return "image_id" in src.tags()
-    except rasterio.errors.RasterioError:
-        return True         # unreadable: never write over it
+    tags = _tags(path)
+    return tags is None or "image_id" in tags       # unreadable: never write over it
 
 
 def _not_inside_inputs(args, out: str) -> None:
@@ -193,6 +359,30 @@ def explain_os_error(exc: BaseException, out=None) -> str | None:
         return (f"cannot write a raster: {texts.splitlines()[0][:200]}: check the output "
                 f"folder (space, permissions) and re-run")
     return None
+
+
+def band_problems(parts: dict) -> list:
+    """``[rectify] bands`` of a mission that does not fit one of its images (the
+    ``validate`` command's check: the selection's syntax and wavelengths are the
+    rectification's, :func:`swathflow.rectification.mission.mission_bands`)."""
+    from types import SimpleNamespace
+
+    from swathflow.errors import FormatError
+    from swathflow.ingest.problems import Problem
+    cfg, images = parts.get("config") or {}, parts.get("images") or {}
+    if not isinstance(cfg.get("rectify"), dict) or not images:
+        return []
+    from swathflow.rectification.mission import mission_bands
+    m = SimpleNamespace(config=cfg, path=parts["root"], images=images)
+    toml = str(parts["root"] / "mission.toml")
+    for iid in images:
+        try:
+            mission_bands(m, iid)
+        except (FormatError, OSError, ValueError) as exc:
+            return [Problem(toml, "[rectify].bands", str(exc).split("mission.toml: ", 1)[-1],
+                            "select bands the images have: 1-based numbers, ranges "
+                            "(\"1,4-6\") or wavelengths (\"550nm\")")]
+    return []
 
 
 def check_run_inputs(mission, calibration=None):

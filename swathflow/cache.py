@@ -1,10 +1,13 @@
 """Reuse of finished outputs, keyed by the content of their inputs and their parameters.
 
 Every stage output ``OUT`` gets a manifest ``OUT.swathflow.json`` written (atomically) after
-the output itself. A re-run recomputes the output unless the manifest exists, the output
-exists and the key (a hash of the input files' content, the parameters and the software
-version) is unchanged. An interrupted run leaves no manifest for a half-finished output,
-so it is redone; outputs are themselves written atomically.
+the output itself, with the output's size and sha256. A re-run recomputes the output unless
+the manifest exists, the output is whole (the same size and content as when it was
+written: a truncated or corrupted output is redone, not trusted) and the key (a hash of the
+input files' content, the parameters and the software version) is unchanged. Inputs are
+compared by content: a file rewritten with its size and modification time kept is seen.
+An interrupted run leaves no manifest for a half-finished output, so it is redone; outputs
+are themselves written atomically.
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ from swathflow.io import write_text
 
 
 @lru_cache(maxsize=4096)
-def _file_digest(path: str, size: int, mtime_ns: int) -> str:
+def _file_digest(path: str, size: int, mtime_ns: int, ctime_ns: int = 0, ino: int = 0) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -26,11 +29,17 @@ def _file_digest(path: str, size: int, mtime_ns: int) -> str:
     return h.hexdigest()
 
 
+def _stamp(st) -> tuple:
+    """What the in-process memo of a digest is keyed on: size, modification and change
+    times and inode. The change time cannot be set back by a program (``os.utime`` sets
+    it to now), so a file rewritten with its size and mtime restored hashes anew."""
+    return st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
+
+
 def file_digest(path) -> str:
-    """sha256 of a file's content (memoised on path, size and modification time)."""
+    """sha256 of a file's content (memoised in this process on path and :func:`_stamp`)."""
     path = os.path.abspath(os.fspath(path))
-    st = os.stat(path)
-    return _file_digest(path, st.st_size, st.st_mtime_ns)
+    return _file_digest(path, *_stamp(os.stat(path)))
 
 
 def stage_key(stage: str, files: Iterable = (), **params: Any) -> str:
@@ -47,20 +56,54 @@ def manifest_path(output) -> str:
 
 
 def is_fresh(output, key: str) -> bool:
-    """True when ``output`` exists and was finished with this ``key``."""
+    """True when ``output`` exists, was finished with this ``key`` and is whole: its size
+    and sha256 are those recorded when it was written."""
     m = manifest_path(output)
     if not (os.path.exists(output) and os.path.exists(m)):
         return False
     try:
         with open(m, encoding="utf-8") as f:
-            return json.load(f).get("key") == key
-    except (OSError, json.JSONDecodeError):
+            doc = json.load(f)
+        if not isinstance(doc, dict) or doc.get("key") != key:
+            return False
+        size, digest = doc.get("size"), doc.get("sha256")
+        return _output_size(output) == size and _output_digest(output) == digest
+    except (OSError, ValueError):
         return False
 
 
 def mark_done(output, key: str, **info: Any) -> None:
-    """Record that ``output`` is complete for ``key`` (call after writing the output)."""
-    write_text(manifest_path(output), json.dumps({"key": key, **info}, indent=2, default=str))
+    """Record that ``output`` is complete for ``key`` (call after writing the output),
+    with its size and sha256 (:func:`is_fresh` checks the output is still whole)."""
+    doc = {"key": key, "size": _output_size(output), "sha256": _output_digest(output),
+           **info}
+    write_text(manifest_path(output), json.dumps(doc, indent=2, default=str))
+
+
+def _folder_files(folder) -> list[str]:
+    """The files of an output folder (any depth, sorted), its temporaries aside."""
+    out = []
+    for root, _dirs, files in os.walk(folder):
+        out += [os.path.join(root, f) for f in files if ".tmp" not in f]
+    return sorted(out)
+
+
+def _output_size(output) -> int:
+    """Bytes of an output: a file's size, or the sum of a folder's files (a catalogue)."""
+    if os.path.isdir(output):
+        return sum(os.path.getsize(f) for f in _folder_files(output))
+    return os.path.getsize(output)
+
+
+def _output_digest(output) -> str:
+    """sha256 of an output file, or of a folder's files (their relative names and
+    contents)."""
+    if not os.path.isdir(output):
+        return file_digest(output)
+    h = hashlib.sha256()
+    for f in _folder_files(output):
+        h.update(os.path.relpath(f, output).encode() + b"\0" + file_digest(f).encode())
+    return h.hexdigest()
 
 
 def fingerprints(paths: Iterable) -> dict[str, list]:
@@ -69,20 +112,19 @@ def fingerprints(paths: Iterable) -> dict[str, list]:
     for p in paths:
         p = os.path.abspath(os.fspath(p))
         st = os.stat(p)
-        out[p] = [st.st_size, st.st_mtime_ns, _file_digest(p, st.st_size, st.st_mtime_ns)]
+        out[p] = [st.st_size, st.st_mtime_ns, _file_digest(p, *_stamp(st))]
     return out
 
 
 def unchanged(recorded: dict[str, list]) -> bool:
-    """True when every file of :func:`fingerprints` still has the same content: the stamp
-    (size, mtime) is trusted when equal; a file touched but not changed hashes equal."""
-    for p, (size, mtime_ns, digest) in recorded.items():
+    """True when every file of :func:`fingerprints` still has the same content: compared
+    by sha256 (a file changed with its size and modification time kept is seen; the size
+    alone tells most changes apart without reading the file)."""
+    for p, (size, _mtime_ns, digest) in recorded.items():
         try:
             st = os.stat(p)
+            if st.st_size != size or _file_digest(p, *_stamp(st)) != digest:
+                return False
         except OSError:
-            return False
-        if (st.st_size, st.st_mtime_ns) == (size, mtime_ns):
-            continue
-        if st.st_size != size or _file_digest(p, st.st_size, st.st_mtime_ns) != digest:
             return False
     return True

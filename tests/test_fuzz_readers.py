@@ -167,6 +167,84 @@ def test_envi_header_through_validation(mission, lines):
     _validate_with(mission, f"images/{hdr.name}", "\n".join(lines) + "\n")
 
 
+_band_list = st.lists(st.sampled_from(["400", "500.5", "nan", "x", "", "1e9"]), max_size=5)
+
+
+@FAST
+@given(bands=st.sampled_from([1, 2, 3]), wl=_band_list, fw=_band_list,
+       extra=st.sampled_from([0, 1, 64]))
+def test_envi_header_valid_means_rectify_reads_it(mission, bands, wl, fw, extra):
+    """Issue 44: "OK" from validate means rectify reads the image: an ENVI header whose band
+    lists (wavelength, FWHM) or band count do not fit, or whose data file holds more
+    bytes than it says, is a problem of validate, not a later refusal."""
+    from swathflow.ingest.mission import validate_mission
+    from swathflow.rectification.rawimage import open_raw_image
+    hdr = next((mission / "images").glob("L1*.hdr"))
+    data = next(p for p in (mission / "images").glob("L1*")
+                if p.suffix not in (".hdr", ".csv"))
+    keep_h, keep_d = hdr.read_bytes(), data.read_bytes()
+    try:
+        text = keep_h.decode().replace("bands = 1", f"bands = {bands}")
+        text += (f"wavelength = {{{', '.join(wl)}}}\n" if wl else "")
+        text += (f"fwhm = {{{', '.join(fw)}}}\n" if fw else "")
+        hdr.write_text(text)
+        data.write_bytes(keep_d * bands + b"\0" * extra)
+        probs = validate_mission(mission)
+        errors = [p for p in probs if p.level == "error"]
+        assert not [p for p in probs if "unexpected content" in str(p)]
+        if not errors:
+            img = open_raw_image(data)
+            assert len(img.bands) == bands
+            assert extra == 0           # a data file longer than its header is refused
+    finally:
+        hdr.write_bytes(keep_h)
+        data.write_bytes(keep_d)
+
+
+_prior = st.fixed_dictionaries({"value": st.lists(st.floats(), min_size=3, max_size=3)},
+                                optional={"sigma": st.one_of(
+                                    st.lists(st.floats(), min_size=3, max_size=3),
+                                    st.floats())})
+
+
+@FAST
+@given(block=st.sampled_from(["opk_sen", "u_gps", "opk_pos_L"]), prior=_prior,
+       bands=st.sampled_from([None, "1", "2", "1-3", "550nm", "", "0", [1], [5]]))
+def test_mission_table_valid_means_the_commands_accept_it(mission, block, prior, bands):
+    """Issue 44: a [calibration] prior or a [rectify] bands that validate passes is one the
+    calibration and rectification accept: finite values, sigmas finite and >= 0 (0: held
+    at the value), bands that fit the image."""
+    import math
+    import tomllib
+
+    from swathflow.flows.guard import band_problems
+    from swathflow.ingest.mission import inspect_mission, load_mission
+    from swathflow.rectification.mission import mission_bands
+    cfg = tomllib.loads((mission / "mission.toml").read_text())
+    cfg["calibration"][block] = prior
+    if bands is not None:
+        cfg["rectify"] = {"bands": bands}
+    p = mission / "mission.toml"
+    keep = p.read_bytes()
+    try:
+        p.write_text(_dump_toml(cfg))
+        probs, parts = inspect_mission(mission)         # what 'swathflow validate' checks
+        assert not [x for x in probs if "unexpected content" in str(x)]
+        if not [x for x in probs if x.level == "error"]:
+            probs = band_problems(parts)
+        if not [x for x in probs if x.level == "error"]:
+            m = load_mission(mission)
+            b = m.priors.block(block)
+            assert all(math.isfinite(v) for v in b.value)
+            if "sigma" in prior:
+                assert all(math.isfinite(s) and s >= 0 for s in b.sigma)
+            assert all(f for f, s in zip(b.fixed, b.sigma) if s == 0)
+            for iid in m.image_ids:
+                mission_bands(m, iid)
+    finally:
+        p.write_bytes(keep)
+
+
 def _dump_toml(cfg: dict) -> str:
     """A small TOML writer for the fuzzed configurations (tables, arrays of tables)."""
     import json

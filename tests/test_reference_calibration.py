@@ -159,6 +159,9 @@ def test_mission_reference_table_selects_reference_calibration(tmp_path):
     (out / "gcp.csv").unlink()
     text = re.sub(r"\[gcp\]\n[^\[]*", "", toml.read_text())
     toml.write_text(text + '\n[reference]\northo = "ortho.tif"\ndem = "dem.tif"\n')
+    from swathflow.formats.raster import write_geotiff     # validate opens the reference
+    write_geotiff(out / "ortho.tif", np.ones((32, 32), np.float32), "EPSG:32651",
+                  (0.4, 0, 500000, 0, -0.4, 3600000))
     s = reference_strategy(load_mission(out), CalibrationOptions())
     assert isinstance(s, ReferenceCalibration)
     assert s.ortho == str(out / "ortho.tif") and s.dem == str(out / "dem.tif")

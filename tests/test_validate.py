@@ -273,6 +273,10 @@ def test_orthometric_dem_without_geoid(m):
 def test_reference_table_is_known_and_its_keys_checked(m):
     """[reference] (calibration from a reference orthophoto) is read by swathflow: no
     'unknown key' warning for it; a misspelt key inside it is an error naming the fix."""
+    from swathflow.formats.raster import write_geotiff
+    # a real reference (validate checks that it exists, opens and is north-up in metres)
+    write_geotiff(m / "ref.tif", np.ones((32, 32), np.float32), "EPSG:32651",
+                  (0.4, 0, 500000, 0, -0.4, 3600000))
     with open(m / "mission.toml", "a") as f:
         f.write('\n[reference]\northo = "ref.tif"\nties = true\n')
     assert not [p for p in validate_mission(m) if "reference" in p.message]

@@ -35,6 +35,9 @@ def validate(args) -> int:
     """``swathflow validate MISSION``: every problem with its fix; exit 2 if any."""
     from swathflow.ingest.mission import format_problems, inspect_mission
     problems, p = inspect_mission(args.mission)
+    if not [pr for pr in problems if pr.level != "warning"]:
+        from swathflow.flows.guard import band_problems
+        problems += band_problems(p)        # what rectify would refuse
     errors = [pr for pr in problems if pr.level != "warning"]
     if errors:
         print(format_problems(args.mission, problems))
@@ -125,7 +128,7 @@ def rectify(args) -> int:
     with uncollected():
         from swathflow.rectification.mission import rectify_mission
     products = tuple(p.strip() for p in (args.products or "").split(",") if p.strip())
-    if not args.calibration:
+    if not args.calibration and not getattr(args, "quiet", False):
         print("swathflow rectify: warning: no --calibration given: rectifying with the "
               "mission's prior parameters (uncalibrated; metres off where the priors are "
               "wrong); run 'swathflow calibrate' and pass its calibration.json",

@@ -38,6 +38,45 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _int_between(lo: int, hi: int, step: int = 1):
+    """argparse type: a whole number from ``lo`` to ``hi`` (a multiple of ``step``)."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if v < 1 <= lo:
+            raise argparse.ArgumentTypeError(f"must be 1 or more, got {v}")
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be from {lo} to {hi}, got {v}")
+        if v % step:
+            raise argparse.ArgumentTypeError(f"must be a multiple of {step} (a TIFF tile "
+                                             f"size), got {v}")
+        return v
+    parse.__name__ = "number"       # argparse names the type in its messages
+    return parse
+
+
+#: output tile sizes in pixels: TIFF tiles are multiples of 16; beyond 4096 a tile
+#: (and its compression buffer) no longer fits a worker's share of memory
+TILE = _int_between(16, 4096, 16)
+#: the mosaic's search range S: each search holds (2 S + 1)^2 costs of 8 bytes (S = 100000
+#: asked for 299 GiB; 256 asks 2 MiB, and is 100 m at 0.4 m pixels)
+MAX_SHIFT = _int_between(1, 256)
+
+
+def _finite_float(text: str) -> float:
+    """argparse type: a finite number."""
+    import math
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return v
+
+
 def _positive_float(text: str) -> float:
     """argparse type: a finite number above zero."""
     import math
@@ -137,7 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default="tiny",
                    help="a preset of a registered sensor's simulator (listed by "
                         "'swathflow sensors'; default tiny)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--seed", type=_int_between(0, 2**32 - 1), default=0,
+                   help="random seed, 0 to 2^32-1 (default 0)")
     s.add_argument("--texture", help="orthophoto GeoTIFF/JPEG+world file for the ground truth")
     s.add_argument("--dem", help="DEM GeoTIFF for the terrain shape")
     s.add_argument("--geometry-only", action="store_true",
@@ -147,11 +187,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "(paper: slow)")
     s.add_argument("--no-direction-effect", action="store_true",
                    help="same true IMU boresight for left and right swings")
-    s.add_argument("--direction-omega", type=float, metavar="DEG",
+    s.add_argument("--direction-omega", type=_finite_float, metavar="DEG",
                    help="true omega_L - omega_R (deg; default: the paper's Table 4)")
-    s.add_argument("--gcp-noise", type=float, metavar="PX",
+    s.add_argument("--gcp-noise", type=_finite_float, metavar="PX",
                    help="GCP image measurement noise, px per axis (default 1)")
-    s.add_argument("--gross-errors", type=float, dest="gross_fraction", metavar="FRACTION",
+    s.add_argument("--gross-errors", type=_finite_float, dest="gross_fraction", metavar="FRACTION",
                    help="fraction of GCP measurements with a 10-40 px gross error")
     s.add_argument("--image-format", choices=("tif", "envi"), help="raw image format")
     s.add_argument("--pos-format", choices=("sbet", "csv"), help="POS file format")
@@ -198,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--ties", action="store_true",
                    help="with a reference: also match overlapping swings of opposite "
                         "directions with each other (tie points, ground unknown)")
-    s.add_argument("--rounds", type=int, default=4,
+    s.add_argument("--rounds", type=_int_between(1, 100), default=4,
                    help="with a reference: at most this many match / adjust rounds (default 4)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:calibrate"))
 
@@ -217,7 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--images", help="only these image ids, comma separated")
     s.add_argument("--tolerance", type=_positive_float, default=0.05,
                    help="bound on the interpolated raw coordinates' error, pixels (default 0.05)")
-    s.add_argument("--tile", type=_positive_int, default=512, help="output tile size (default 512)")
+    s.add_argument("--tile", type=TILE, default=512,
+                   help="output tile size, a multiple of 16 from 16 to 4096 (default 512)")
     s.add_argument("--bands", default="",
                    help="bands to rectify (default all), comma separated: 1-based indices "
                         "and ranges (1,4-6) or wavelengths with a unit (550nm,0.67um: the "
@@ -261,9 +302,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-feather", action="store_true", help="hard seams (nearest footprint)")
     s.add_argument("--no-balance", action="store_true", help="no radiometric balancing")
     s.add_argument("--no-match", action="store_true", help="no offset estimation")
-    s.add_argument("--max-shift", type=_positive_int, default=12,
-                   help="largest offset searched, pixels (default 12)")
-    s.add_argument("--tile", type=_positive_int, default=1024, help="tile size in pixels (default 1024)")
+    s.add_argument("--max-shift", type=MAX_SHIFT, default=12,
+                   help="largest offset searched, pixels, 1 to 256 (default 12)")
+    s.add_argument("--tile", type=TILE, default=1024,
+                   help="tile size in pixels, a multiple of 16 from 16 to 4096 (default 1024)")
     s.add_argument("--workers", type=_positive_int,
                    help="threads for the overlap matching and the rendering (default: "
                         "all cores)")
@@ -281,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where the Dask workers run without --dask-address: local processes "
                         "(default) or SLURM jobs through dask-jobqueue (settings: Dask's "
                         "jobqueue.slurm config, see deploy/dask/jobqueue.yaml)")
-    s.add_argument("--jobs", type=int, default=2,
+    s.add_argument("--jobs", type=_positive_int, default=2,
                    help="--cluster slurm: number of worker jobs to submit (default 2)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:run"))
 
@@ -373,7 +415,7 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
         output_lock,
         signalled,
     )
-    _show_warnings(args.command)
+    _show_warnings(args.command, quiet=getattr(args, "quiet", False))
     if program:          # the start-up's objects (modules) live to the end: out of the
         gc.freeze()      # collector's passes (0.05-0.1 CPU-s), then the collector on for
         gc.enable()      # the command's own work
@@ -389,6 +431,8 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
         code = 2
     except (Terminated, KeyboardInterrupt) as exc:
         code = _signalled(args.command, exc)
+    except BrokenPipeError:
+        code = _pipe_closed()
     except Exception as exc:
         # the signal's exception raised inside compiled code's call, or swallowed before
         if signalled(exc) is not None or SIGTERM_RECEIVED:
@@ -404,6 +448,19 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
     return code
 
 
+def _pipe_closed() -> int:
+    """The reader of our output went away (``swathflow sensors | head -1``, a killed
+    parent): end quietly, the way command-line tools do (exit 141, 128 + SIGPIPE), with
+    stdout pointed at /dev/null so that the interpreter's last flush raises nothing."""
+    import os
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return 141
+
+
 def _signalled(command: str, exc: BaseException) -> int:
     """The message and exit code of a run ended by SIGTERM (143) or Ctrl-C (130)."""
     from swathflow.flows.guard import Terminated
@@ -416,8 +473,9 @@ def _signalled(command: str, exc: BaseException) -> int:
     return 130
 
 
-def _show_warnings(command: str) -> None:
-    """swathflow's own warnings (mission, sensor plugins) as one plain line each."""
+def _show_warnings(command: str, quiet: bool = False) -> None:
+    """swathflow's own warnings (mission, sensor plugins) as one plain line each, with one
+    ``warning:`` prefix (a mission problem's text carries its own); none with ``-q``."""
     import warnings
 
     # the base class, not the modules that raise them: importing those (pandas, xarray,
@@ -427,7 +485,11 @@ def _show_warnings(command: str) -> None:
 
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, SwathflowWarning):
-            print(f"swathflow {command}: warning: {message}", file=sys.stderr)
+            if quiet:
+                return
+            text = str(message)
+            text = text[len("warning: "):] if text.startswith("warning: ") else text
+            print(f"swathflow {command}: warning: {text}", file=sys.stderr)
         else:
             previous(message, category, filename, lineno, file, line)
     warnings.showwarning = show

@@ -86,6 +86,12 @@ def open_reference(path, dem=None, vertical: str = "ellipsoidal") -> Reference:
     if r.crs is None:
         raise FormatError(f"{path}: the reference orthophoto has no CRS (add a .prj or "
                           f"-srs.wkt beside it, or write it as a GeoTIFF with a CRS)")
+    import pyproj
+    if not pyproj.CRS.from_user_input(r.crs).is_projected:
+        raise FormatError(f"{path}: the reference orthophoto's CRS is not projected (its "
+                          f"pixels are degrees; the matching's margins and blocks are "
+                          f"metres): warp it to a projected CRS, e.g. the mission's "
+                          f"(gdalwarp -t_srs EPSG:...)")
     t = r.transform
     if t.b != 0 or t.d != 0 or t.e >= 0 or abs(abs(t.e) - t.a) > 1e-9 * t.a:
         raise FormatError(f"{path}: the reference orthophoto must be north-up with square "
@@ -191,6 +197,32 @@ def coarse_shift(rect: np.ndarray, ref: np.ndarray, margin: int, factor: int):
     return (s[0] * f, s[1] * f), contrast
 
 
+#: the last :func:`coarsened` reference: {(id of the original, factor): (original, coarse)}
+_COARSE: dict = {}
+
+
+def coarsened(ref: Reference, raw_gsd: float | None) -> Reference:
+    """``ref`` on a lattice no finer than half the swing's raw pixel (``raw_gsd``, metres):
+    a finer reference holds nothing the swing can match, and its windows grow with the
+    square of the ratio (a 0.02 m reference for 0.4 m pixels: 400 times the pixels, a
+    runaway). Its pixels are averaged ``f`` x ``f``; the result is kept for the next call."""
+    if not raw_gsd or ref.res <= 0:
+        return ref
+    f = int(0.5 * float(raw_gsd) // ref.res)
+    if f < 2:
+        return ref
+    key = (id(ref), f)
+    hit = _COARSE.get(key)
+    if hit is not None and hit[0] is ref:
+        return hit[1]
+    img = _average(ref.image, f)
+    grid = Grid(ref.grid.crs, ref.grid.transform @ Affine.scale(f), img.shape)
+    out = Reference(ref.path, img, grid, ref.dem)
+    _COARSE.clear()
+    _COARSE[key] = (ref, out)
+    return out
+
+
 # --- one swing ---------------------------------------------------------------------------
 def match_swing(image_id: str, model, source, terrain, ref: Reference,
                 settings: MatchSettings = DEFAULT_SETTINGS,
@@ -198,6 +230,7 @@ def match_swing(image_id: str, model, source, terrain, ref: Reference,
     """Automatic control points of one swing (table with :data:`POINT_COLUMNS`) and
     statistics of the matching (blocks tried, matched, reasons, coarse shift)."""
     st = settings
+    ref = coarsened(ref, raw_gsd)
     stats: dict = {"image_id": image_id, "blocks": 0, "matched": 0, "reasons": {}}
     margin = int(np.ceil(st.margin_m / ref.res / st.coarse)) * st.coarse
     win = _footprint_window(model, terrain, ref, margin)
@@ -272,6 +305,12 @@ def _points(image_id, model, terrain, ref: Reference, grid: Grid, rows, st) -> p
     lin_el, d_row, d_col = raw[:n], raw[n:2 * n] - raw[:n], raw[2 * n:] - raw[:n]
     xp, yp = grid.xy(p[:, 0], p[:, 1])
     ground = grid.to_ecef(xp, yp, ref.dem if ref.dem is not None else terrain)
+    if ref.dem is not None and n and not np.isfinite(ground).all(axis=1).any():
+        raise FormatError(f"{getattr(ref.dem, 'path', 'the reference DEM')}: the reference "
+                          f"DEM has no height under any of the {n} points matched in swing "
+                          f"{image_id} (it misses the swath); give a reference DEM that "
+                          f"covers the flight (--reference-dem or [reference] dem), or none "
+                          f"(the mission's terrain is used)")
     acc = (st.accuracy_m / ref.res) if st.accuracy_m is not None else 0.25
     msig = np.array([r[4].sigma for r in rows], float)
     sig = np.sqrt(msig ** 2 + st.sigma_floor ** 2 + acc ** 2)          # reference px

@@ -14,6 +14,11 @@ from typing import Any, Mapping, Protocol
 
 from swathflow.calibration.control import calibrate
 from swathflow.calibration.unknowns import CalibrationError
+from swathflow.errors import SwathflowWarning
+
+
+class CalibrationWarning(SwathflowWarning):
+    """An observation a calibration could not use (dropped, with its id)."""
 
 
 @dataclass(frozen=True)
@@ -109,5 +114,52 @@ def calibrate_mission(mission, options: CalibrationOptions | None = None, progre
     options = options or CalibrationOptions()
     ref = reference_strategy(mission, options)
     if ref is not None:
-        return ref.calibrate(mission, options, progress)
-    return strategy_for(mission).calibrate(mission, options)
+        result = ref.calibrate(mission, options, progress)
+    else:
+        result = strategy_for(mission).calibrate(mission, options)
+    return estimated(result, mission)
+
+
+def estimated(result, mission=None):
+    """``result`` when it estimated something; a warning per observation it dropped (its
+    point and image named). A calibration from no usable observation (its sigma0 not a
+    number: every point unprojectable, e.g. heights in the wrong unit or 30 km off) is an
+    error, never the priors written as a calibration."""
+    import math
+    import warnings
+    dropped = _dropped(result)
+    for gcp, image in dropped[:50]:
+        warnings.warn(CalibrationWarning(
+            f"control point {gcp} in image {image}: not used (its ground position does not "
+            f"project into the image: check its coordinates and height)"), stacklevel=3)
+    if len(dropped) > 50:
+        warnings.warn(CalibrationWarning(f"... and {len(dropped) - 50} more control point "
+                                         f"observations not used"), stacklevel=3)
+    sigma0 = getattr(result, "sigma0", None)
+    try:
+        ok = sigma0 is None or math.isfinite(float(sigma0))
+    except (TypeError, ValueError):
+        ok = True
+    if not ok:
+        where = f"{mission.path}: " if mission is not None else ""
+        raise CalibrationError(
+            f"{where}nothing estimated: no observation was usable"
+            + (f" ({len(dropped)} control point observations do not project into their "
+               f"images)" if dropped else "")
+            + "; check the control points' coordinates, their height unit and vertical "
+              "datum ([gcp] crs, [terrain] vertical), and the priors")
+    return result
+
+
+def _dropped(result) -> list[tuple[str, str]]:
+    """(point id, image id) of the control observations a result could not compute."""
+    inner = getattr(result, "result", result)       # a reference calibration wraps one
+    res = getattr(inner, "residuals", None)
+    if res is None:
+        return []
+    try:
+        after = res[(res["stage"] == "after") & (res["role"] != "check")]
+        bad = after[after["x"].isna() | after["y"].isna()]
+        return [(str(g), str(i)) for g, i in zip(bad["gcp_id"], bad["image_id"])]
+    except (TypeError, KeyError, AttributeError):
+        return []

@@ -47,6 +47,9 @@ def read_calibration(path) -> dict:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FormatError(f"{path}: calibration file not found")
+    if not os.path.isfile(path):        # a FIFO would hang the reader, a device fill memory
+        raise FormatError(f"{path}: not a regular file (a folder, device or FIFO); name a "
+                          f"calibration.json")
     try:
         with open(path, encoding="utf-8") as f:
             doc = json.load(f)
@@ -76,15 +79,22 @@ def _check_numbers(path, name, p) -> None:
         raise FormatError(f"{path}: parameter {name!r}: value must be a list of numbers, "
                           f"got {str(v)[:60]}")
     if s is not None and not (isinstance(s, list) and len(s) == len(v) and all(
-            x is None or (isinstance(x, num) and not isinstance(x, bool)) for x in s)):
+            x is None or (isinstance(x, num) and not isinstance(x, bool)
+                          and not math.isnan(x) and x >= 0) for x in s)):
         raise FormatError(f"{path}: parameter {name!r}: sigma must be a list of "
-                          f"{len(v)} numbers (or null), got {str(s)[:60]}")
+                          f"{len(v)} numbers >= 0 (or null: unknown), got {str(s)[:60]}")
 
 
 def calibration_priors(doc: Mapping) -> dict:
-    """``ParameterSet.updated`` input from a calibration document (sigma None -> inf)."""
+    """``ParameterSet.updated`` input from a calibration document (sigma None -> inf).
+    A document without parameters is refused: it would silently mean the priors."""
+    params = doc.get("parameters") if isinstance(doc, Mapping) else None
+    if not isinstance(params, Mapping) or not params:
+        raise FormatError("the calibration gives no parameters ('parameters' missing or "
+                          "empty): it would mean the mission's priors; pass a calibration "
+                          "that 'swathflow calibrate' wrote")
     out = {}
-    for name, p in doc["parameters"].items():
+    for name, p in params.items():
         entry = {"value": p["value"]}
         if p.get("sigma") is not None:
             entry["sigma"] = [math.inf if s is None else s for s in p["sigma"]]

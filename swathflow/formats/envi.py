@@ -117,6 +117,11 @@ def map_envi(path) -> EnviImage:
         raise FormatError(f"{data}: {have} bytes but the header {hdr_path} describes "
                           f"{need} ({nb} bands x {nl} lines x {ns} samples of {dtype.name}, "
                           f"offset {offset}); fix the header or the file")
+    if os.path.getsize(data) > need:    # a 5-band BIL read as 3 would come out scrambled
+        raise FormatError(f"{data}: {os.path.getsize(data)} bytes but the header {hdr_path} "
+                          f"describes {need} ({nb} bands x {nl} lines x {ns} samples of "
+                          f"{dtype.name}, offset {offset}): the header does not describe "
+                          f"the file; fix its bands, lines, samples or data type")
     shape, axes = shapes[inter]
     mm = np.memmap(data, dtype=dtype, mode="r", offset=offset, shape=shape)
     nodata = hdr.get("data ignore value")

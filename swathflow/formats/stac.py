@@ -284,6 +284,10 @@ def write_catalog(rectified: Sequence, mosaic=None, out="stac", *, calibration=N
     when = acquired or dt.datetime.now(dt.UTC)
     spans = dict(spans or {})
     out = os.path.abspath(os.fspath(out))
+    if "#" in out or "?" in out:    # pystac reads them as a URL's fragment or query: the
+        from swathflow.errors import SwathflowError     # files would land elsewhere
+        raise SwathflowError(f"{out}: a STAC catalogue cannot be written to a path with "
+                             f"'#' or '?' (read as part of a URL): choose another folder")
     cal_assets = {"calibration": (calibration, "application/json", "calibration parameters",
                                   ["metadata"]),
                   "report": (report, "text/html", "calibration report", ["metadata"])}

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from swathflow.errors import SwathflowError
 from swathflow.ingest.keys import KNOWN_KEYS
 from swathflow.ingest.problems import Collector, check_crs, check_keys, first_rows, rel
 
@@ -31,6 +32,10 @@ def check_gcps(cfg, root, toml, parts, c: Collector):
     if not gp.exists():
         c.add(gp, "", "GCP file not found", "check [gcp].file in mission.toml")
         return None
+    if not gp.is_file():        # a FIFO would hang the reader, a device fill memory
+        c.add(gp, "", "not a regular file (a folder, device or FIFO)",
+              "name the GCP table's CSV file in [gcp].file")
+        return None
     df = _read(gp, c)
     if df is None:
         return None
@@ -43,7 +48,45 @@ def check_gcps(cfg, root, toml, parts, c: Collector):
     out = gcp_geodetic(df, crs)
     if not _located(out, df, gp, crs, parts.get("trajectory"), c):
         return None
+    if not _heights(out, gp, parts, c):
+        return None
     return out
+
+
+def _heights(g, gp, parts, c) -> bool:
+    """GCP heights must lie below the aircraft (an error otherwise: no image sees them;
+    typically heights in millimetres or feet, or a wrong CRS); heights far from the
+    terrain's (more than half the flying height above it) are warned of."""
+    pos = parts.get("pos")
+    if pos is None or "h" not in pos:
+        return True
+    h = g["h"].to_numpy(float)
+    with np.errstate(all="ignore"):
+        flight = float(np.nanmin(pos["h"].values))
+        above = h >= flight
+        if above.any():
+            c.add(gp, f"column z, file row(s) {first_rows(above)}",
+                  f"{int(above.sum())} GCP(s) at heights up to {np.nanmax(h[above]):.0f} m, "
+                  f"at or above the aircraft (lowest POS height {flight:.0f} m): no image "
+                  f"sees them", "give z as ellipsoidal heights in metres (not mm or feet), "
+                  "or check [gcp].crs")
+            return False
+        terrain = parts.get("terrain")
+        if terrain is None:
+            return True
+        try:
+            th = np.asarray(terrain.height(g["lat"].to_numpy(float), g["lon"].to_numpy(float)),
+                            float)
+        except (ValueError, SwathflowError):
+            return True
+        agl = flight - np.nanmedian(th) if np.isfinite(th).any() else np.nan
+        far = np.isfinite(th) & (np.abs(h - th) > 0.5 * agl) if agl > 0 else None
+        if far is not None and far.any():
+            c.warn(gp, f"column z, file row(s) {first_rows(far)}",
+                   f"{int(far.sum())} GCP height(s) differ from the terrain's by more than "
+                   f"half the flying height ({0.5 * agl:.0f} m)",
+                   "check z (ellipsoidal metres) and [terrain] vertical/geoid")
+    return True
 
 
 def _read(gp, c):

@@ -85,15 +85,15 @@ def raster_check(path) -> tuple[int, int, int, str]:
     try:
         with open_raw(path) as src:
             rows, cols, bands = src.height, src.width, src.count
+            if np.dtype(src.dtypes[0]).kind == "c":
+                raise SwathflowError(f"{path}: complex-valued pixels ({src.dtypes[0]}); a "
+                                     f"raw image holds real numbers: write its magnitude "
+                                     f"(or the real part) as the image")
             need = rows * cols * bands * np.dtype(src.dtypes[0]).itemsize
             if src.driver == "ENVI":
-                data = _envi_data_file(src, path)
-                have = os.path.getsize(data)
-                if have < need:
-                    raise SwathflowError(
-                        f"{data}: truncated: {have:,} bytes where the header "
-                        f"({rows} lines x {cols} samples x {bands} band(s), "
-                        f"{src.dtypes[0]}) needs {need:,}; re-copy or re-export the image")
+                _envi_size(src, path, need)
+            from swathflow.ingest.pixels import has_data
+            has_data(src, path)
             end = _tiff_blocks_end(src) if src.driver == "GTiff" else None
             if end is None:              # not told: read the last line (0.003 s each)
                 src.read(1, window=Window(0, rows - 1, cols, 1))
@@ -109,6 +109,27 @@ def raster_check(path) -> tuple[int, int, int, str]:
     note = (f"the image has {bands} bands; every band is rectified, the mosaic uses band 1"
             if bands > 1 else "")
     return rows, cols, bands, note
+
+
+def _envi_size(src, path, need: int) -> None:
+    """An ENVI data file must hold exactly what its header says: shorter is truncated;
+    longer means the header does not describe it (a 5-band BIL read as 3 comes out
+    scrambled)."""
+    from swathflow.ingest.pixels import envi_offset
+    data = _envi_data_file(src, path)
+    have = os.path.getsize(data)
+    offset = envi_offset(src)
+    shape = (f"{src.height} lines x {src.width} samples x {src.count} band(s), "
+             f"{src.dtypes[0]}")
+    if have < need + offset:
+        raise SwathflowError(f"{data}: truncated: {have:,} bytes where the header ({shape}) "
+                             f"needs {need + offset:,}; re-copy or re-export the image")
+    if have > need + offset:
+        raise SwathflowError(
+            f"{data}: {have:,} bytes where the header ({shape}, header offset {offset}) "
+            f"accounts for {need + offset:,}: the header does not describe the file (its "
+            f"bands, samples, lines or data type are wrong, and the pixels would be read "
+            f"scrambled); correct the .hdr")
 
 
 def _tiff_blocks_end(src) -> int | None:

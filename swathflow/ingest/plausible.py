@@ -28,10 +28,64 @@ def _wrap(a):
 def check_pos_plausible(ds, pp, fmt: str, c) -> bool:
     """Angle ranges, motion, angle units of a POS; False when it is unusable."""
     with np.errstate(all="ignore"):
-        if not _pos_ranges(ds, pp, fmt, c):
+        if not _pos_times(ds, pp, c) or not _pos_ranges(ds, pp, fmt, c):
+            return False
+        if not _pos_time_unit(ds, pp, c):
             return False
         ok = _pos_motion(ds, pp, c)
         return _pos_units(ds, pp, fmt, c) and ok
+
+
+def _pos_times(ds, pp, c) -> bool:
+    """Every epoch has a finite time, and times increase (the file and epoch named)."""
+    t = np.asarray(ds["time"].values, float)
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        after = f" (after t={t[i - 1]:.3f} s)" if i > 0 and np.isfinite(t[i - 1]) else ""
+        c.add(pp, f"column time, epoch {i}{after}", f"time is {t[i]} ({int(bad.sum())} "
+              f"epoch(s) in all)", "re-export the POS with a time at every epoch, or cut "
+              "those epochs")
+        return False
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        c.add(pp, f"column time, epoch {i}", f"t={t[i]:.6g} s does not follow "
+              f"t={t[i - 1]:.6g} s ({back.size} epoch(s) in all)",
+              "times must increase strictly: sort the POS and drop repeated epochs")
+        return False
+    return True
+
+
+#: units a POS time column is mistaken for, and their length in seconds
+TIME_UNITS = (("milliseconds", 1e-3), ("minutes", 60.0), ("hours", 3600.0))
+#: a typical survey ground speed (m/s), to tell which unit the times seem to be in
+TYPICAL_SPEED = 60.0
+
+
+def _pos_time_unit(ds, pp, c) -> bool:
+    """Times in another unit than seconds show as a platform moving uniformly too fast (or
+    too slow), not as one jump: told as such, with the unit that fits."""
+    from swathflow.geometry.geodesy import geodetic_to_ecef
+    t = np.asarray(ds["time"].values, float)
+    if t.size < 3:
+        return True
+    xyz = geodetic_to_ecef(np.stack([ds[k].values for k in ("lat", "lon", "h")], -1))
+    step = np.linalg.norm(np.diff(xyz, axis=0), axis=-1)
+    v = step / np.diff(t)
+    med = float(np.median(v))
+    if not np.isfinite(med) or (0.5 <= med <= MAX_SPEED) or step.sum() < 100.0:
+        return True
+    unit = min(TIME_UNITS, key=lambda u: abs(np.log(med / u[1] / TYPICAL_SPEED)))
+    msg = (f"with its times read as seconds the platform moves at {med:.3g} m/s all along "
+           f"the flight (an aircraft flies at 20-{MAX_SPEED:g} m/s): the times look like "
+           f"{unit[0]} ({med / unit[1]:.3g} m/s then)")
+    fix = f"write the time column in seconds (multiply by {unit[1]:g})"
+    if med > MAX_SPEED:
+        c.add(pp, "column time", msg, fix)
+        return False
+    c.warn(pp, "column time", msg, fix)
+    return True
 
 
 def _pos_ranges(ds, pp, fmt, c) -> bool:

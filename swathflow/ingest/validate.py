@@ -35,9 +35,12 @@ def read_toml(root: Path, c: Collector) -> dict | None:
         c.add(toml, "", "mission.toml not found",
               "create mission.toml (see spec/mission-format.md)")
         return None
+    if not toml.is_file():          # a FIFO would hang the reader, a device fill memory
+        c.add(toml, "", "not a regular file", "mission.toml must be a text file")
+        return None
+    from swathflow.ingest.tomlfile import load
     try:
-        with open(toml, "rb") as f:
-            return tomllib.load(f)
+        return load(toml)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         c.add(toml, "", f"not valid TOML: {exc}", "correct the syntax at the position shown")
     except OSError as exc:
@@ -80,9 +83,9 @@ def check_mission_table(cfg: dict, root: Path, toml: Path, c: Collector, parts: 
         gsd = None
     parts["gsd"] = gsd
     mp = m.get("max_pixels", 2e9)
-    if not _positive(mp):
-        c.add(toml, "[mission].max_pixels", f"must be a positive number, got {mp!r}",
-              "max_pixels = 2e9")
+    if not _positive(mp) or mp > MAX_PIXELS_LIMIT:
+        c.add(toml, "[mission].max_pixels", f"must be a positive number up to "
+              f"{MAX_PIXELS_LIMIT:g}, got {mp!r}", "max_pixels = 2e9")
         mp = 2e9
     parts["max_pixels"] = float(mp)
     parts["date"] = check_date(m.get("date"), toml, c)
@@ -107,6 +110,12 @@ def check_date_against_pos(date, traj, toml, c: Collector) -> None:
         c.add(toml, "[mission].date", why,
               "give the UTC date of the flight's first POS epoch, or remove the date (the "
               "catalogue then dates the products by their processing time)")
+
+
+#: the largest ``[mission] max_pixels`` a user may set: a swing's output grid of 10^12
+#: pixels is terabytes of COG and days of work; beyond it the limit no longer bounds
+#: anything (1e300 let a mistaken gsd allocate without end)
+MAX_PIXELS_LIMIT = 1e12
 
 
 def _positive(v) -> bool:
@@ -298,6 +307,9 @@ def check_images(cfg: dict, root: Path, toml: Path, c: Collector, parts: dict) -
                 c.add(toml, f"[[images]] id={entry.id!r}.{key}", f"{p.name} is also the "
                       f"{key} of image {other!r}", "give every image its own file")
         shape = _image_shape(entry, parts, c)
+        if shape is not None:
+            from swathflow.ingest.bands import check_envi
+            check_envi(entry, c)
         cols = line_table(entry, need, shape, parts.get("trajectory"), c)
         if cols is None:
             continue
@@ -322,6 +334,13 @@ def _image_entry(e, k, root, toml, images, c, cls) -> ImageEntry | None:
         return None
     iid = str(e["id"])
     where = f"[[images]] id={iid!r}"
+    from swathflow.ingest.names import id_problem
+    bad = id_problem(iid if isinstance(e["id"], (str, int)) and not isinstance(
+        e["id"], bool) else e["id"])
+    if bad:
+        c.add(toml, where + ".id", bad, 'an id is a plain name: letters, digits, "_", "-" '
+              'and "." (not first), e.g. id = "L1"')
+        return None
     if iid in images:
         c.add(toml, where, "duplicate image id", "give every image a unique id")
         return None
@@ -382,11 +401,19 @@ def inspect(path) -> tuple[list[Problem], dict]:
     if cfg is None:
         return c.problems, parts
     parts["config"] = cfg
+    from swathflow.ingest.tomlfile import special_files
+    for sp in special_files(cfg, root):     # a FIFO would hang a reader, a device fill memory
+        c.add(sp, "", "not a regular file (a device or FIFO): reading it would hang or "
+              "never end", "name the data file itself in mission.toml")
+    if len(c.problems):
+        return c.problems, parts
     check_mission_table(cfg, root, toml, c, parts)
     check_sensor(cfg, toml, c, parts)
     check_pos(cfg, root, toml, c, parts)
     check_terrain(cfg, root, toml, c, parts)
     check_images(cfg, root, toml, c, parts)
+    from swathflow.ingest.refcheck import check_reference
+    check_reference(cfg, root, toml, c, parts.get("pos"))
     traj = parts["trajectory"]
     if parts.get("date") is not None and traj is not None:
         check_date_against_pos(parts["date"], traj, toml, c)
@@ -431,10 +458,17 @@ def priors(cls, sensor, cal, root, toml, c: Collector):
                   "name a valid calibration.json")
             return None
     check_keys(cal, base.names, toml, "[calibration]", c, strict=False)
+    n0 = len(c.problems)
+    from swathflow.ingest.priorcheck import check_prior, held
+    for name, v in cal.items():
+        check_prior(name, v, toml, c)
+    if len(c.problems) > n0:
+        return None
     try:
-        return base.updated(cal)
+        out = base.updated(cal)
     except (SwathflowError, TypeError, ValueError) as exc:
         c.add(toml, "[calibration]", str(exc),
               f"parameters of {cls.name}: {', '.join(base.names)}; each "
               "{ value = [...], sigma = [...] }")
         return None
+    return held(out, toml, c)

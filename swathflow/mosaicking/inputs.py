@@ -335,7 +335,10 @@ def read_window(handles: _Handles, sw: Swing, r0: int, c0: int, r1: int, c1: int
 
 def find_inputs(source):
     """Rectified swings under ``source``: a folder of GeoTIFFs, or a mission/run folder
-    with a ``rectified/`` subfolder."""
+    with a ``rectified/`` subfolder. Earlier mosaics (tag ``product=mosaic``) and an
+    image's extra products (``<id>.glt.tif``, ``<id>.igm.tif``) in the folder are not
+    swings and are left out; swings of more than one mission (tag ``mission``) are
+    refused: they would be blended into one mosaic."""
     source = os.fspath(source)
     if os.path.isfile(source):
         return [source]
@@ -346,22 +349,53 @@ def find_inputs(source):
         d = os.path.join(source, sub)
         if os.path.isdir(d):
             tifs = sorted(os.path.join(d, f) for f in os.listdir(d)
-                          if f.lower().endswith((".tif", ".tiff")) and not f.startswith("."))
+                          if f.lower().endswith((".tif", ".tiff")) and not f.startswith(".")
+                          and not f.lower().endswith(_PRODUCT_FILES))
+            tifs = _swings_only(d, tifs)
             if tifs:
                 return tifs
     raise SwathflowError(f"{source}: no rectified swings found (looked for *.tif in "
                          f"{source}/rectified and {source}); run 'swathflow rectify' first")
 
 
+#: the files of an image's extra products (``swathflow rectify --products``)
+_PRODUCT_FILES = (".glt.tif", ".igm.tif")
+
+
+def _swings_only(folder: str, tifs: list[str]) -> list[str]:
+    """``tifs`` without earlier mosaics; refused when the swings name several missions."""
+    import rasterio
+    keep, missions = [], {}
+    for p in tifs:
+        try:
+            with rasterio.open(p) as src:
+                tags = src.tags()
+        except (rasterio.errors.RasterioError, OSError):
+            keep.append(p)          # reported when read, with the file named
+            continue
+        if tags.get("product") == "mosaic":
+            continue
+        keep.append(p)
+        if tags.get("mission"):
+            missions.setdefault(tags["mission"], os.path.basename(p))
+    if len(missions) > 1:
+        names = ", ".join(f"{k!r} ({v})" for k, v in list(missions.items())[:4])
+        raise SwathflowError(f"{folder}: holds swings of {len(missions)} missions ({names}); "
+                             f"a mosaic blends one mission's swings: move the others to "
+                             f"their own folder")
+    return keep
+
+
 def mission_strips(path) -> dict:
     """Image id -> strip number from a mission folder's ``mission.toml`` ([[images]])."""
     import tomllib
+
+    from swathflow.ingest.tomlfile import load
     path = os.fspath(path)
     toml = os.path.join(path, "mission.toml") if os.path.isdir(path) else path
     try:
-        with open(toml, "rb") as f:
-            cfg = tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+        cfg = load(toml)
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(f"{toml}: cannot read mission file: {exc}") from None
     out = {}
     for k, e in enumerate(cfg.get("images", [])):

@@ -77,6 +77,9 @@ def refresh() -> None:
 def find_format(path, format: str | None = None) -> PosFormat:
     """The format named ``format`` (a name or an alias), else the one claiming the suffix."""
     formats = list_formats()
+    if format is not None and not isinstance(format, str):
+        raise FormatError(f"{os.fspath(path)}: format must be the name of a POS format "
+                          f"(one of {', '.join(repr(n) for n in formats)}), got {format!r}")
     key = (format or os.path.splitext(os.fspath(path))[1].lstrip(".")).lower()
     if key in formats:
         return formats[key]
