@@ -75,6 +75,12 @@ class PendulumModel(SensorModel):
         return simulate
 
     @classmethod
+    def projector(cls, models):
+        """Every observation of every swing in one compiled call, analytic partials."""
+        from swathflow.sensors.pendulum.projection import PendulumProjector
+        return PendulumProjector(models)
+
+    @classmethod
     def check_config(cls, sensor: Mapping[str, Any]) -> list[str]:
         problems = super().check_config(sensor)
         for k in ("pixel_pitch", "focal_length"):
