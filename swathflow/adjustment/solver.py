@@ -9,8 +9,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy import stats
 
-from swathflow.adjustment.normal import _block_stat, _diag_jqjt, _Normal, _point_blocks, _points
+from swathflow.adjustment.normal import _block_stat, _Normal, _points
 from swathflow.adjustment.problem import AdjustmentError, Problem, Solution
+from swathflow.adjustment.schur import PointSplit, SchurNormal
 
 
 def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = False,
@@ -88,6 +89,24 @@ class _Solver:
         self.remaining = None
         self.converged = False
         self.cur: tuple | None = None  # (r, J, fresh) at x
+        self.schur = self._schur_layout(P)
+        self._split: tuple | None = None
+
+    def _schur_layout(self, P):
+        """Positions among the free unknowns of the camera unknowns and the point blocks
+        (None: no point unknowns, or some of them fixed: plain normal equations)."""
+        b = P.point_blocks
+        if b is None or not self.free[b].all():
+            return None
+        fpos = np.cumsum(self.free) - 1
+        fb = fpos[b]
+        nf = int(self.free.sum())
+        point_of = -np.ones(nf, np.intp)
+        slot_of = np.zeros(nf, np.intp)
+        point_of[fb.ravel()] = np.repeat(np.arange(fb.shape[0]), fb.shape[1])
+        slot_of[fb.ravel()] = np.tile(np.arange(fb.shape[1]), fb.shape[0])
+        cam = np.flatnonzero(point_of < 0)
+        return cam, fb, point_of, slot_of
 
     # --- weights and evaluation ----------------------------------------------------------
     def obs_mask(self):
@@ -120,9 +139,22 @@ class _Solver:
     def cres(self, xx):
         return np.concatenate([d - A @ xx for A, d in self.cons]) if self.cons else None
 
-    def normal(self, J, w, lam=0.0) -> _Normal:
+    def normal(self, J, w, lam=0.0):
+        if self.schur is not None:
+            cam, fb, point_of, slot_of = self.schur
+            if self._split is None or self._split[0] is not J:
+                self._split = (J, PointSplit(self._free_columns(J), cam, point_of, slot_of,
+                                             fb.shape[0], fb.shape[1]))
+            return SchurNormal(self._split[1], w, cam, fb, self.cons, lam, self.names_free,
+                               self.rcond)
         return _Normal(J, w, self.free, self.cons, lam, bool(self.use_sparse),
                        self.names_free, self.rcond)
+
+    def covariance(self, ne):
+        """The cofactor matrix of the free unknowns (dense, or factored with point
+        blocks), or None when it would be too large."""
+        size = ne.ncam if self.schur is not None else ne.nf
+        return None if size > self.max_dense_cov else ne.covariance()
 
     def _free_columns(self, J):
         return J[:, self.free] if not sp.issparse(J) else sp.csr_matrix(J)[:, self.free]
@@ -174,7 +206,7 @@ class _Solver:
         for tries in range(12):
             ne = self.normal(J, w, lam)
             dxf = ne.solve(g, self.cres(x))
-            step = float(np.sqrt(max(dxf @ (ne.N @ dxf), 0.0)))
+            step = float(np.sqrt(max(ne.step_norm2(dxf), 0.0)))
             if step < self.tol and lam == 0.0:
                 self._remaining(dxf)
                 return True, lam, x, r, step, float("nan")
@@ -211,15 +243,15 @@ class _Solver:
         for _ in range(50):
             w, act = self.weights(r, self.obs_mask())
             ne = self.normal(J, w)
-            if ne.nf > self.max_dense_cov:
+            cov = self.covariance(ne)
+            if cov is None:
                 return changed_any
-            Q = ne.inverse()
             Jf = self._free_columns(J)
             rr = np.where(act, r, 0.0)
             gv = np.asarray(Jf.T @ (w * rr)).ravel()
-            dxf = Q @ gv if not self.cons else ne.solve(gv, self.cres(self.x))
+            dxf = ne.solve(gv, self.cres(self.x))
             v = rr - np.asarray(Jf @ dxf).ravel()
-            red = np.where(act & self.counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+            red = np.where(act & self.counted, 1.0 - w * cov.diag_jqjt(Jf), 0.0)
             changed = False
             for k, lab in enumerate(self.labels):
                 sel = (self.comp_idx == k) & act
@@ -238,12 +270,12 @@ class _Solver:
         w0 = 1.0 / (self.sigma ** 2 * self.s2[self.comp_idx])
         return np.where(np.isfinite(w0), 1.0 / w0, np.inf)
 
-    def snoop_stats(self, Q, Jf, r):
+    def snoop_stats(self, cov, Jf, r):
         """Per-point v' Qvv^-1 v with the current components, its dof, J Q J' blocks and
         the a-priori variances per point."""
         qll = self.a_priori_variances()
         obs = self.pts.obs
-        blocks = _point_blocks(Jf, Q, obs)
+        blocks = cov.point_blocks(Jf, obs)
         valid = obs >= 0
         qdiag = np.where(valid, qll[np.where(valid, obs, 0)], 0.0)
         idx = np.arange(blocks.shape[1])
@@ -257,8 +289,7 @@ class _Solver:
         w, act = self.weights(r, self.obs_mask())
         ne = self.normal(J, w)
         Jf = self._free_columns(J)
-        Q = None if ne.nf > self.max_dense_cov else ne.inverse()
-        return ne, Q, Jf, w, act
+        return ne, self.covariance(ne), Jf, w, act
 
     # --- the phases -----------------------------------------------------------------------
     def converge(self, max_iter):
@@ -320,11 +351,13 @@ class _Solver:
         if not fresh:
             r, J = self.evaluate(self.x)
         ne, Q, Jf, w, act = self.statistics(r, J)
-        cov = np.zeros((n, n))
+        # dense up to max_dense_cov unknowns; above, sparse (camera and point blocks)
+        cov = np.zeros((n, n)) if n <= self.max_dense_cov else sp.csr_matrix((n, n))
         red = np.full(m, np.nan)
         used_counted = act & self.counted
         if Q is not None:
-            red = np.where(used_counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+            jqj = Q.diag_jqjt(Jf)
+            red = np.where(used_counted, 1.0 - w * jqj, 0.0)
         redundancy = (float(used_counted.sum() - free.sum() + ne.nc) if Q is None
                       else float(red.sum()))
         vpv = float(np.sum(np.where(used_counted, w * r ** 2, 0.0)))
@@ -332,12 +365,17 @@ class _Solver:
         if scale_covariance is None:
             scale_covariance = not any(lab in self.est for lab in self.labels)
         if Q is not None:
-            cov[np.ix_(free, free)] = Q * (s0sq if scale_covariance and np.isfinite(s0sq)
-                                           else 1.0)
+            f = s0sq if scale_covariance and np.isfinite(s0sq) else 1.0
+            if n <= self.max_dense_cov:
+                cov[np.ix_(free, free)] = Q.full(False) * f
+            else:                       # the camera and per-point blocks, sparse
+                fi = np.flatnonzero(free)
+                Qs = sp.coo_matrix(Q.full(True))
+                cov = sp.csr_matrix((Qs.data * f, (fi[Qs.row], fi[Qs.col])), shape=(n, n))
         components = self._components(r, w, act, red, Q is not None)
         wtest = np.full(m, np.nan)
         if Q is not None:            # per-observation w-tests
-            qv = np.where(act, 1.0 / np.where(w > 0, w, 1.0) - _diag_jqjt(Jf, Q), np.nan)
+            qv = np.where(act, 1.0 / np.where(w > 0, w, 1.0) - jqj, np.nan)
             with np.errstate(invalid="ignore", divide="ignore"):
                 wtest = np.where(act & (qv > 0), r / np.sqrt(np.abs(qv)), np.nan)
         res, nrm, used = {}, {}, {}
