@@ -173,6 +173,29 @@ def _root(g, start, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos,
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _smooth_piece(line, cols, time):
+    """The ends of the difference along the line at ``line``: ``LINE_STEP`` either side,
+    inside the piece where the camera vector is smooth (between the line centres and the
+    POS epochs around it, where the linear interpolations kink); one-sided next to a kink."""
+    j = min(int(line), cols.shape[0] - 2)
+    t0, t1 = cols[j, 0], cols[j + 1, 0]
+    t = t0 + (line - j) * (t1 - t0)
+    lo, hi = float(j), j + 1.0
+    k = np.searchsorted(time, t, side="right") - 1
+    if 0 <= k < time.shape[0] and time[k] > t0:
+        lo = max(lo, j + (time[k] - t0) / (t1 - t0))
+    if 0 <= k + 1 < time.shape[0] and time[k + 1] < t1:
+        hi = min(hi, j + (time[k + 1] - t0) / (t1 - t0))
+    lm, lp = max(line - LINE_STEP, lo), min(line + LINE_STEP, hi)
+    if lp - lm < LINE_STEP:              # next to a kink: the side with room
+        if hi - line > line - lo:
+            lm, lp = line, min(line + LINE_STEP, hi)
+        else:
+            lm, lp = max(line - LINE_STEP, lo), line
+    return lm, lp
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def project(points, image, start, cols_all, col_off, time_all, table_all, pos_off, pos_of,
             max_gap, rbp, rhs, ugps, usen, drbp, drhs, optics, partials, out, d_par,
             d_ground):
@@ -217,10 +240,7 @@ def project(points, image, start, cols_all, col_off, time_all, table_all, pos_of
         out[i, 1] = k0 + scale * cam[0] / (-cam[2])
         if not partials:
             continue
-        # dcam/dline: a difference inside the pair of lines (the line times' kink at the
-        # line centres left out)
-        j = min(int(line), cols.shape[0] - 2)
-        lp, lm = min(line + LINE_STEP, j + 1.0), max(line - LINE_STEP, float(j))
+        lm, lp = _smooth_piece(line, cols, time)
         okp = _chain(lp, g, cols, time, table, max_gap[m], rbp[m], rhs[m], ugps[m],
                      usen[m], pos, sw, a2, c2, cp)
         okm = _chain(lm, g, cols, time, table, max_gap[m], rbp[m], rhs[m], ugps[m],

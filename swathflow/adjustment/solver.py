@@ -14,6 +14,13 @@ from swathflow.adjustment.problem import AdjustmentError, Problem, Solution
 from swathflow.adjustment.schur import PointSplit, SchurNormal
 
 
+#: relative decrease of the cost a Gauss-Newton step predicts (``step^2 / cost``) below
+#: which a step that does not lower the cost ends the iteration (the model's kinks)
+FTOL = 1e-5
+#: a damped step lowering the cost by less than this fraction ends the iteration
+FTOL_STALL = 1e-6
+
+
 def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = False,
           alpha: float = 0.001, max_iter: int = 50, tol: float = 1e-4,
           sparse: bool | None = None, max_dense_cov: int = 4000, min_redundancy: float = 2.0,
@@ -182,10 +189,17 @@ class _Solver:
             conv, lam, xn, rn, step, cost_new = self._damped_step(r, J, w, act, mask, g, lam)
             if conv:
                 break
+            dxf = (xn - self.x)[self.free]
             self.x = xn
             lam = lam / 10.0 if lam > 1e-6 else 0.0
             self.history.append({"cost": cost, "cost_new": cost_new, "step_sigma": step,
                                  "damping": lam, "active": int(act.sum())})
+            if lam > 0.0 and 0.0 <= cost - cost_new < FTOL_STALL * cost:
+                # damped steps that no longer lower the cost (a kinked model): converged
+                self._remaining(dxf)
+                r, J = self.evaluate(self.x)
+                fresh, conv = True, True
+                break
             if step > self.jac_refresh:
                 r, J = self.evaluate(self.x)
                 fresh = True
@@ -207,9 +221,17 @@ class _Solver:
             ne = self.normal(J, w, lam)
             dxf = ne.solve(g, self.cres(x))
             step = float(np.sqrt(max(ne.step_norm2(dxf), 0.0)))
-            if step < self.tol and lam == 0.0:
-                self._remaining(dxf)
-                return True, lam, x, r, step, float("nan")
+            if step < self.tol:
+                # a short damped step: converged when the undamped (Gauss-Newton) step is
+                # short too; else take the undamped one (the damping only held it back)
+                if lam > 0.0:
+                    lam = 0.0
+                    ne = self.normal(J, w, 0.0)
+                    dxf = ne.solve(g, self.cres(x))
+                    step = float(np.sqrt(max(ne.step_norm2(dxf), 0.0)))
+                if step < self.tol:
+                    self._remaining(dxf)
+                    return True, lam, x, r, step, float("nan")
             self.iters += 1
             dx = np.zeros(self.n)
             dx[self.free] = dxf
@@ -221,10 +243,12 @@ class _Solver:
             cost_new = float(np.sum(np.where(both, wn * rn ** 2, 0.0)))
             lost = int(act.sum() - both.sum())
             lower = cost_new <= cost_old * (1 + 1e-9) + 1e-12
-            if self.damping and step < self.tol and lost == 0 and not lower:
-                # a step below the tolerance that does not lower the cost: x is the
-                # solution within the tolerance (a rough, e.g. piecewise-linear, model
-                # would otherwise be walked uphill)
+            if self.damping and lost == 0 and not lower and (
+                    step < self.tol or (lam == 0.0 and step ** 2 < FTOL * cost_old)):
+                # a step below the tolerance, or a Gauss-Newton step that would lower the
+                # cost by a negligible fraction, does not lower it: x is the solution
+                # within the tolerance (a rough, e.g. piecewise-linear, model would
+                # otherwise be walked uphill: a point whose crossing sits on a kink)
                 ne0 = ne if lam == 0.0 else self.normal(J, w, 0.0)
                 self._remaining(ne0.solve(g, self.cres(x)))
                 return True, lam, x, r, step, cost_new

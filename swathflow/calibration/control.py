@@ -328,7 +328,7 @@ def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, a
     try:
         comps = (["x", "y"] + (["tie_x", "tie_y"] if tg else [])
                  + (["priors"] if vce_priors else [])) if vce else False
-        return solve(P, vce=comps, robust=robust, alpha=alpha)
+        return solve(P, vce=comps, robust=robust, alpha=alpha, jac_refresh=0.0)
     except RankDeficiencyError as exc:
         raise CalibrationError(
             f"the control points cannot determine the parameters: {exc}. Add control points "
