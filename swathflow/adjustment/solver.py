@@ -217,6 +217,7 @@ class _Solver:
         """One accepted step (raising the damping until the cost falls), or convergence.
         Returns (converged, damping, x_new, r_new, step, cost_new)."""
         x = self.x
+        tried_gn = lam == 0.0
         for tries in range(12):
             ne = self.normal(J, w, lam)
             dxf = ne.solve(g, self.cres(x))
@@ -224,8 +225,8 @@ class _Solver:
             if step < self.tol:
                 # a short damped step: converged when the undamped (Gauss-Newton) step is
                 # short too; else take the undamped one (the damping only held it back)
-                if lam > 0.0:
-                    lam = 0.0
+                if lam > 0.0 and not tried_gn:
+                    lam, tried_gn = 0.0, True
                     ne = self.normal(J, w, 0.0)
                     dxf = ne.solve(g, self.cres(x))
                     step = float(np.sqrt(max(ne.step_norm2(dxf), 0.0)))
@@ -327,10 +328,11 @@ class _Solver:
     def snoop(self, r, J, alpha, readmit: bool) -> str:
         """One round of data snooping: 'rejected' (the worst failing point), 'readmitted'
         (rejected points whose prediction passes), or 'done'."""
-        _, Q, Jf, _, _ = self.statistics(r, J)
+        _, Q, Jf, w, act = self.statistics(r, J)
         if Q is None:
             return "done"
         T, k_p, blocks, qdiag = self.snoop_stats(Q, Jf, r)
+        T = T / self._leave_one_out(r, w, act, Q, Jf)
         crit = stats.chi2.ppf(1 - alpha, np.maximum(k_p, 1))
         cand = self.pts.robust & self.point_ok & (k_p > 0)
         ratio = np.where(cand, T / crit, 0.0)
@@ -353,6 +355,40 @@ class _Solver:
                 self.point_ok[p] = True
             return "readmitted" if back else "done"
         return "done"
+
+    def _leave_one_out(self, r, w, act, cov, Jf) -> np.ndarray:
+        """Per point, the factor of its estimated variance components were they estimated
+        without it (its share of their ``v'Pv`` and redundancy left out; 1 for components
+        not estimated): the test then is not blinded by a blunder that inflated the
+        component it belongs to (a false tie among few)."""
+        f = np.ones(len(self.pts.group))
+        if not self.est:
+            return f
+        red = np.where(act & self.counted, 1.0 - w * cov.diag_jqjt(Jf), 0.0)
+        vpv = np.where(act & self.counted, w * np.where(act, r, 0.0) ** 2, 0.0)
+        est = np.array([lab in self.est for lab in self.labels])
+        k = self.comp_idx
+        vk = np.bincount(k, vpv, len(self.labels))
+        rk = np.bincount(k, red, len(self.labels))
+        obs = self.pts.obs
+        valid = obs >= 0
+        o = np.where(valid, obs, 0)
+        kk = k[o]
+        vp = np.zeros((obs.shape[0], len(self.labels)))
+        rp = np.zeros_like(vp)
+        rows = np.repeat(np.arange(obs.shape[0]), obs.shape[1])
+        np.add.at(vp, (rows, kk.ravel()), np.where(valid, vpv[o], 0.0).ravel())
+        np.add.at(rp, (rows, kk.ravel()), np.where(valid, red[o], 0.0).ravel())
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s_all = vk / rk
+            s_wo = (vk - vp) / (rk - rp)
+            ratio = s_wo / s_all
+        ok = est & (rk >= self.min_redundancy)
+        ratio = np.where(ok[None, :] & ((rk - rp) >= self.min_redundancy) &
+                         np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+        wgt = rp * ok[None, :]
+        tot = wgt.sum(1)
+        return np.where(tot > 0, (ratio * wgt).sum(1) / np.where(tot > 0, tot, 1.0), 1.0)
 
     def run(self, robust: bool, alpha: float, max_iter: int) -> None:
         r, J = self.converge(max_iter)
