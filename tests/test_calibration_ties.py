@@ -73,7 +73,7 @@ def _nees(res):
 def test_nees_with_tie_points_passes_chi_square(models, priors):
     total, dof = 0.0, 0
     for seed in range(4):
-        res = _run(models, priors, seed)
+        res = _run(models, priors, seed, n_ctrl=20)
         info = res.options["ties"]
         assert info["points"] == 60 and info["rejected"] <= 1
         # the tie sigmas are right: their variance components near 1
