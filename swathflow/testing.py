@@ -167,8 +167,57 @@ def check_time(model):
     assert (dist < 50).all(), f"sensor_position {dist.max():.1f} m from the antenna"
 
 
+def check_projector(model, height: float = 50.0, n: int = 20, seed=4):
+    """The bulk projection (:meth:`SensorModel.projector`) over two images (the model and a
+    copy with other parameters, which it is given as a vector) agrees with
+    ``ground_to_image`` of each, and its partials predict the image motion of a small
+    change of every parameter and of the ground (as :func:`check_parameter_partials`)."""
+    rng = np.random.default_rng(seed)
+    img = _interior_points(model, n, rng)
+    ground = model.image_to_ground(img, height)
+    v0 = model.parameters.vector()
+    steps = model.fd_step_sizes() if hasattr(model, "fd_step_sizes") else None
+    units = model.parameters.flat_units()
+    h = np.array([steps[i] if steps is not None else {"deg": 2e-3, "m": 2e-3}.get(u, 1e-5)
+                  for i, u in enumerate(units)])
+    v1 = v0 + 5 * h
+    other = model.with_vector(v1)
+    proj = type(model).projector([model, other])
+    idx = np.repeat([0, 1], n)
+    G = np.concatenate([ground, ground])
+    V = np.stack([v0, v1])
+    out = proj.project(idx, G, V)
+    want = np.concatenate([model.ground_to_image(ground, clip=False),
+                           other.ground_to_image(ground, clip=False)])
+    assert out.image.shape == (2 * n, 2), f"projector image shape {out.image.shape}"
+    err = np.nanmax(np.abs(out.image - want))
+    assert np.array_equal(np.isnan(out.image), np.isnan(want)) and err < 1e-3, \
+        f"projector disagrees with ground_to_image by {err:.3g} px"
+    assert out.d_parameters.shape == (2 * n, 2, v0.size), \
+        f"projector d_parameters shape {out.d_parameters.shape}"
+    assert out.d_ground.shape == (2 * n, 2, 3), f"projector d_ground shape {out.d_ground.shape}"
+    again = proj.project(idx, G, V, partials=False, start=out.image)
+    assert np.nanmax(np.abs(again.image - out.image)) < 1e-6, \
+        "projector gives another answer when started at its own"
+    names = model.parameters.flat_names()
+    for i, name in enumerate(names):
+        Vp = V.copy()
+        Vp[:, i] += h[i]
+        change = proj.project(idx, G, Vp, partials=False).image - out.image
+        err = np.nanmax(np.abs(change - out.d_parameters[..., i] * h[i]))
+        assert err < max(2e-4, 2e-2 * np.nanmax(np.abs(change))), \
+            f"projector partial by {name}: linear prediction off by {err:.3g} px"
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = 0.01
+        change = proj.project(idx, G + d, V, partials=False).image - out.image
+        err = np.nanmax(np.abs(change - out.d_ground[..., k] * 0.01))
+        assert err < max(2e-4, 2e-2 * np.nanmax(np.abs(change))), \
+            f"projector ground partial axis {k}: linear prediction off by {err:.3g} px"
+
+
 CHECKS = (check_round_trip, check_unseen, check_ground_partials, check_parameter_partials,
-          check_serialisation, check_time)
+          check_projector, check_serialisation, check_time)
 
 
 def check_model(model) -> None:

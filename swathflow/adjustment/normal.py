@@ -94,6 +94,12 @@ class _Normal:
             f"unknowns: {text}. Add observations that separate them, add priors, or fix "
             f"some of them", directions)
 
+    def step_norm2(self, dx) -> float:
+        return float(dx @ (self.N @ dx))
+
+    def covariance(self) -> _DenseCov:
+        return _DenseCov(self.inverse())
+
     def solve(self, g, cres=None):
         b = g if not self.nc else np.concatenate([g, cres])
         out = self._solve(b)
@@ -107,6 +113,22 @@ class _Normal:
         X = self._solve(E)
         Q = X[:n, :n]
         return 0.5 * (Q + Q.T)
+
+
+class _DenseCov:
+    """The cofactor matrix ``Q`` of the free unknowns, formed densely."""
+
+    def __init__(self, Q):
+        self.Q = Q
+
+    def diag_jqjt(self, J) -> np.ndarray:
+        return _diag_jqjt(J, self.Q)
+
+    def point_blocks(self, J, obs_idx) -> np.ndarray:
+        return _point_blocks(J, self.Q, obs_idx)
+
+    def full(self, sparse: bool = False) -> np.ndarray:
+        return self.Q
 
 
 def _directions(vectors, names) -> list[dict[str, float]]:

@@ -60,6 +60,7 @@ class Problem:
         self.fixed = np.zeros(len(self.names), bool)
         self.groups: list[Group] = []
         self.constraints: list[tuple[np.ndarray | sp.spmatrix, np.ndarray]] = []
+        self.point_blocks: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -135,6 +136,19 @@ class Problem:
                                point_names=np.array([self.names[i] for i in idx], dtype=object),
                                counted=counted)
 
+    def eliminate(self, blocks) -> None:
+        """Declare point unknowns: ``blocks`` ``(P, k)`` unknown indices, one row per point
+        (a ground point's coordinates). Every observation touches at most one block and the
+        hard constraints none; the solver then eliminates them block by block (Schur
+        complement, :mod:`swathflow.adjustment.schur`)."""
+        b = np.asarray(blocks, int)
+        if b.ndim != 2 or (b.size and (b.min() < 0 or b.max() >= self.n)):
+            raise AdjustmentError("point blocks must be a (points, k) array of unknown "
+                                  "indices")
+        if np.unique(b).size != b.size:
+            raise AdjustmentError("point blocks overlap")
+        self.point_blocks = b if b.size else None
+
     def add_constraint(self, A, d) -> None:
         """Hard linear equality constraints ``A x = d`` (satisfied exactly)."""
         A = A.tocsr() if sp.issparse(A) else np.atleast_2d(np.asarray(A, float))
@@ -175,6 +189,7 @@ class Solution:
     x0: np.ndarray
     fixed: np.ndarray
     cov: np.ndarray                      # (n, n), zero rows/columns for fixed unknowns
+    #                                      (scipy.sparse above max_dense_cov unknowns)
     sigma0: float                        # a-posteriori sigma of unit weight
     redundancy: float
     components: dict[str, dict]          # label -> {s2, sigma_factor, redundancy, n, estimated}
@@ -193,10 +208,15 @@ class Solution:
 
     @property
     def sigma(self) -> np.ndarray:
-        return np.sqrt(np.clip(np.diag(self.cov), 0, None))
+        d = self.cov.diagonal() if sp.issparse(self.cov) else np.diag(self.cov)
+        return np.sqrt(np.clip(np.asarray(d), 0, None))
 
     @property
     def corr(self) -> np.ndarray:
+        """Correlations (dense: for solutions of up to ``max_dense_cov`` unknowns)."""
+        if sp.issparse(self.cov):
+            raise AdjustmentError(f"the correlation matrix of {len(self.names)} unknowns is "
+                                  f"not formed densely; use cov (sparse)")
         s = self.sigma
         with np.errstate(invalid="ignore", divide="ignore"):
             c = self.cov / np.outer(s, s)

@@ -9,8 +9,16 @@ import numpy as np
 import scipy.sparse as sp
 from scipy import stats
 
-from swathflow.adjustment.normal import _block_stat, _diag_jqjt, _Normal, _point_blocks, _points
+from swathflow.adjustment.normal import _block_stat, _Normal, _points
 from swathflow.adjustment.problem import AdjustmentError, Problem, Solution
+from swathflow.adjustment.schur import PointSplit, SchurNormal
+
+
+#: relative decrease of the cost a Gauss-Newton step predicts (``step^2 / cost``) below
+#: which a step that does not lower the cost ends the iteration (the model's kinks)
+FTOL = 1e-5
+#: a damped step lowering the cost by less than this fraction ends the iteration
+FTOL_STALL = 1e-6
 
 
 def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = False,
@@ -88,6 +96,24 @@ class _Solver:
         self.remaining = None
         self.converged = False
         self.cur: tuple | None = None  # (r, J, fresh) at x
+        self.schur = self._schur_layout(P)
+        self._split: tuple | None = None
+
+    def _schur_layout(self, P):
+        """Positions among the free unknowns of the camera unknowns and the point blocks
+        (None: no point unknowns, or some of them fixed: plain normal equations)."""
+        b = P.point_blocks
+        if b is None or not self.free[b].all():
+            return None
+        fpos = np.cumsum(self.free) - 1
+        fb = fpos[b]
+        nf = int(self.free.sum())
+        point_of = -np.ones(nf, np.intp)
+        slot_of = np.zeros(nf, np.intp)
+        point_of[fb.ravel()] = np.repeat(np.arange(fb.shape[0]), fb.shape[1])
+        slot_of[fb.ravel()] = np.tile(np.arange(fb.shape[1]), fb.shape[0])
+        cam = np.flatnonzero(point_of < 0)
+        return cam, fb, point_of, slot_of
 
     # --- weights and evaluation ----------------------------------------------------------
     def obs_mask(self):
@@ -120,9 +146,22 @@ class _Solver:
     def cres(self, xx):
         return np.concatenate([d - A @ xx for A, d in self.cons]) if self.cons else None
 
-    def normal(self, J, w, lam=0.0) -> _Normal:
+    def normal(self, J, w, lam=0.0):
+        if self.schur is not None:
+            cam, fb, point_of, slot_of = self.schur
+            if self._split is None or self._split[0] is not J:
+                self._split = (J, PointSplit(self._free_columns(J), cam, point_of, slot_of,
+                                             fb.shape[0], fb.shape[1]))
+            return SchurNormal(self._split[1], w, cam, fb, self.cons, lam, self.names_free,
+                               self.rcond)
         return _Normal(J, w, self.free, self.cons, lam, bool(self.use_sparse),
                        self.names_free, self.rcond)
+
+    def covariance(self, ne):
+        """The cofactor matrix of the free unknowns (dense, or factored with point
+        blocks), or None when it would be too large."""
+        size = ne.ncam if self.schur is not None else ne.nf
+        return None if size > self.max_dense_cov else ne.covariance()
 
     def _free_columns(self, J):
         return J[:, self.free] if not sp.issparse(J) else sp.csr_matrix(J)[:, self.free]
@@ -150,10 +189,17 @@ class _Solver:
             conv, lam, xn, rn, step, cost_new = self._damped_step(r, J, w, act, mask, g, lam)
             if conv:
                 break
+            dxf = (xn - self.x)[self.free]
             self.x = xn
             lam = lam / 10.0 if lam > 1e-6 else 0.0
             self.history.append({"cost": cost, "cost_new": cost_new, "step_sigma": step,
                                  "damping": lam, "active": int(act.sum())})
+            if lam > 0.0 and 0.0 <= cost - cost_new < FTOL_STALL * cost:
+                # damped steps that no longer lower the cost (a kinked model): converged
+                self._remaining(dxf)
+                r, J = self.evaluate(self.x)
+                fresh, conv = True, True
+                break
             if step > self.jac_refresh:
                 r, J = self.evaluate(self.x)
                 fresh = True
@@ -171,13 +217,22 @@ class _Solver:
         """One accepted step (raising the damping until the cost falls), or convergence.
         Returns (converged, damping, x_new, r_new, step, cost_new)."""
         x = self.x
+        tried_gn = lam == 0.0
         for tries in range(12):
             ne = self.normal(J, w, lam)
             dxf = ne.solve(g, self.cres(x))
-            step = float(np.sqrt(max(dxf @ (ne.N @ dxf), 0.0)))
-            if step < self.tol and lam == 0.0:
-                self._remaining(dxf)
-                return True, lam, x, r, step, float("nan")
+            step = float(np.sqrt(max(ne.step_norm2(dxf), 0.0)))
+            if step < self.tol:
+                # a short damped step: converged when the undamped (Gauss-Newton) step is
+                # short too; else take the undamped one (the damping only held it back)
+                if lam > 0.0 and not tried_gn:
+                    lam, tried_gn = 0.0, True
+                    ne = self.normal(J, w, 0.0)
+                    dxf = ne.solve(g, self.cres(x))
+                    step = float(np.sqrt(max(ne.step_norm2(dxf), 0.0)))
+                if step < self.tol:
+                    self._remaining(dxf)
+                    return True, lam, x, r, step, float("nan")
             self.iters += 1
             dx = np.zeros(self.n)
             dx[self.free] = dxf
@@ -189,10 +244,12 @@ class _Solver:
             cost_new = float(np.sum(np.where(both, wn * rn ** 2, 0.0)))
             lost = int(act.sum() - both.sum())
             lower = cost_new <= cost_old * (1 + 1e-9) + 1e-12
-            if self.damping and step < self.tol and lost == 0 and not lower:
-                # a step below the tolerance that does not lower the cost: x is the
-                # solution within the tolerance (a rough, e.g. piecewise-linear, model
-                # would otherwise be walked uphill)
+            if self.damping and lost == 0 and not lower and (
+                    step < self.tol or (lam == 0.0 and step ** 2 < FTOL * cost_old)):
+                # a step below the tolerance, or a Gauss-Newton step that would lower the
+                # cost by a negligible fraction, does not lower it: x is the solution
+                # within the tolerance (a rough, e.g. piecewise-linear, model would
+                # otherwise be walked uphill: a point whose crossing sits on a kink)
                 ne0 = ne if lam == 0.0 else self.normal(J, w, 0.0)
                 self._remaining(ne0.solve(g, self.cres(x)))
                 return True, lam, x, r, step, cost_new
@@ -211,15 +268,15 @@ class _Solver:
         for _ in range(50):
             w, act = self.weights(r, self.obs_mask())
             ne = self.normal(J, w)
-            if ne.nf > self.max_dense_cov:
+            cov = self.covariance(ne)
+            if cov is None:
                 return changed_any
-            Q = ne.inverse()
             Jf = self._free_columns(J)
             rr = np.where(act, r, 0.0)
             gv = np.asarray(Jf.T @ (w * rr)).ravel()
-            dxf = Q @ gv if not self.cons else ne.solve(gv, self.cres(self.x))
+            dxf = ne.solve(gv, self.cres(self.x))
             v = rr - np.asarray(Jf @ dxf).ravel()
-            red = np.where(act & self.counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+            red = np.where(act & self.counted, 1.0 - w * cov.diag_jqjt(Jf), 0.0)
             changed = False
             for k, lab in enumerate(self.labels):
                 sel = (self.comp_idx == k) & act
@@ -238,12 +295,12 @@ class _Solver:
         w0 = 1.0 / (self.sigma ** 2 * self.s2[self.comp_idx])
         return np.where(np.isfinite(w0), 1.0 / w0, np.inf)
 
-    def snoop_stats(self, Q, Jf, r):
+    def snoop_stats(self, cov, Jf, r):
         """Per-point v' Qvv^-1 v with the current components, its dof, J Q J' blocks and
         the a-priori variances per point."""
         qll = self.a_priori_variances()
         obs = self.pts.obs
-        blocks = _point_blocks(Jf, Q, obs)
+        blocks = cov.point_blocks(Jf, obs)
         valid = obs >= 0
         qdiag = np.where(valid, qll[np.where(valid, obs, 0)], 0.0)
         idx = np.arange(blocks.shape[1])
@@ -257,8 +314,7 @@ class _Solver:
         w, act = self.weights(r, self.obs_mask())
         ne = self.normal(J, w)
         Jf = self._free_columns(J)
-        Q = None if ne.nf > self.max_dense_cov else ne.inverse()
-        return ne, Q, Jf, w, act
+        return ne, self.covariance(ne), Jf, w, act
 
     # --- the phases -----------------------------------------------------------------------
     def converge(self, max_iter):
@@ -272,10 +328,11 @@ class _Solver:
     def snoop(self, r, J, alpha, readmit: bool) -> str:
         """One round of data snooping: 'rejected' (the worst failing point), 'readmitted'
         (rejected points whose prediction passes), or 'done'."""
-        _, Q, Jf, _, _ = self.statistics(r, J)
+        _, Q, Jf, w, act = self.statistics(r, J)
         if Q is None:
             return "done"
         T, k_p, blocks, qdiag = self.snoop_stats(Q, Jf, r)
+        T = T / self._leave_one_out(r, w, act, Q, Jf)
         crit = stats.chi2.ppf(1 - alpha, np.maximum(k_p, 1))
         cand = self.pts.robust & self.point_ok & (k_p > 0)
         ratio = np.where(cand, T / crit, 0.0)
@@ -299,6 +356,40 @@ class _Solver:
             return "readmitted" if back else "done"
         return "done"
 
+    def _leave_one_out(self, r, w, act, cov, Jf) -> np.ndarray:
+        """Per point, the factor of its estimated variance components were they estimated
+        without it (its share of their ``v'Pv`` and redundancy left out; 1 for components
+        not estimated): the test then is not blinded by a blunder that inflated the
+        component it belongs to (a false tie among few)."""
+        f = np.ones(len(self.pts.group))
+        if not self.est:
+            return f
+        red = np.where(act & self.counted, 1.0 - w * cov.diag_jqjt(Jf), 0.0)
+        vpv = np.where(act & self.counted, w * np.where(act, r, 0.0) ** 2, 0.0)
+        est = np.array([lab in self.est for lab in self.labels])
+        k = self.comp_idx
+        vk = np.bincount(k, vpv, len(self.labels))
+        rk = np.bincount(k, red, len(self.labels))
+        obs = self.pts.obs
+        valid = obs >= 0
+        o = np.where(valid, obs, 0)
+        kk = k[o]
+        vp = np.zeros((obs.shape[0], len(self.labels)))
+        rp = np.zeros_like(vp)
+        rows = np.repeat(np.arange(obs.shape[0]), obs.shape[1])
+        np.add.at(vp, (rows, kk.ravel()), np.where(valid, vpv[o], 0.0).ravel())
+        np.add.at(rp, (rows, kk.ravel()), np.where(valid, red[o], 0.0).ravel())
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s_all = vk / rk
+            s_wo = (vk - vp) / (rk - rp)
+            ratio = s_wo / s_all
+        ok = est & (rk >= self.min_redundancy)
+        ratio = np.where(ok[None, :] & ((rk - rp) >= self.min_redundancy) &
+                         np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+        wgt = rp * ok[None, :]
+        tot = wgt.sum(1)
+        return np.where(tot > 0, (ratio * wgt).sum(1) / np.where(tot > 0, tot, 1.0), 1.0)
+
     def run(self, robust: bool, alpha: float, max_iter: int) -> None:
         r, J = self.converge(max_iter)
         if not robust:
@@ -320,11 +411,13 @@ class _Solver:
         if not fresh:
             r, J = self.evaluate(self.x)
         ne, Q, Jf, w, act = self.statistics(r, J)
-        cov = np.zeros((n, n))
+        # dense up to max_dense_cov unknowns; above, sparse (camera and point blocks)
+        cov = np.zeros((n, n)) if n <= self.max_dense_cov else sp.csr_matrix((n, n))
         red = np.full(m, np.nan)
         used_counted = act & self.counted
         if Q is not None:
-            red = np.where(used_counted, 1.0 - w * _diag_jqjt(Jf, Q), 0.0)
+            jqj = Q.diag_jqjt(Jf)
+            red = np.where(used_counted, 1.0 - w * jqj, 0.0)
         redundancy = (float(used_counted.sum() - free.sum() + ne.nc) if Q is None
                       else float(red.sum()))
         vpv = float(np.sum(np.where(used_counted, w * r ** 2, 0.0)))
@@ -332,12 +425,17 @@ class _Solver:
         if scale_covariance is None:
             scale_covariance = not any(lab in self.est for lab in self.labels)
         if Q is not None:
-            cov[np.ix_(free, free)] = Q * (s0sq if scale_covariance and np.isfinite(s0sq)
-                                           else 1.0)
+            f = s0sq if scale_covariance and np.isfinite(s0sq) else 1.0
+            if n <= self.max_dense_cov:
+                cov[np.ix_(free, free)] = Q.full(False) * f
+            else:                       # the camera and per-point blocks, sparse
+                fi = np.flatnonzero(free)
+                Qs = sp.coo_matrix(Q.full(True))
+                cov = sp.csr_matrix((Qs.data * f, (fi[Qs.row], fi[Qs.col])), shape=(n, n))
         components = self._components(r, w, act, red, Q is not None)
         wtest = np.full(m, np.nan)
         if Q is not None:            # per-observation w-tests
-            qv = np.where(act, 1.0 / np.where(w > 0, w, 1.0) - _diag_jqjt(Jf, Q), np.nan)
+            qv = np.where(act, 1.0 / np.where(w > 0, w, 1.0) - jqj, np.nan)
             with np.errstate(invalid="ignore", divide="ignore"):
                 wtest = np.where(act & (qv > 0), r / np.sqrt(np.abs(qv)), np.nan)
         res, nrm, used = {}, {}, {}

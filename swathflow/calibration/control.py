@@ -21,9 +21,10 @@ from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
+import scipy.sparse as sp
 
 from swathflow.adjustment import Problem, RankDeficiencyError, solve
-from swathflow.calibration.partials import image_partials
+from swathflow.calibration.evaluation import BulkObservations
 from swathflow.calibration.result import CalibrationResult, _direction, residual_table, summarize
 from swathflow.calibration.unknowns import (DIRECTION_SUFFIXES, CalibrationError, Unknowns,
                                             build_unknowns, model_matrix, _swap_direction)
@@ -205,47 +206,36 @@ def _calibration_images(obs, models, chosen) -> list[str]:
     return chosen
 
 
-def _residual_function(models, mats, unk, spans, n_obs):
+def _residual_function(models, mats, unk, spans, n_obs, sparse_total=None):
     """``fn(x, jacobian)`` of the adjustment: observed minus computed image coordinates of
-    the control points and their partials, cached for the last ``x``."""
-    skip_cache: dict[str, np.ndarray] = {}
-    cache: dict = {}
+    the control points and their partials (every image in one bulk evaluation,
+    :class:`~swathflow.calibration.evaluation.BulkObservations`), cached for the last
+    ``x``. ``sparse_total``: the Jacobian as a sparse matrix over that many unknowns (the
+    calibration unknowns first)."""
     n = len(unk.names)
+    image_ids = np.concatenate([[iid] * ((sl.stop - sl.start) // 2)
+                                for iid, sl, _, _ in spans]) if spans else np.zeros(0)
+    bulk = BulkObservations(models, mats, image_ids)
+    ground = np.concatenate([G for _, _, G, _ in spans]) if spans else np.zeros((0, 3))
     l_obs = np.concatenate([lo for _, _, _, lo in spans]) if spans else np.zeros(0)
-
-    def computed(x):
-        comp = np.empty(2 * n_obs)
-        mods = {}
-        for iid, sl, G, _ in spans:
-            mods[iid] = models[iid].with_vector(mats[iid] @ x)
-            comp[sl] = mods[iid].ground_to_image(G, clip=False).ravel()
-        return comp, mods
-
-    def jacobian(comp, mods):
-        J = np.zeros((2 * n_obs, n))
-        for iid, sl, G, _ in spans:
-            M = mats[iid]
-            used = np.flatnonzero(np.any(M[:, ~unk.fixed] != 0, axis=1))
-            skip = skip_cache.get(iid)
-            names = [mods[iid].parameters.flat_names()[i] for i in used]
-            D = image_partials(mods[iid], G, comp[sl].reshape(-1, 2), names,
-                               None if skip is None else skip[used])
-            if skip is None:
-                sk = np.zeros(M.shape[0], bool)
-                sk[used] = np.all(np.nan_to_num(D) == 0, axis=(0, 1))
-                skip_cache[iid] = sk
-            J[sl] = (D @ M[used]).reshape(-1, n)
-        return J
+    cache: dict = {}
 
     def fn(x, jacobian_wanted=True):
-        key = x.tobytes()
-        if key not in cache:
+        xc = np.asarray(x[:n], float)
+        key = xc.tobytes()
+        ent = cache.get(key)
+        if ent is None or (jacobian_wanted and ent[1] is None):
+            comp, d_x, _ = bulk.evaluate(xc, ground, jacobian_wanted)
+            J = None
+            if jacobian_wanted:
+                J = d_x.reshape(2 * n_obs, n)
+                if sparse_total is not None:
+                    J = sp.hstack([sp.csr_matrix(J),
+                                   sp.csr_matrix((2 * n_obs, sparse_total - n))], "csr")
+            ent = (comp.ravel(), J)
             cache.clear()
-            cache[key] = (*computed(x), None)
-        comp, mods, J = cache[key]
-        if jacobian_wanted and J is None:
-            J = jacobian(comp, mods)
-            cache[key] = (comp, mods, J)
+            cache[key] = ent
+        comp, J = ent
         return l_obs - comp, (J if jacobian_wanted else None)
 
     return fn
@@ -278,22 +268,11 @@ def _split_ties(sol, n: int):
             "residuals": res}
     keep = dataclasses.replace(
         sol, names=sol.names[:n], units=sol.units[:n], x=sol.x[:n], x0=sol.x0[:n],
-        fixed=sol.fixed[:n], cov=sol.cov[:n, :n],
+        fixed=sol.fixed[:n], cov=(sol.cov[:n, :n].toarray() if sp.issparse(sol.cov)
+                                  else sol.cov[:n, :n]),
         rejected=[r for r in sol.rejected if r["group"] != "tie"],
         remaining=None if sol.remaining is None else sol.remaining[:n])
     return keep, info
-
-
-def _padded(fn, n: int, n_total: int):
-    """A group function of the first ``n`` unknowns as one of ``n_total``."""
-    def wrapped(x, jacobian=True):
-        r, J = fn(x[:n], jacobian)
-        if J is None:
-            return r, None
-        out = np.zeros((J.shape[0], n_total))
-        out[:, :n] = J
-        return r, out
-    return wrapped
 
 
 def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, alpha,
@@ -322,8 +301,8 @@ def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, a
     P = Problem(list(unk.names) + tie_names, np.concatenate([unk.value, zeros]),
                 list(unk.units) + ["m"] * len(tie_names))
     P.fix(np.concatenate([unk.fixed, zeros.astype(bool)]))
-    P.add_observations("image", _padded(_residual_function(models, mats, unk, spans, n_obs),
-                                        n, n_total),
+    P.add_observations("image", _residual_function(models, mats, unk, spans, n_obs,
+                                                   n_total if tg else None),
                        _observation_sigmas(cal_obs, obs_sigma_px),
                        component=np.tile(np.array(["y", "x"], dtype=object), n_obs),
                        point=np.repeat(np.arange(n_obs), 2), point_names=point_names,
@@ -341,6 +320,7 @@ def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, a
                            point=point, point_names=pnames, robust=True)
         # the tie points' heights from the terrain; a weak horizontal prior only keeps a
         # point whose observations were rejected determined (not counted)
+        P.eliminate(np.arange(n, n_total).reshape(-1, 3))      # Schur: 3x3 per tie point
         P.add_priors(np.zeros(n_total),
                      np.concatenate([np.full(n, np.inf),
                                      np.where(np.isfinite(tie_prior), tie_prior, 1e3)]),
@@ -348,7 +328,7 @@ def _adjust(models, mats, unk, cal_obs, obs_sigma_px, vce, vce_priors, robust, a
     try:
         comps = (["x", "y"] + (["tie_x", "tie_y"] if tg else [])
                  + (["priors"] if vce_priors else [])) if vce else False
-        return solve(P, vce=comps, robust=robust, alpha=alpha)
+        return solve(P, vce=comps, robust=robust, alpha=alpha, jac_refresh=0.0)
     except RankDeficiencyError as exc:
         raise CalibrationError(
             f"the control points cannot determine the parameters: {exc}. Add control points "

@@ -26,8 +26,9 @@ import time
 
 import numpy as np
 import pandas as pd
+import scipy.sparse as sp
 
-from swathflow.calibration.partials import image_partials
+from swathflow.calibration.evaluation import BulkObservations
 from swathflow.calibration.reference import (MatchSettings, _footprint_window, histogram_match,
                                              rectify_on)
 from swathflow.geometry.geodesy import ecef_to_geodetic
@@ -205,7 +206,7 @@ def _enu_axes(g0: np.ndarray) -> np.ndarray:
     return np.stack([east, north, up], axis=-1)
 
 
-def tie_group(models, mats, unk, ties: pd.DataFrame, n_total: int, h: float = 0.05,
+def tie_group(models, mats, unk, ties: pd.DataFrame, n_total: int,
               height_sigma: float = 1.0):
     """The tie observations' group for :class:`swathflow.adjustment.Problem`: returns
     ``(names, prior_sigma, fn, sigma, point, point_names)``. ``names`` are the 3 ground
@@ -223,44 +224,25 @@ def tie_group(models, mats, unk, ties: pd.DataFrame, n_total: int, h: float = 0.
     start = ties["tie_id"].map(col).to_numpy(int)
     g0_rows = g0[(start - n) // 3]
     axes = _enu_axes(g0_rows)                                    # (m, 3, 3)
-    spans = []
-    for iid, g in ties.groupby("image_id", sort=False):
-        spans.append((iid, g.index.to_numpy(), g[["line", "element"]].to_numpy(float)))
     m_obs = len(ties)
-    l_obs = np.empty((m_obs, 2))
-    for _, idx, le in spans:
-        l_obs[idx] = le
+    l_obs = ties[["line", "element"]].to_numpy(float)
+    bulk = BulkObservations(models, mats, ties["image_id"].astype(str).to_numpy())
+    rows = np.repeat(np.arange(2 * m_obs), n + 3)
+    cols = np.concatenate([np.tile(np.arange(n), (2 * m_obs, 1)),
+                           np.repeat(start, 2)[:, None] + np.arange(3)], axis=1).ravel()
 
     def fn(x, jacobian=True):
         d = np.stack([x[start], x[start + 1], x[start + 2]], axis=1)
         G = g0_rows + np.einsum("mij,mj->mi", axes, d)
-        comp = np.full((m_obs, 2), np.nan)
-        J = np.zeros((m_obs, 2, n_total)) if jacobian else None
-        for iid, idx, _ in spans:
-            mod = models[iid].with_vector(mats[iid] @ x[:n])
-            comp[idx] = mod.ground_to_image(G[idx], clip=False)
-            if J is not None:
-                _tie_jacobian(J, mod, mats[iid], unk, G[idx], comp[idx], idx,
-                              axes[idx], start[idx], h)
+        comp, d_x, d_g = bulk.evaluate(x[:n], G, jacobian)
         r = (l_obs - comp).ravel()
-        return r, (J.reshape(2 * m_obs, n_total) if J is not None else None)
+        if not jacobian:
+            return r, None
+        d_t = np.einsum("mag,mgk->mak", d_g, axes)          # by east, north, up
+        vals = np.concatenate([d_x, d_t], axis=2).ravel()
+        J = sp.csr_matrix((vals, (rows, cols)), shape=(2 * m_obs, n_total))
+        return r, J
 
     sigma = ties[["sigma_line", "sigma_element"]].to_numpy(float).ravel()
     point = np.repeat((start - n) // 3, 2)          # a tie point is tested (and rejected) whole
     return names, prior_sigma, fn, sigma, point, np.array(ids, dtype=object)
-
-
-def _tie_jacobian(J, mod, M, unk, G, comp, idx, axes, start, h):
-    """Fill the rows ``idx`` of ``J``: partials by the calibration unknowns (through the
-    model matrix ``M``) and, numerically, by the tie point's own east, north, up."""
-    n = len(unk.names)
-    used = np.flatnonzero(np.any(M[:, ~unk.fixed] != 0, axis=1))
-    names_used = [mod.parameters.flat_names()[i] for i in used]
-    D = image_partials(mod, G, comp, names_used)
-    J[idx, :, :n] = D @ M[used]
-    rows = np.arange(len(idx))
-    for k in range(3):
-        e = axes[:, :, k] * h
-        d = (mod.ground_to_image(G + e, clip=False)
-             - mod.ground_to_image(G - e, clip=False)) / (2 * h)
-        J[idx[rows], :, start + k] = d

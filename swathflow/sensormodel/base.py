@@ -190,6 +190,19 @@ class SensorModel(ABC):
         return None
 
     @classmethod
+    def projector(cls, models) -> Any:
+        """Bulk projection for an adjustment: a
+        :class:`~swathflow.sensormodel.projection.Projector` over ``models`` (images of this
+        sensor) whose ``project(image_index, ground, vectors)`` gives the image coordinates
+        of every observation of every image, the parameters of each image passed as a
+        vector (no model rebuilt), with the partials by the parameters and the ground
+        coordinates. Override it with one vectorised or compiled call and analytic
+        partials; the default (:class:`~swathflow.sensormodel.projection.NumericalProjector`)
+        works through :meth:`with_vector`, :meth:`ground_to_image` and numerical partials."""
+        from swathflow.sensormodel.projection import NumericalProjector
+        return NumericalProjector(models)
+
+    @classmethod
     def simulator(cls) -> Any:
         """The scanner's mission simulator, or ``None``: an object with ``presets``
         (names) and ``simulate(out, preset, seed, progress=None, **options) -> truth``,

@@ -114,6 +114,8 @@ class Setup:
         tie_sig = np.full(self.n, np.inf)
         tie_sig[self.n_par:] = TIE_PRIOR_M
         P.add_priors(np.zeros(self.n), tie_sig, name="tie priors", counted=False)
+        if self.tie_ids.size:           # the tie coordinates: eliminated 3 x 3 per point
+            P.eliminate(np.arange(self.n_par, self.n).reshape(-1, 3))
         # C0/C1: hard constraints on the free APs, in the scaled unknowns
         if self.cons_A.size:
             A = self.cons_A * self.scale[None]
