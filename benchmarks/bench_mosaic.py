@@ -25,7 +25,7 @@
           rasterio.merge (the GDAL peers in the first only): the table of medians, then
           each round's ratio of the CLI and of the blend to that round's merge (idle
           estimate and wall), their medians and how many rounds meet issue 15's targets.
---paper   You & Li's job (papers.md section 3): 24 strips of 6 km at 2 m pixels, swath of
+--paper   You & Li's job (docs/references.md section 3): 24 strips of 6 km at 2 m pixels, swath of
           a 30 degree field of view from 650 m (348 m = 174 px), 20 % overlap, about 40 km2,
           strips displaced by 1-5 px; simulated as rectified swings and mosaicked end to end.
           Their figure for rectification plus mosaic on 2000 hardware: about 45 minutes.

@@ -1,4 +1,4 @@
-"""Shared test settings: quiet, self-contained Prefect and Dask (DESIGN.md)."""
+"""Shared test settings: quiet, self-contained Prefect and Dask."""
 import os
 import sys
 import tempfile

@@ -1,4 +1,4 @@
-"""Per-swing-direction calibration against simulated truth (papers.md section 1).
+"""Per-swing-direction calibration against simulated truth (docs/references.md section 1).
 
 Geometry: the paper's scanner (15 um pitch, f = 0.16 m, square pixels: 18,617 lines per
 +-50 deg swing), 3 L/R pairs, 3000 m above ground; truth = the paper's Table 4. Ground

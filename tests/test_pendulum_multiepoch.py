@@ -4,7 +4,7 @@ computed another way.
 The survey's lines (50 Hz POS, a line every 61 ms) each hold 3-4 POS epochs, and the
 compiled ``ground_to_image`` cuts such a line at each epoch (a kink of the condition) and
 solves on the piece with the sign change (``kernel.ground_to_image``, ``epoch_frames``).
-Here the truth is spec/geometry.md's image-to-ground formula written out below in numpy
+Here the truth is docs/geometry.md's image-to-ground formula written out below in numpy
 (its own rotations, POS interpolation and pyproj's ECEF, no swathflow geometry): a ground
 point on the ray of a known ``(line, element)``. ``ground_to_image`` must give that
 ``(line, element)`` back to 1e-6 px.
@@ -36,7 +36,7 @@ PARAMS = {"u_gps": [-0.08, 0.24, 0.91], "u_sen": [-0.07, -0.11, -2.01],
 TOL_PX = 1e-6
 
 
-# --- spec/geometry.md, written out (the truth) -------------------------------------------
+# --- docs/geometry.md, written out (the truth) -------------------------------------------
 def _rx(a):
     c, s = np.cos(a), np.sin(a)
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])

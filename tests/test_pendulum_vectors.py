@@ -37,7 +37,7 @@ def test_ground_to_image(case):
 
 
 def test_worked_examples_of_the_spec():
-    """spec/geometry.md's worked examples: level flight north at (0, 0, 1000 m), all
+    """docs/geometry.md's worked examples: level flight north at (0, 0, 1000 m), all
     parameters zero, against the closed forms of a flat-earth camera (curvature moves these
     points by < 3 mm). The spec's table prints 9.44 m and 88.1 m where its own formulas give
     1000 * 100 * 15e-6 / 0.16 = 9.375 m and 1000 * tan(5 deg) = 87.49 m; the vectors (which

@@ -27,7 +27,7 @@ from spec_vectors import DATA as REAL
 pytestmark = pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
 
 
-# papers.md section 1, Table 4 (typed in from the paper, not from the simulator)
+# docs/references.md section 1, Table 4 (typed in from the paper, not from the simulator)
 TABLE4 = {"u_gps": [-0.078, 0.236, 0.911], "u_sen": [-0.066, -0.109, -2.010],
           "opk_sen": [0.028, -0.472, -0.044], "opk_pos_L": [2.726, 0.002, -0.110],
           "opk_pos_R": [2.676, -0.005, -0.068]}

@@ -3,7 +3,7 @@ observation of every swing in one call, the parameters of each swing given as it
 and lever arms, with the partial derivatives of (line, element) by the parameters and the
 ground coordinates.
 
-The geometry is that of ``PendulumModel`` (spec/geometry.md): the camera vector of a ground
+The geometry is that of ``PendulumModel`` (docs/geometry.md): the camera vector of a ground
 point ``G`` seen from fractional line ``l`` is
 ``cam = R_HS^T (R_PH^T R_BP^T (R_NB^T R_EN^T (G - X_ant) - u_gps) - u_sen)``, the POS and
 the gimbal angles interpolated linearly at the line's time. The line is the root of the

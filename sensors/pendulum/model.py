@@ -1,5 +1,5 @@
 """The pendulum (left/right swinging) infrared scanner of the calibration paper
-(papers.md section 1), exactly as spec/geometry.md's pendulum section.
+(docs/references.md section 1), exactly as docs/geometry.md's pendulum section.
 
 A TDI detector line along the sensor x axis (the flight direction) inside a gimbal that
 swings the camera across track; each image is one swing, each line one instant.
@@ -120,7 +120,7 @@ class PendulumModel(Crossing, SensorModel):
 
     # --- exact evaluation at fractional lines -------------------------------------------
     def _state(self, line) -> tuple[np.ndarray, np.ndarray]:
-        """Projection centre C (ECEF) and R_ES at fractional lines (spec/geometry.md)."""
+        """Projection centre C (ECEF) and R_ES at fractional lines (docs/geometry.md)."""
         line = np.asarray(line, float)
         lt = self._lines
         t = np.interp(line, self._lidx if hasattr(self, "_lidx") else

@@ -1,4 +1,4 @@
-"""The pendulum scanner's calibration parameters (papers.md section 1: 15, or 12 with a
+"""The pendulum scanner's calibration parameters (docs/references.md section 1: 15, or 12 with a
 shared boresight) and the check of its per-line table (the swing column)."""
 from __future__ import annotations
 

@@ -1,11 +1,11 @@
 """Simulated pendulum-scanner missions with their truth (``swathflow simulate``).
 
-Writes a complete mission bundle (spec/mission-format.md v1) plus ``OUT/truth/``:
+Writes a complete mission bundle (docs/mission-format.md v1) plus ``OUT/truth/``:
 ``calibration.json`` (true parameters), ``pos.csv`` (true trajectory before noise),
 ``ortho.tif`` (truth orthophoto on the mission's output grid, expected DN), ``gcp.csv``
 (noise-free image and ground coordinates), ``truth.json`` (everything else a test needs).
 
-Physics (papers.md section 1): a TDI detector line along track in a gimbal that swings
+Physics (docs/references.md section 1): a TDI detector line along track in a gimbal that swings
 across track, alternating left and right swings, pitch compensation that holds each swing
 on a fixed ground strip, several parallel strips with side overlap and alternating flight
 directions, aircraft motion, POS at 200 Hz with noise. Images are rendered THROUGH the
@@ -36,7 +36,7 @@ from swathflow.io import write_text
 from swathflow.formats.pos import Trajectory
 from swathflow.sensors.pendulum.simwrite import texture_with_targets, write_gcps, write_terrain
 
-#: papers.md section 1, Table 4 (Hai'an 2018): the true parameters of preset ``paper``
+#: docs/references.md section 1, Table 4 (Hai'an 2018): the true parameters of preset ``paper``
 TABLE4 = {
     "u_gps": (-0.078, 0.236, 0.911),
     "u_sen": (-0.066, -0.109, -2.010),
@@ -143,7 +143,7 @@ PRESETS: dict[str, dict] = {
                  focal_length=0.015, swing_max=20.0, agl=500.0, speed=45.0, gsd=0.5,
                  dem_cell=5.0, terrain_relief=40.0, terrain_wavelength=1200.0,
                  gcp_control=6, gcp_check=2),
-    # papers.md section 3's survey (You & Li): 24 strips of ~6 km, 650 m above ground,
+    # docs/references.md section 3's survey (You & Li): 24 strips of ~6 km, 650 m above ground,
     # 30 deg field of view (+-15 deg swing), 2 m pixels (2 m / 650 m IFOV), ~20 % side
     # overlap (348 m swath), ~40 km2; 10 swings of 320 elements per strip
     "survey": dict(preset="survey", n_strips=24, swings_per_strip=10, n_elements=320,

@@ -1,5 +1,5 @@
-"""The push-broom line camera of the GFXJ paper (papers.md section 2), exactly as
-spec/geometry.md's push-broom section: the geometry (configuration, parameters, the camera
+"""The push-broom line camera of the GFXJ paper (docs/references.md section 2), exactly as
+docs/geometry.md's push-broom section: the geometry (configuration, parameters, the camera
 state along the trajectory, rays).
 
 One CCD line along the sensor y axis, made of segments; every image line is one read-out at

@@ -1,6 +1,6 @@
 """Viewing angles of the push-broom CCD lines: the ``[sensor]`` table's lines (views), the
 per-segment cubic additional parameters (APs) and their continuity (C0) and smoothness (C1)
-constraints (spec/geometry.md, push-broom section).
+constraints (docs/geometry.md, push-broom section).
 
 Per element the viewing angles come from the nominal design (``pixel_pitch``,
 ``focal_length``, ``s_c``, ``psi_x0_deg``) or from a laboratory table (``tan_psi_x``,

@@ -1,4 +1,4 @@
-"""Sensor-model calibration from control points (papers.md section 1, and beyond it).
+"""Sensor-model calibration from control points (docs/references.md section 1, and beyond it).
 
 :func:`calibrate` estimates a sensor plugin's calibration parameters from image
 observations of ground control points by weighted least squares
@@ -12,7 +12,7 @@ variants (15 vs 12 parameters of the pendulum scanner) are expressed through par
 block names ending in ``_L`` / ``_R``: ``shared_boresight`` merges every such pair into
 one unknown.
 
-Residuals follow spec/geometry.md: ``x`` = element (flight direction), ``y`` = line
+Residuals follow docs/geometry.md: ``x`` = element (flight direction), ``y`` = line
 (swing direction), observed minus computed, pixels.
 """
 from __future__ import annotations

@@ -19,7 +19,7 @@ def _ray_miss(model, image, ground, basis):
 def _line_subset(model, image):
     """A copy of ``model`` whose line table holds only the lines around ``image`` points,
     and the points' coordinates in it. Per-line quantities are interpolated linearly
-    between line centres (spec/geometry.md), so rays are unchanged; rebuilding the small
+    between line centres (docs/geometry.md), so rays are unchanged; rebuilding the small
     model per parameter step is then cheap."""
     lines = model.lines
     nl = model.n_lines

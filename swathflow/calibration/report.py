@@ -2,7 +2,7 @@
 ``swathflow/templates/calibration_report.html.j2`` (autoescaped; inline CSS; figures drawn
 by matplotlib and inlined as SVG; no external asset).
 
-Layout follows the paper's tables (papers.md section 1) and a photogrammetrist's sign-off:
+Layout follows the paper's tables (docs/references.md section 1) and a photogrammetrist's sign-off:
 the ground accuracy of the control and check points in metres (east, north, up; ASPRS
 layout) beside the image residuals in pixels, parameters, variance components,
 correlations, residual statistics before / after per image, direction and role (Tables

@@ -1,6 +1,6 @@
 """Calibration files (``calibration.json``, format ``swathflow-calibration/1``).
 
-See shared/spec/mission-format.md. A calibration file is reusable: another mission of the
+See docs/mission-format.md. A calibration file is reusable: another mission of the
 same installation names it in place of its ``[calibration]`` table.
 """
 from __future__ import annotations

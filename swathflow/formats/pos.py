@@ -32,7 +32,7 @@ class Trajectory:
     """A trajectory prepared for fast interpolation (numpy only).
 
     Positions are interpolated linearly in ECEF, attitude angles linearly in time with the
-    heading unwrapped (spec/geometry.md, POS interpolation). Times outside the trajectory,
+    heading unwrapped (docs/geometry.md, POS interpolation). Times outside the trajectory,
     or inside a gap longer than ``max_gap`` seconds, raise :class:`OutOfRangeError`.
     """
 

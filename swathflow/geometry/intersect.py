@@ -2,7 +2,7 @@
 
 A ray is ``X(lam) = origin + lam * direction`` with ``lam > 0``. The intersection is the
 smallest such ``lam`` at which the ellipsoidal height of ``X`` equals the terrain height at
-``X``'s latitude and longitude (spec/geometry.md). Rays that miss give NaN.
+``X``'s latitude and longitude (docs/geometry.md). Rays that miss give NaN.
 """
 from __future__ import annotations
 

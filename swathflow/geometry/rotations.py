@@ -1,4 +1,4 @@
-"""Rotation builders and frame matrices of spec/geometry.md (version 1).
+"""Rotation builders and frame matrices of docs/geometry.md (version 1).
 
 Every builder is vectorised: angle arrays of shape ``(...)`` give matrices of shape
 ``(..., 3, 3)``. Angles are in radians here; degrees belong to files and configuration.

@@ -134,7 +134,7 @@ def inspect_mission(path) -> tuple[list[Problem], dict]:
         return [Problem(os.fspath(path), "", str(exc), "")], {}
     except Exception as exc:  # noqa: BLE001 - bad input must never end in a traceback
         return [Problem(os.fspath(path), "", f"unexpected content ({type(exc).__name__}: "
-                        f"{exc})", "check mission.toml against spec/mission-format.md; if "
+                        f"{exc})", "check mission.toml against docs/mission-format.md; if "
                         "the mission is fine, report this as a swathflow bug")], {}
 
 

@@ -33,7 +33,7 @@ def read_toml(root: Path, c: Collector) -> dict | None:
         return None
     if not toml.exists():
         c.add(toml, "", "mission.toml not found",
-              "create mission.toml (see spec/mission-format.md)")
+              "create mission.toml (see docs/mission-format.md)")
         return None
     if not toml.is_file():          # a FIFO would hang the reader, a device fill memory
         c.add(toml, "", "not a regular file", "mission.toml must be a text file")

@@ -1,6 +1,6 @@
 """Overlap matching: the systematic offset between two rectified images on one grid.
 
-The method follows You & Li (papers.md section 3): the offset is the candidate shift with the
+The method follows You & Li (docs/references.md section 3): the offset is the candidate shift with the
 minimum mean grey difference over the overlap. Here that integer search is made robust to a
 radiometric offset (the median difference is removed first), then refined to subpixel by
 phase correlation (upsampled DFT) and polished by a least-squares gradient fit that also

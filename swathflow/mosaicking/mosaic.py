@@ -1,4 +1,4 @@
-"""Strip matching and feathered mosaicking of rectified swings (papers.md section 3).
+"""Strip matching and feathered mosaicking of rectified swings (docs/references.md section 3).
 
 Steps (:func:`mosaic` runs them all):
 

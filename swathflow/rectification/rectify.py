@@ -1,5 +1,5 @@
 """The forward (polynomial) rectification method of the fast-rectification paper (You and
-Li; papers.md section 3), and the IGM rows of a swing.
+Li; docs/references.md section 3), and the IGM rows of a swing.
 
 ``polynomial``: a few equally spaced pixels per scan line are projected to the ground,
 cubic polynomials in the element index are fitted to map x and y, every raw pixel is

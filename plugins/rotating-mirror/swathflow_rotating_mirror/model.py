@@ -1,4 +1,4 @@
-"""A rotating-mirror whisk-broom scanner (papers.md section 3, the instrument class of the
+"""A rotating-mirror whisk-broom scanner (docs/references.md section 3, the instrument class of the
 fast-rectification paper).
 
 One detector looks at a mirror that turns about the aircraft's forward axis. Each image row
@@ -15,7 +15,7 @@ regulated); both
 are interpolated linearly in the line. ``dwell`` is the time per pixel. Without a
 ``scan_start`` column (a model built in code) every row starts at the nominal
 ``-center * ifov``. Frames follow
-spec/geometry.md: B is the IMU body frame (x forward, y right, z down), M the scanner's own
+docs/geometry.md: B is the IMU body frame (x forward, y right, z down), M the scanner's own
 frame (nominally B; the mounting boresight ``opk_mount`` rotates B into M). At scan angle
 theta the line of sight in M is ``d = (0, -sin theta, cos theta)`` and the ray is
 

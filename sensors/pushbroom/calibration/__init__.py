@@ -1,4 +1,4 @@
-"""Push-broom (three-line camera) calibration: papers.md section 2, spec/geometry.md's
+"""Push-broom (three-line camera) calibration: docs/references.md section 2, docs/geometry.md's
 push-broom section.
 
 Unknowns: the lever arm ``u_gps``, the boresight ``opk_cam``, the per-segment cubic APs
