@@ -106,14 +106,12 @@ def _condition(line, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _root(g, start, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos, sw, a, c,
-          cam):
-    """The fractional line where ``g`` crosses the scan plane (NaN: not swept): the
-    bracketing integer lines next to ``start`` (or by bisection over the swing), then
-    Illinois' regula falsi inside them."""
+def _bracket(g, start, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos, sw, a,
+             c, cam):
+    """The integer lines ``lo``, ``lo + 1`` (or, by bisection over the swing, ``lo``,
+    ``hi``) between which ``g`` crosses the scan plane, and the condition at both:
+    ``(lo, hi, f(lo), f(hi))``; ``lo`` -1 where it is not swept."""
     n = cols.shape[0]
-    found = False
-    lo, hi, flo, fhi = 0, n - 1, math.nan, math.nan
     if math.isfinite(start):
         j = min(max(int(math.floor(start)), 0), n - 2)
         flo = _condition(j, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos,
@@ -121,25 +119,37 @@ def _root(g, start, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos,
         fhi = _condition(j + 1, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec,
                          pos, sw, a, c, cam)
         if (flo <= 0.0) != (fhi <= 0.0) and math.isfinite(flo) and math.isfinite(fhi):
-            lo, hi, found = j, j + 1, True
-    if not found:
-        lo, hi = 0, n - 1
-        flo = _condition(lo, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos,
-                         sw, a, c, cam)
-        fhi = _condition(hi, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos,
-                         sw, a, c, cam)
-        if not (math.isfinite(flo) and math.isfinite(fhi)) or (flo <= 0.0) == (fhi <= 0.0):
-            return math.nan
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            fm = _condition(mid, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec,
-                            pos, sw, a, c, cam)
-            if not math.isfinite(fm):
-                return math.nan
-            if (fm <= 0.0) == (flo <= 0.0):
-                lo, flo = mid, fm
-            else:
-                hi, fhi = mid, fm
+            return j, j + 1, flo, fhi
+    lo, hi = 0, n - 1
+    flo = _condition(lo, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos,
+                     sw, a, c, cam)
+    fhi = _condition(hi, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos,
+                     sw, a, c, cam)
+    if not (math.isfinite(flo) and math.isfinite(fhi)) or (flo <= 0.0) == (fhi <= 0.0):
+        return -1, -1, math.nan, math.nan
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        fm = _condition(mid, g, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec,
+                        pos, sw, a, c, cam)
+        if not math.isfinite(fm):
+            return -1, -1, math.nan, math.nan
+        if (fm <= 0.0) == (flo <= 0.0):
+            lo, flo = mid, fm
+        else:
+            hi, fhi = mid, fm
+    return lo, hi, flo, fhi
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _root(g, start, cols, time, table, max_gap, rbp, rhs, ugps, usen, nvec, pos, sw, a, c,
+          cam):
+    """The fractional line where ``g`` crosses the scan plane (NaN: not swept): the
+    bracketing integer lines next to ``start`` (or by bisection over the swing,
+    :func:`_bracket`), then Illinois' regula falsi inside them."""
+    lo, hi, flo, fhi = _bracket(g, start, cols, time, table, max_gap, rbp, rhs, ugps, usen,
+                                nvec, pos, sw, a, c, cam)
+    if lo < 0:
+        return math.nan
     xa, fa, xb, fb = float(lo), flo, float(hi), fhi
     if fa == 0.0:
         return xa

@@ -210,15 +210,7 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
     import rasterio
 
     from swathflow.rectification import writing
-    dtypes = {s.dtype for s in layout.swings}
-    if dtype is None:
-        dtype = "float32" if len(dtypes) != 1 or next(iter(dtypes)).startswith("float") \
-            else next(iter(dtypes))
-    dtype = np.dtype(dtype)
-    if nodata is None:
-        nds = {s.nodata for s in layout.swings}
-        nd = nds.pop() if len(nds) == 1 else None
-        nodata = nd if nd is not None else (float("nan") if dtype.kind == "f" else 0)
+    dtype, nodata = _output_type(layout, dtype, nodata)
     H, W = layout.shape
     offsets = np.asarray(offsets, float)
     radiometric = np.asarray(radiometric, float)
@@ -255,6 +247,21 @@ def write_mosaic(layout: Layout, out, offsets, radiometric, feather: int = 64,
             handles.close()
     return {"seconds_render": t_render, "seconds_total": time.perf_counter() - t0,
             "shape": [H, W], "dtype": dtype.name}
+
+
+def _output_type(layout: Layout, dtype=None, nodata=None):
+    """The mosaic's data type and nodata value: as given, else the swings' own when they
+    agree (float32 and NaN when they do not, or are floats)."""
+    dtypes = {s.dtype for s in layout.swings}
+    if dtype is None:
+        dtype = "float32" if len(dtypes) != 1 or next(iter(dtypes)).startswith("float") \
+            else next(iter(dtypes))
+    dtype = np.dtype(dtype)
+    if nodata is None:
+        nds = {s.nodata for s in layout.swings}
+        nd = nds.pop() if len(nds) == 1 else None
+        nodata = nd if nd is not None else (float("nan") if dtype.kind == "f" else 0)
+    return dtype, nodata
 
 
 def _description(layout: Layout) -> str:
