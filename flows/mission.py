@@ -146,14 +146,14 @@ def run(mission, out, calibration=None, dask_address=None, cluster="local", jobs
 def services(dask_address=None, cluster: str = "local", workers: int | None = None):
     """The run's services, started or checked side by side: the local Dask cluster (when
     no other is asked for; Dask's ``LocalCluster``, started in a thread and closed on
-    exit) while Prefect's API is reached (:func:`swathflow.flows.guard.prefect_ready`:
+    exit) while Prefect's API is reached (:func:`swathflow.flows.services.prefect_ready`:
     Prefect starts its own temporary server when no ``PREFECT_API_URL`` is set), and a
     named scheduler checked (:func:`swathflow.cluster.connect`). Yields the scheduler's
     address for the flow (None: the flow starts its SLURM cluster itself)."""
     import concurrent.futures
 
     from swathflow.cluster import connect, local_cluster
-    from swathflow.flows.guard import prefect_ready
+    from swathflow.flows.services import prefect_ready
     if dask_address:
         connect(dask_address).close()       # unreachable: told now, before Prefect
         prefect_ready()

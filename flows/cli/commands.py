@@ -239,12 +239,12 @@ def run(args) -> int:
 def _checked(mission, calibration) -> None:
     """The first steps of ``swathflow run``: what an earlier run killed by SIGKILL left
     serving ended and this run's processes marked
-    (:func:`~swathflow.flows.guard.end_orphans`); Prefect's temporary server started on a
-    thread (:func:`~swathflow.flows.guard.start_prefect`); the inputs checked meanwhile
+    (:func:`~swathflow.flows.services.end_orphans`); Prefect's temporary server started on a
+    thread (:func:`~swathflow.flows.services.start_prefect`); the inputs checked meanwhile
     (bad input is told here, before the Dask cluster starts; Prefect stops its server as
     the process exits)."""
     _own_processes()
-    from swathflow.flows.guard import start_prefect
+    from swathflow.flows.services import start_prefect
     start_prefect()
     from swathflow.collector import uncollected
     with uncollected(freeze=False):
@@ -254,7 +254,7 @@ def _checked(mission, calibration) -> None:
 
 def _own_processes() -> None:
     """End what earlier runs killed by SIGKILL left serving; mark this run's children."""
-    from swathflow.flows.guard import end_orphans, mark_run
+    from swathflow.flows.services import end_orphans, mark_run
     end_orphans()
     mark_run()
 
@@ -309,7 +309,7 @@ def demo_summary(result: dict, seconds: float) -> str:
 def demo(args) -> int:
     """``swathflow demo``: simulate the demo mission, then run the whole flow on it."""
     _own_processes()
-    from swathflow.flows.guard import start_prefect
+    from swathflow.flows.services import start_prefect
     start_prefect()     # Prefect's temporary server starts while the mission is simulated
     out = Path(args.out).resolve()
     ignored_by_git(out)
