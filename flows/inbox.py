@@ -59,7 +59,14 @@ def inbox_flow(inbox: str, out_root: str, calibration: str | None = None,
     """Process every new mission in ``inbox`` into ``out_root/<mission folder name>``.
 
     Returns ``{"done": [...], "failed": {}}``; ends Failed (raises :class:`SwathflowError`)
-    when the inbox cannot be read or any mission failed."""
+    when the inbox cannot be read or any mission failed.
+
+    Args:
+        inbox: The folder new mission folders arrive in (one folder per mission).
+        out_root: The folder each mission's products are written under, by its name.
+        calibration: A calibration.json to use for every mission instead of calibrating.
+        dask_address: The address of a running Dask scheduler to do the heavy work on.
+    """
     log = get_run_logger()
     done, failed = [], {}
     todo = pending(inbox, out_root)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 from pathlib import Path
+from typing import Literal
 
 from prefect import flow, unmapped
 from prefect.futures import as_completed
@@ -24,12 +25,21 @@ from swathflow.tasks import stages, swings
 
 @flow(name="swathflow-mission", log_prints=False)
 def mission_flow(mission: str, out: str, calibration: str | None = None,
-                 dask_address: str | None = None, cluster: str = "local",
+                 dask_address: str | None = None, cluster: Literal["local", "slurm"] = "local",
                  jobs: int | None = None, workers: int | None = None) -> dict:
     """Process one mission folder into ``out``; returns the paths of every product and the
-    stage timings. Finished outputs whose inputs are unchanged are reused. The Dask work
-    runs on ``dask_address``, or on ``jobs`` SLURM worker jobs (``cluster="slurm"``), or on
-    a local cluster (``workers`` processes; default: one per core)."""
+    stage timings. Finished outputs whose inputs are unchanged are reused.
+
+    Args:
+        mission: The mission folder (with its mission.toml).
+        out: The folder the products are written into (never one of the mission's inputs).
+        calibration: A calibration.json to use instead of calibrating the mission.
+        dask_address: The address of a running Dask scheduler to do the heavy work on.
+        cluster: Without dask_address: "local" (a Dask LocalCluster on this machine) or
+            "slurm" (Dask workers submitted as SLURM jobs through dask-jobqueue).
+        jobs: The number of SLURM worker jobs (cluster "slurm").
+        workers: The number of local Dask worker processes (default: one per core).
+    """
     mission = str(Path(mission).resolve())
     out = str(Path(out).resolve())
     with Progress() as prog, dask_client(dask_address, cluster=cluster, jobs=jobs,

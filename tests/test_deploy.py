@@ -23,8 +23,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _prefect(env, *args, timeout=180):
-    r = subprocess.run([PREFECT, *args], env=env, cwd=ROOT, capture_output=True, text=True,
+def _prefect(env, *args, timeout=180, cwd=ROOT):
+    r = subprocess.run([PREFECT, *args], env=env, cwd=cwd, capture_output=True, text=True,
                        timeout=timeout)
     assert r.returncode == 0, f"prefect {' '.join(args)} failed:\n{r.stdout}\n{r.stderr}"
     return r.stdout
@@ -56,8 +56,10 @@ def test_cron_deployment_runs_the_tiny_mission_on_a_process_worker(tiny_mission,
         shutil.copytree(tiny_mission, inbox / "flight-001")
         cal = str(tiny_mission / "truth" / "calibration.json")
         _prefect(env, "work-pool", "create", "swathflow-process", "--type", "process")
-        _prefect(env, "--no-prompt", "deploy", "--prefect-file", "deploy/prefect.yaml",
-                 "--name", "inbox")
+        elsewhere = tmp_path / "elsewhere"      # not the repository: entrypoints are modules
+        elsewhere.mkdir()
+        _prefect(env, "--no-prompt", "deploy", "--prefect-file",
+                 str(ROOT / "deploy" / "prefect.yaml"), "--all", cwd=elsewhere)
         out = _prefect(env, "deployment", "inspect", "swathflow-inbox/inbox")
         assert "*/15 * * * *" in out, "the cron schedule was not deployed"
         _prefect(env, "deployment", "run", "swathflow-inbox/inbox",

@@ -1,5 +1,7 @@
 """What `DASK_CONFIG=deploy/dask` gives Dask: only Dask configuration (no Kubernetes spec
-merged into it), and the SLURM worker size `swathflow run --cluster slurm` submits."""
+merged into it), and the SLURM worker size `swathflow run --cluster slurm` submits; the
+Prefect deployments of deploy/prefect.yaml load from any folder and describe every
+parameter."""
 from pathlib import Path
 
 import pytest
@@ -35,3 +37,27 @@ def test_unknown_cluster_kind_is_a_clear_error():
     with pytest.raises(SwathflowError, match="unknown cluster 'pbs'"):
         with dask_client(cluster="pbs"):
             pass
+
+
+def test_prefect_deployments_load_from_any_folder_with_described_parameters(tmp_path,
+                                                                           monkeypatch):
+    """Each deployment's entrypoint is a module of the installed package (not a path of
+    the repository), so `prefect deploy --prefect-file .../prefect.yaml` works from any
+    folder; Prefect shows a description for every parameter, and `cluster` as a choice."""
+    import yaml
+    from prefect.flows import load_flow_from_entrypoint
+    from prefect.utilities.callables import parameter_schema
+    doc = yaml.safe_load((DASK_DIR.parent / "prefect.yaml").read_text())
+    monkeypatch.chdir(tmp_path)
+    names = {d["name"]: d for d in doc["deployments"]}
+    assert {"inbox", "mission"} <= set(names)
+    for d in names.values():
+        assert ".py" not in d["entrypoint"] and "/" not in d["entrypoint"], d["entrypoint"]
+        flow = load_flow_from_entrypoint(d["entrypoint"])
+        props = parameter_schema(flow.fn).model_dump()["properties"]
+        undescribed = [k for k, v in props.items() if not v.get("description")]
+        assert not undescribed, (d["name"], undescribed)
+        assert set(d.get("parameters", {})) <= set(props)
+    mission = load_flow_from_entrypoint(names["mission"]["entrypoint"])
+    cluster = parameter_schema(mission.fn).model_dump()["properties"]["cluster"]
+    assert cluster["enum"] == ["local", "slurm"]
