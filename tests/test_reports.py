@@ -2,6 +2,7 @@
 simulator's truth, the overlap graph drawing every overlap, the map frames' units, the
 pages from autoescaped templates, figures from matplotlib without pyplot."""
 import re
+from pathlib import Path
 import subprocess
 import sys
 
@@ -278,7 +279,15 @@ def test_no_pyplot_and_no_matplotlib_at_import():
                        timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().splitlines()[-1] == "False"
-    from swathflow.mosaicking.report import graph_figure
-    layout, rep = _layout_and_report()
-    graph_figure(rep, layout)
-    assert "matplotlib.pyplot" not in sys.modules
+    # a report drawn in a fresh interpreter (this one may hold pyplot from another test,
+    # e.g. xarray's .plot): matplotlib imported, pyplot not
+    code = ("import sys; sys.path.insert(0, {here!r}); "
+            "from test_reports import _layout_and_report; "
+            "from swathflow.mosaicking.report import graph_figure; "
+            "layout, rep = _layout_and_report(); graph_figure(rep, layout); "
+            "print('matplotlib' in sys.modules, 'matplotlib.pyplot' in sys.modules)"
+            ).format(here=str(Path(__file__).parent))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "True False"

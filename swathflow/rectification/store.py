@@ -22,10 +22,14 @@ def store_here(sources, targets, scheduler=None) -> None:
     arrays share are computed once). With a ``distributed.Client`` (``scheduler`` itself,
     or the active one when none is given or configured) the blocks are computed on the
     cluster in batches of about :data:`BATCH_BYTES` and written here as they arrive."""
+    import threading
+
     import dask.array as da
     client = _client(scheduler)
     if client is None:
-        da.store(sources, targets, lock=True, scheduler=scheduler)
+        # a lock of our own: with lock=True dask imports distributed to look for a
+        # cluster's lock (0.2-0.4 CPU-s), and no cluster is active here
+        da.store(sources, targets, lock=threading.Lock(), scheduler=scheduler)
         return
     from distributed import as_completed
     items = [(blk, slc, tgt) for arr, tgt in zip(sources, targets)
