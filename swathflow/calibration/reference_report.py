@@ -66,10 +66,29 @@ def points_map(reference, points: pd.DataFrame, magnify: float = 20.0) -> str:
                   -magnify * points["y"].to_numpy(float)[k] * abs(t.e), color=col,
                   angles="xy", scale_units="xy", scale=1, width=0.003)
         ax.scatter(E[k], N[k], s=14, c=col, edgecolors="black", linewidths=0.4, label=label)
+    # a tooltip a point (a transparent mark of its own, named, given its <title> below)
+    names = points["gcp_id"].astype(str).to_numpy() if "gcp_id" in points else \
+        np.array([f"point {i}" for i in range(len(points))])
+    tips = {}
+    for i in range(len(points)):
+        ax.plot([E[i]], [N[i]], marker="o", ms=6, alpha=0.0, gid=f"point-{i}")
+        tips[f"point-{i}"] = (f"{names[i]} rejected" if rej[i] else
+                              f"{names[i]}: x {points['x'].iloc[i]:+.2f} "
+                              f"y {points['y'].iloc[i]:+.2f} px")
     ax.set_title(f"automatic points after the adjustment (residual vectors x {magnify:g})")
     map_frame(ax, _crs_name(g.crs))
     ax.legend(loc="lower right", framealpha=0.85)
-    return svg(fig)
+    return with_tooltips(svg(fig), tips)
+
+
+def with_tooltips(text: str, tips: dict[str, str]) -> str:
+    """SVG text with a ``<title>`` (the browser's tooltip) in each group named in
+    ``tips`` (matplotlib writes an artist's ``gid`` as its group's id)."""
+    from html import escape
+    for gid, tip in tips.items():
+        head = f'<g id="{gid}">'
+        text = text.replace(head, f"{head}<title>{escape(tip)}</title>", 1)
+    return text
 
 
 def _frame(df: pd.DataFrame, nd=3, left=()) -> dict:
