@@ -119,7 +119,7 @@ def mission_inputs(mission) -> list[str]:
     """The files a mission's commands read: its mission.toml, every existing file its
     string values name (any depth, also outside the folder), and the files beside each
     that share its name (an ENVI image's header)."""
-    from swathflow.ingest.tomlfile import load
+    from swathflow.ingest.tomlfile import load, named_paths
     root = os.path.abspath(os.fspath(mission))
     if os.path.isfile(root):
         root = os.path.dirname(root)
@@ -129,21 +129,14 @@ def mission_inputs(mission) -> list[str]:
         cfg = load(toml)
     except (OSError, ValueError):
         return sorted(found)
-    stack = [cfg]
-    while stack:
-        v = stack.pop()
-        if isinstance(v, dict):
-            stack.extend(v.values())
-        elif isinstance(v, list):
-            stack.extend(v)
-        elif isinstance(v, str) and v and len(v) < 4096 and "\0" not in v:
-            p = os.path.join(root, v)
-            try:
-                if os.path.isfile(p):
-                    found.add(p)
-                    found.update(_namesakes(p))
-            except (OSError, ValueError):
-                continue
+    for path in named_paths(cfg, root):
+        p = os.fspath(path)
+        try:
+            if os.path.isfile(p):
+                found.add(p)
+                found.update(_namesakes(p))
+        except (OSError, ValueError):
+            continue
     return sorted(found)
 
 

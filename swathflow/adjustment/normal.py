@@ -77,22 +77,7 @@ class _Normal:
         Nd = N.toarray() if sp.issparse(N) else np.asarray(N)
         if Cd is not None:          # constrained directions are determined
             Nd = Nd + Cd.T @ Cd * (np.abs(diag).max() / max(np.abs(Cd).max(), 1e-300) ** 2)
-        d = np.sqrt(np.abs(np.diag(Nd)))
-        s = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
-        Ns = Nd * np.outer(s, s)
-        ev, vec = np.linalg.eigh(Ns)
-        bad = ev < rcond * max(ev.max(), 1e-300)
-        bad_cols = np.flatnonzero(d == 0)
-        if not bad.any() and not bad_cols.size:
-            return
-        directions = _directions(vec[:, bad] * s[:, None], names) + \
-            [{str(names[i]): 1.0} for i in bad_cols]
-        text = "; ".join(" + ".join(f"{w:+.2f}*{n}" for n, w in dd.items()) or "?"
-                         for dd in directions[:6])
-        raise RankDeficiencyError(
-            f"the observations do not determine {len(directions)} combination(s) of the "
-            f"unknowns: {text}. Add observations that separate them, add priors, or fix "
-            f"some of them", directions)
+        check_determined(Nd, names, rcond)
 
     def step_norm2(self, dx) -> float:
         return float(dx @ (self.N @ dx))
@@ -220,3 +205,25 @@ def _block_stat(v, q_blocks, obs_idx, qll, r_min: float = 0.01):
     proj = np.einsum("pki,pk->pi", V, vp * s)
     t = np.sum(np.where(keep, proj ** 2 / np.where(keep, lam, 1.0), 0.0), axis=1)
     return t, keep.sum(1)
+
+
+def check_determined(Nd, names, rcond) -> None:
+    """Raise :class:`RankDeficiencyError` naming the combinations of unknowns that the
+    dense normal matrix ``Nd`` (constraints already added) leaves undetermined: its
+    eigenvectors, after scaling to a unit diagonal, below ``rcond`` of the largest, and
+    the unknowns no observation touches."""
+    d = np.sqrt(np.abs(np.diag(Nd)))
+    s = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
+    ev, vec = np.linalg.eigh(Nd * np.outer(s, s))
+    bad = ev < rcond * max(ev.max(), 1e-300)
+    bad_cols = np.flatnonzero(d == 0)
+    if not bad.any() and not bad_cols.size:
+        return
+    directions = _directions(vec[:, bad] * s[:, None], names) + \
+        [{str(names[i]): 1.0} for i in bad_cols]
+    text = "; ".join(" + ".join(f"{w:+.2f}*{n}" for n, w in dd.items()) or "?"
+                     for dd in directions[:6])
+    raise RankDeficiencyError(
+        f"the observations do not determine {len(directions)} combination(s) of the "
+        f"unknowns: {text}. Add observations that separate them, add priors, or fix "
+        f"some of them", directions)

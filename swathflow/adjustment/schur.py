@@ -229,25 +229,11 @@ class SchurCovariance:
 
 def _check_reduced(S, C, names, rcond):
     """The camera unknowns' reduced system determines them (as ``normal._Normal``)."""
-    from swathflow.adjustment.normal import _directions
+    from swathflow.adjustment.normal import check_determined
     names = np.asarray(names, dtype=object)
     Nd = S.copy()
     diag = np.diag(S)
     if C:
         Cd = np.vstack([a for a, _ in C])
         Nd = Nd + Cd.T @ Cd * (np.abs(diag).max() / max(np.abs(Cd).max(), 1e-300) ** 2)
-    d = np.sqrt(np.abs(np.diag(Nd)))
-    s = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
-    ev, vec = np.linalg.eigh(Nd * np.outer(s, s))
-    bad = ev < rcond * max(ev.max(), 1e-300)
-    bad_cols = np.flatnonzero(d == 0)
-    if not bad.any() and not bad_cols.size:
-        return
-    directions = _directions(vec[:, bad] * s[:, None], names) + \
-        [{str(names[i]): 1.0} for i in bad_cols]
-    text = "; ".join(" + ".join(f"{w:+.2f}*{n}" for n, w in dd.items()) or "?"
-                     for dd in directions[:6])
-    raise RankDeficiencyError(
-        f"the observations do not determine {len(directions)} combination(s) of the "
-        f"unknowns: {text}. Add observations that separate them, add priors, or fix "
-        f"some of them", directions)
+    check_determined(Nd, names, rcond)

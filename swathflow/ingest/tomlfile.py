@@ -20,11 +20,10 @@ def load(path) -> dict:
     return tomllib.loads(data.decode("utf-8"))
 
 
-def special_files(cfg: dict, root) -> list[Path]:
-    """Paths a mission.toml names (string values at any depth, relative to ``root``) that
-    exist and are neither regular files nor folders: FIFOs, devices, sockets."""
-    import stat
-    found, stack = [], [cfg]
+def named_paths(cfg: dict, root):
+    """Every path a mission.toml may name: its string values at any depth (of plausible
+    length, without NUL), relative to ``root`` unless absolute; existing or not."""
+    stack = [cfg]
     while stack:
         v = stack.pop()
         if isinstance(v, dict):
@@ -32,11 +31,19 @@ def special_files(cfg: dict, root) -> list[Path]:
         elif isinstance(v, list):
             stack.extend(v)
         elif isinstance(v, str) and v and len(v) < 4096 and "\0" not in v:
-            p = Path(v) if Path(v).is_absolute() else Path(root) / v
-            try:
-                mode = os.stat(p).st_mode
-            except (OSError, ValueError):
-                continue
-            if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
-                found.append(p)
+            yield Path(v) if Path(v).is_absolute() else Path(root) / v
+
+
+def special_files(cfg: dict, root) -> list[Path]:
+    """Paths a mission.toml names (:func:`named_paths`) that exist and are neither regular
+    files nor folders: FIFOs, devices, sockets."""
+    import stat
+    found = []
+    for p in named_paths(cfg, root):
+        try:
+            mode = os.stat(p).st_mode
+        except (OSError, ValueError):
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            found.append(p)
     return found
