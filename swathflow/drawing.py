@@ -9,8 +9,10 @@ date is written, so the same figure gives the same bytes.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import math
+import threading
 
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -32,13 +34,27 @@ RC = {"svg.hashsalt": "swathflow", "svg.fonttype": "none", "font.size": 9,
 DIRECTION_COLOURS = {"L": "#1f77b4", "R": "#d62728"}
 
 
+#: matplotlib's rcParams are one dictionary a process: two threads drawing reports at once
+#: (the flow draws them beside its other work) would each restore the other's settings on
+#: leaving ``rc_context``, leaking RC into the user's matplotlib; one at a time
+_RC_LOCK = threading.RLock()
+
+
+@contextlib.contextmanager
+def report_style():
+    """:data:`RC` in force on this thread's figure work, the user's settings restored after
+    (one report figure at a time in the process)."""
+    with _RC_LOCK, matplotlib.rc_context(RC):
+        yield
+
+
 def figure(width: float, height: float, margins=None, wspace: float = 0.2,
            hspace: float = 0.2, **kw) -> Figure:
     """A figure of ``width`` x ``height`` inches on its own Agg canvas: constrained layout,
     or with ``margins`` (left, right, bottom, top in inches) fixed margins (half the
     drawing time: constrained layout measures every tick label again and again)."""
     layout = None if margins is not None else kw.pop("layout", "constrained")
-    with matplotlib.rc_context(RC):
+    with report_style():
         fig = Figure(figsize=(width, height), layout=layout, **kw)
     if margins is not None:
         left, right, bottom, top = margins
@@ -52,7 +68,7 @@ def figure(width: float, height: float, margins=None, wspace: float = 0.2,
 def svg(fig: Figure) -> str:
     """The figure as SVG text for inlining in HTML (no XML prolog, no date)."""
     buf = io.StringIO()
-    with matplotlib.rc_context(RC):
+    with report_style():
         fig.savefig(buf, format="svg", metadata={"Date": None, "Creator": None})
     text = buf.getvalue()
     text = text[text.index("<svg"):]
@@ -66,7 +82,7 @@ def write_png(fig: Figure, path) -> str:
     """Write the figure as PNG to ``path`` atomically; returns the path."""
     import os
     path = os.fspath(path)
-    with matplotlib.rc_context(RC), atomic_path(path, suffix=".png") as tmp:
+    with report_style(), atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", metadata={"Software": None})
     return path
 

@@ -291,3 +291,23 @@ def test_no_pyplot_and_no_matplotlib_at_import():
                        timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().splitlines()[-1] == "True False"
+
+
+def test_reports_drawn_on_threads_leave_matplotlib_settings_as_they_were():
+    """The flow draws reports on threads beside its other work: matplotlib's settings (one
+    dictionary a process) are the user's again afterwards, whatever the interleaving."""
+    import threading
+
+    import matplotlib
+    from swathflow.drawing import svg
+    from swathflow.mosaicking.report import graph_figure
+    before = dict(matplotlib.rcParams)
+    layout, rep = _layout_and_report()
+    threads = [threading.Thread(target=lambda: svg(graph_figure(rep, layout)))
+               for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    after = dict(matplotlib.rcParams)
+    assert {k: v for k, v in after.items() if before.get(k) != v} == {}
