@@ -26,6 +26,7 @@ from swathflow.calibration.accuracy import accuracy_table, point_errors
 from swathflow.calibration.result import summarize
 from swathflow.io import write_text
 from swathflow.pages import num, render, safe, table
+from swathflow.figstyle import styled
 
 __all__ = ["render_report", "write_report", "table", "summarize_frame"]
 
@@ -178,6 +179,7 @@ def summarize_frame(res: pd.DataFrame, by) -> pd.DataFrame:
     return summarize(res, by)
 
 
+@styled
 def report_html(result) -> str:
     """The whole report of any calibration result (with its kind's extra sections)."""
     core, extra = _parts(result)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
+from swathflow.figstyle import styled
 
 __all__ = ["seams_picture", "map_figure", "graph_figure", "offsets_figure", "graph_edges",
            "arrow_ends", "node_line"]
@@ -364,6 +365,7 @@ def offsets_figure(rep: dict, layout):
     return fig
 
 
+@styled
 def seams_picture(mosaic_path, rep: dict, layout, png_path, grey=None, f=None) -> str:
     """Draw the report picture of a finished mosaic (``rep``: its mosaic.json content)
     into ``png_path`` (atomically): the residual map and the per-node offsets. ``grey``,

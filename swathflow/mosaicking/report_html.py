@@ -17,6 +17,7 @@ import os
 
 from swathflow.io import write_text
 from swathflow.pages import num, render, safe
+from swathflow.figstyle import styled
 
 __all__ = ["mosaic_report_html", "write_report"]
 
@@ -51,6 +52,7 @@ def _rows(rep: dict, res: float):
     return nodes, overlaps
 
 
+@styled
 def mosaic_report_html(mosaic_path, rep: dict, layout, html_path, grey=None,
                        f=None, png=None) -> str:
     """Write the mosaic report of a finished mosaic (``rep``: its mosaic.json content)
