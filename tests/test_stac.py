@@ -285,21 +285,28 @@ def test_odc_stac_and_stackstac_load_the_pixels_of_the_cogs(tmp_path, offline):
         got = ds["data"].isel(time=k).values
         assert got.shape == truth[item.id].shape
         assert np.array_equal(got, truth[item.id])
-    # stackstac 0.5.1 reads only projection v1's proj:epsg, which the projection v2.0.0
-    # schema the items declare forbids (and pystac's reader migrates away): without it, it
-    # needs the grid given (epsg=, resolution=, bounds=), read here from the items' own
-    # proj fields
-    epsg = {int(i.properties["proj:code"].split(":")[1]) for i in items}
-    bounds = {tuple(i.properties["proj:bbox"]) for i in items}
-    res = {i.properties["proj:transform"][0] for i in items}
-    assert len(epsg) == len(bounds) == len(res) == 1
-    for item in items:              # stackstac opens the hrefs as they are: resolve them
-        item.make_asset_hrefs_absolute()
-    arr = stackstac.stack(items, epsg=epsg.pop(), resolution=res.pop(), bounds=bounds.pop(),
-                          dtype="uint16", fill_value=np.uint16(0), rescale=False).compute()
+    # stackstac, no extra arguments, on the items as written (JSON): it picks the CRS from
+    # proj:epsg, which the items carry beside proj:code (pystac's reader migrates the items
+    # to projection v2.0.0 and drops proj:epsg, so its items need epsg=: stackstac#262)
+    docs = []
+    for item in items:
+        d = json.loads(Path(item.self_href).read_text())
+        assert d["properties"]["proj:epsg"] == int(CRS.split(":")[1])
+        assert d["properties"]["proj:code"] == CRS
+        # stackstac opens the hrefs as they are: resolve the catalogue's relative ones
+        d["assets"]["data"]["href"] = item.assets["data"].get_absolute_href()
+        docs.append(d)
+    arr = stackstac.stack(docs).compute()
     assert arr.sizes["time"] == len(paths)
+    assert arr.attrs["crs"].upper() == CRS
     for k, iid in enumerate(arr["id"].values):
-        assert np.array_equal(arr.isel(time=k, band=0).values, truth[str(iid)])
+        got = arr.isel(time=k, band=0).values
+        want = truth[str(iid)]
+        assert got.shape == want.shape
+        # stackstac fills nodata with NaN (float64 by default): the valid pixels are equal
+        valid = want != 0
+        assert np.array_equal(got[valid], want[valid].astype(got.dtype))
+        assert np.isnan(got[~valid]).all()
 
 
 class _LocalSchemas(pystac.stac_io.DefaultStacIO):
@@ -330,12 +337,12 @@ def test_catalogue_validates_offline_with_pystac_and_stac_validator(tmp_path, of
     for doc in docs:
         v = StacValidate(str(doc), schema_map=schema_map)
         assert v.run(), (doc, v.message)
-    # and it can fail: a field the projection schema forbids
+    # and it can fail: a field the projection schema does not define
     bad = json.loads(docs[-1].read_text())
-    bad["properties"]["proj:epsg"] = 32633
+    bad["properties"]["proj:epsgcode"] = 32633
     docs[-1].write_text(json.dumps(bad))
     v = StacValidate(str(docs[-1]), schema_map=schema_map)
-    assert not v.run() and "proj:epsg" in v.message[0]["error_message"]
+    assert not v.run() and "proj:epsgcode" in v.message[0]["error_message"]
 
 
 @pytest.mark.parametrize("seconds, day, expected", [

@@ -4,9 +4,10 @@ one collection (the mission), with one item per rectified swing and one for the 
 Each item's ``datetime`` is its acquisition time (the middle of its lines' times, GPS seconds
 of week placed on the mission's ``[mission] date``; see :mod:`swathflow.formats.gpstime`),
 with ``start_datetime``/``end_datetime``; without a date, the processing time. Each item
-carries the projection extension v2.0.0 (``proj:code``, shape, transform, native bbox; its
-schema forbids v1's ``proj:epsg``, which stackstac 0.5 reads: give it ``epsg=``), the
-raster extension on its
+carries the projection extension v1.2.0 (``proj:code``, and ``proj:epsg`` beside it where the
+CRS has an EPSG code; shape, transform, native bbox): v1.2.0 is the one version that defines
+both fields, v2.0.0's schema forbids ``proj:epsg``, which stackstac 0.5 still needs to pick a
+CRS; the raster extension on its
 data asset (per band: nodata, data type, resolution), the eo extension with the file's band
 names (and centre wavelength and FWHM where known), the file extension (size and sha256
 multihash of every local asset) and the processing extension v1.0.0 (software, level,
@@ -36,6 +37,10 @@ import numpy as np
 #: it has no processing:datetime, so the processing time is the core ``created`` field
 PROCESSING_SCHEMA = "https://stac-extensions.github.io/processing/v1.0.0/schema.json"
 FILE_SCHEMA = "https://stac-extensions.github.io/file/v2.1.0/schema.json"
+#: v1.2.0, not v2.0.0: it defines ``proj:code`` and the deprecated ``proj:epsg`` side by side
+#: (stackstac 0.5 reads only ``proj:epsg``; v2.0.0's schema forbids it). pystac reads the
+#: items as v2.0.0 (its migration keeps ``proj:code``, drops ``proj:epsg``)
+PROJECTION_SCHEMA = "https://stac-extensions.github.io/projection/v1.2.0/schema.json"
 COG = "image/tiff; application=geotiff; profile=cloud-optimized"
 MAX_MASK = 1024          # footprints are traced on a mask at most this many pixels across
 
@@ -83,12 +88,23 @@ def _bbox(geom: dict) -> list[float]:
 
 
 def _proj(src) -> dict:
+    """The projection facts of the open raster ``src``, as run caches record them."""
     epsg = src.crs.to_epsg()
     out = {"code": f"EPSG:{epsg}"} if epsg else {"wkt2": src.crs.to_wkt()}
     out.update(shape=[src.height, src.width], transform=[float(v) for v in
                                                         list(src.transform)[:6]],
                bbox=[float(v) for v in src.bounds])
     return out
+
+
+def _proj_fields(proj: Mapping) -> dict:
+    """The item properties of the projection extension v1.2.0 for the facts ``proj``:
+    ``proj:epsg`` beside ``proj:code`` when the code is an EPSG one."""
+    fields = {f"proj:{k}": v for k, v in proj.items()}
+    code = str(proj.get("code", ""))
+    if code.upper().startswith("EPSG:") and code[5:].isdigit():
+        fields["proj:epsg"] = int(code[5:])
+    return fields
 
 
 def _raster_bands(src) -> list:
@@ -182,7 +198,6 @@ def _item(path: str, name: str, span, when: dt.datetime, level: str, lineage: st
     datetimes) or, without one, at ``when``."""
     import pystac
     from pystac.extensions.eo import Band, EOExtension
-    from pystac.extensions.projection import ProjectionExtension
     from pystac.extensions.raster import RasterBand, RasterExtension
     from swathflow._version import __version__
     facts = facts or raster_facts(path)
@@ -201,8 +216,8 @@ def _item(path: str, name: str, span, when: dt.datetime, level: str, lineage: st
         when = start + (end - start) / 2
         props.update(start_datetime=_iso(start), end_datetime=_iso(end))
     item = pystac.Item(item_id(name), geom, _bbox(geom), when, props)
-    item.stac_extensions += [PROCESSING_SCHEMA, FILE_SCHEMA]
-    ProjectionExtension.ext(item, add_if_missing=True).apply(**proj)
+    item.stac_extensions += [PROJECTION_SCHEMA, PROCESSING_SCHEMA, FILE_SCHEMA]
+    item.properties.update(_proj_fields(proj))
     asset = _asset(path, COG, ["data"], os.path.basename(path))
     item.add_asset("data", asset)
     RasterExtension.ext(asset, add_if_missing=True).apply(bands)
