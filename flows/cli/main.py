@@ -10,6 +10,8 @@ import argparse
 import sys
 from importlib import import_module
 
+from swathflow import arguments
+
 
 def _sensors(args) -> int:
     from swathflow.sensormodel import list_sensors
@@ -45,21 +47,16 @@ def _int_between(lo: int, hi: int, step: int = 1):
             v = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if v < 1 <= lo:
-            raise argparse.ArgumentTypeError(f"must be 1 or more, got {v}")
-        if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"must be from {lo} to {hi}, got {v}")
-        if v % step:
-            raise argparse.ArgumentTypeError(f"must be a multiple of {step} (a TIFF tile "
-                                             f"size), got {v}")
+        why = arguments.out_of_range(v, lo, hi, step)
+        if why is not None:
+            raise argparse.ArgumentTypeError(why)
         return v
     parse.__name__ = "number"       # argparse names the type in its messages
     return parse
 
 
-#: output tile sizes in pixels: TIFF tiles are multiples of 16; beyond 4096 a tile
-#: (and its compression buffer) no longer fits a worker's share of memory
-TILE = _int_between(16, 4096, 16)
+#: output tile sizes in pixels (the Python API's bounds)
+TILE = _int_between(*arguments.TILE)
 #: the mosaic's search range S: each search holds (2 S + 1)^2 costs of 8 bytes (S = 100000
 #: asked for 299 GiB; 256 asks 2 MiB, and is 100 m at 0.4 m pixels)
 MAX_SHIFT = _int_between(1, 256)
