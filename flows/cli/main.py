@@ -125,6 +125,10 @@ def _verbosity_parser() -> argparse.ArgumentParser:
     return common
 
 
+#: the warning filter (``PYTHONWARNINGS``) that quiets the resource tracker's leak report
+TRACKER_QUIET = "ignore::UserWarning:multiprocessing.resource_tracker"
+
+
 def _apply_verbosity(args) -> None:
     import logging
     import os
@@ -142,6 +146,13 @@ def _apply_verbosity(args) -> None:
         # variables); the flow run's logs still reach Prefect's API and are stored
         os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "CRITICAL")
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+        # a run killed by SIGKILL: Python's multiprocessing resource tracker (a child,
+        # on the same terminal) frees the semaphores of Dask's nannies and says so in a
+        # two-line UserWarning after the shell's prompt is back; it inherits the
+        # warning filters of the environment (Python's documented PYTHONWARNINGS)
+        given = os.environ.get("PYTHONWARNINGS", "")
+        if TRACKER_QUIET not in given.split(","):
+            os.environ["PYTHONWARNINGS"] = ",".join(filter(None, (given, TRACKER_QUIET)))
     # Prefect's client telemetry (and the notice it prints on a first interactive run): off
     # for the command line unless the environment says otherwise; importing swathflow's
     # modules from Python changes no setting
