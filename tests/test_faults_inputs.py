@@ -67,15 +67,29 @@ def test_gcp_heights_above_the_aircraft_fail_validation(m, capsys):
     bad(capsys, m, "gcp.csv", "column z", "above the aircraft")
 
 
-def test_a_control_point_the_adjustment_cannot_use_is_warned_by_id(m, tmp_path, capsys):
-    """A GCP 9 km off was dropped without a word: now one warning names it and its image
-    (the calibration still runs on the others)."""
+def test_a_control_point_the_adjustment_cannot_use_is_named_everywhere(m, tmp_path,
+                                                                        capsys):
+    """A GCP 9 km off was dropped without a word: now it is in the calibration's rejected
+    list (phase "dropped", with the reason), in the report and in one warning naming its
+    image (the calibration still runs on the others)."""
+    import json
     d = pd.read_csv(m / "gcp.csv", dtype={"gcp_id": str, "image_id": str})
     moved = d.gcp_id.iloc[0]
+    image = d.image_id.iloc[0]
     _gcps_moved(m, x=lambda d: np.where(d.gcp_id == moved, d.x + 0.096, d.x))  # ~9 km east
     code, text = run(capsys, "calibrate", m, "--out", tmp_path / "cal")
-    lines = [ln for ln in text.splitlines() if moved in ln]
-    assert lines and ("warning" in lines[0] or "rejected" in lines[0]), text
+    assert code == 0, text
+    warned = [ln for ln in text.splitlines() if moved in ln]
+    assert len(warned) == 1 and "warning:" in warned[0] and image in warned[0], text
+    assert "does not project into the image" in warned[0]
+    assert "1 dropped" in text
+    doc = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    rows = [r for r in doc["rejected"] if r["gcp_id"] == moved]
+    assert rows == [{**rows[0], "name": f"{moved}@{image}", "phase": "dropped",
+                     "image_id": image}]
+    assert "does not project into the image" in rows[0]["reason"]
+    html = (tmp_path / "cal" / "report.html").read_text()
+    assert f"{moved}@{image}" in html and "1 dropped" in html
 
 
 # ------------------------------------------------------------------------------------------
