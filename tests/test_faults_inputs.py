@@ -431,3 +431,35 @@ def test_reference_dem_missing_the_swath_is_blamed_on_the_dem(tmp_path, capsys):
     assert code == 2, text
     line = next(ln for ln in text.splitlines() if "error" in ln)
     assert "far.tif" in line and "misses the swath" in line, text
+
+
+def test_validate_warnings_have_one_prefix_and_q_silences_them(m, capsys):
+    """validate printed a usable mission's warnings as ``  - warning: ...`` lines of its
+    own; now as every command does, and ``-q`` silences them."""
+    toml(m, "gsd = 0.4", "gsd = 0.4\ncolour = 1")          # an unknown key: a warning
+    code, text = run(capsys, "validate", m)
+    lines = [ln for ln in text.splitlines() if "colour" in ln]
+    assert code == 0 and len(lines) == 1, text
+    assert lines[0].startswith("swathflow validate: warning: ") and "mission.toml" in lines[0]
+    assert lines[0].count("warning:") == 1, lines[0]
+    code, text = run(capsys, "validate", m, "-q")
+    assert code == 0 and "warning" not in text and "colour" not in text, text
+
+
+def test_q_silences_a_librarys_warnings_too(tmp_path):
+    """``-q`` prints nothing but errors: a warning of a library the command calls (here
+    a RuntimeWarning) is not printed either; without ``-q`` it is. In a fresh interpreter
+    (pytest records warnings instead of printing them)."""
+    code = ("import sys, warnings\n"
+            "from swathflow.flows.cli import commands, main\n"
+            "def validate(args):\n"
+            "    warnings.warn('overflow in a library', RuntimeWarning, stacklevel=2)\n"
+            "    return 0\n"
+            "commands.validate = validate\n"
+            "sys.exit(main(['validate', sys.argv[1], *sys.argv[2:]]))\n")
+    quiet = subprocess.run([sys.executable, "-c", code, str(tmp_path), "-q"],
+                           capture_output=True, text=True, timeout=120)
+    loud = subprocess.run([sys.executable, "-c", code, str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert quiet.returncode == 0 and quiet.stdout + quiet.stderr == "", quiet.stderr
+    assert loud.returncode == 0 and "overflow in a library" in loud.stderr, loud.stderr

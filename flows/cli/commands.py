@@ -43,7 +43,8 @@ def validate(args) -> int:
         print(format_problems(args.mission, problems))
         return 2
     for pr in problems:                 # warnings only: the mission is usable
-        _echo(args, f"  - {pr}")
+        if not getattr(args, "quiet", False):
+            print(f"swathflow validate: warning: {pr.text()}", file=sys.stderr)
     n = 0 if p["gcps"] is None else len(p["gcps"])
     _echo(args, f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
           f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m"

@@ -483,23 +483,24 @@ def _signalled(command: str, exc: BaseException) -> int:
 
 def _show_warnings(command: str, quiet: bool = False) -> None:
     """swathflow's own warnings (mission, sensor plugins) as one plain line each, with one
-    ``warning:`` prefix (a mission problem's text carries its own); none with ``-q``."""
+    ``swathflow <command>: warning:`` prefix (their texts carry none); with ``-q`` no
+    warning at all."""
     import warnings
 
     # the base class, not the modules that raise them: importing those (pandas, xarray,
     # dask) before every command cost about 0.3 CPU-s
     from swathflow.errors import SwathflowWarning
-    previous = warnings.showwarning
+    # the one before any command's (main called again in one process: not a chain)
+    previous = getattr(warnings.showwarning, "before_swathflow", warnings.showwarning)
 
     def show(message, category, filename, lineno, file=None, line=None):
+        if quiet:               # -q: nothing but errors, a library's warnings neither
+            return
         if issubclass(category, SwathflowWarning):
-            if quiet:
-                return
-            text = str(message)
-            text = text[len("warning: "):] if text.startswith("warning: ") else text
-            print(f"swathflow {command}: warning: {text}", file=sys.stderr)
+            print(f"swathflow {command}: warning: {message}", file=sys.stderr)
         else:
             previous(message, category, filename, lineno, file, line)
+    show.before_swathflow = previous
     warnings.showwarning = show
 
 
