@@ -19,6 +19,23 @@ def run(capsys, *argv) -> tuple[int, str]:
     return code, text
 
 
+def run_fresh(*argv) -> tuple[str, str]:
+    """The command line run in a fresh interpreter: ``"RC <exit code> <flow> <dask>"``
+    (``flow`` when the flow's module, which imports Prefect, was imported by the time the
+    command returned, ``dask`` when Dask's distributed was, ``-`` for either not), and all
+    it printed."""
+    import subprocess
+    import sys
+    code = ("import sys\nfrom swathflow.flows.cli import main\n"
+            "rc = main(sys.argv[1:])\n"
+            "print('RC', rc, 'flow' if 'swathflow.flows.mission' in sys.modules else '-', "
+            "'dask' if 'distributed' in sys.modules else '-')\n")
+    r = subprocess.run([sys.executable, "-c", code, *map(str, argv)], capture_output=True,
+                       text=True, timeout=300)
+    status = next((ln for ln in r.stdout.splitlines() if ln.startswith("RC ")), "")
+    return status, r.stdout + r.stderr
+
+
 def bad(capsys, m, *words) -> str:
     """``validate m`` exits 2 and one problem line holds every word (and a fix), never the
     "unexpected content" of an error nobody foresaw: that line."""

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import rasterio
-from faultkit import bad, pos_csv, run, toml
+from faultkit import bad, pos_csv, run, run_fresh, toml
 from swathflow.flows.cli import main
 from swathflow.formats.pos import read_pos
 
@@ -132,14 +132,9 @@ def test_run_validates_before_starting_prefect(m, tmp_path):
     """Bad input is reported before the flow (Prefect) or a Dask cluster is even imported:
     checked in a fresh interpreter, from the modules loaded when the command returns."""
     toml(m, "gsd = 0.4", "gsd = -1")
-    code = ("import sys\nfrom swathflow.flows.cli import main\n"
-            f"rc = main(['run', {str(m)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
-            "print('RC', rc, 'flow' if 'swathflow.flows.mission' in sys.modules else '-', "
-            "'dask' if 'distributed' in sys.modules else '-')\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       timeout=300)
-    assert "[mission].gsd" in r.stderr + r.stdout
-    assert "RC 2 - -" in r.stdout, r.stdout + r.stderr
+    status, text = run_fresh("run", m, "--out", tmp_path / "o")
+    assert "[mission].gsd" in text
+    assert status == "RC 2 - -", text
 
 
 # ------------------------------------------------------------------------------------------
@@ -468,15 +463,8 @@ def test_run_checks_the_calibration_before_starting_prefect(m, tmp_path, content
     from swathflow.formats.calibfile import FORMAT
     cal = tmp_path / "cal.json"
     cal.write_text(content.replace("swathflow-calibration", FORMAT))
-    code = ("import sys\nfrom swathflow.flows.cli import main\n"
-            f"rc = main(['run', {str(m)!r}, '--out', {str(tmp_path / 'o')!r}, "
-            f"'--calibration', {str(cal)!r}])\n"
-            "print('RC', rc, 'flow' if 'swathflow.flows.mission' in sys.modules else '-', "
-            "'dask' if 'distributed' in sys.modules else '-')\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       timeout=300)
-    text = r.stdout + r.stderr
-    assert "RC 2 - -" in r.stdout, text
+    status, text = run_fresh("run", m, "--out", tmp_path / "o", "--calibration", cal)
+    assert status == "RC 2 - -", text
     assert str(cal) in text and all(w in text for w in words), text
     assert "Traceback" not in text
 
