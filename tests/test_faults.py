@@ -7,6 +7,7 @@ breaks one thing the way a user would, and runs the real command line.
 from __future__ import annotations
 
 import contextlib
+import os
 import subprocess
 import sys
 import time
@@ -122,6 +123,29 @@ def test_gsd_out_of_proportion(m, capsys, gsd, words):
     bad(capsys, m, *words)
 
 
+def test_run_on_slurm_without_sbatch_is_refused_at_once(m, tmp_path, monkeypatch, capsys):
+    """``run --cluster slurm`` on a machine without SLURM waited for a worker for good."""
+    monkeypatch.setenv("PATH", str(tmp_path))           # no sbatch there
+    t0 = time.monotonic()
+    code, text = run(capsys, "run", m, "--out", tmp_path / "o", "--cluster", "slurm",
+                     "--calibration", m / "truth" / "calibration.json")
+    assert code == 2 and "sbatch" in text and "--cluster local" in text, text
+    assert time.monotonic() - t0 < 300          # not the first worker's wait (600 s)
+
+
+def test_waiting_for_the_first_worker_ends(tmp_path):
+    """A SLURM job that never starts: the wait for its worker ends after its timeout with
+    a message saying what to check (Dask's own wait ignored the timeout there)."""
+    from swathflow.cluster import first_worker
+    from swathflow.errors import SwathflowError
+
+    class NoWorkers:                    # a scheduler no worker ever joins
+        def scheduler_info(self):
+            return {"workers": {}}
+    with pytest.raises(SwathflowError, match="no SLURM worker job started within 1 s"):
+        first_worker(NoWorkers(), 1.0)
+
+
 def test_max_pixels_lifts_the_limit(m, capsys):
     toml(m, "gsd = 0.4", "gsd = 0.002\nmax_pixels = 1e12")
     code, text = run(capsys, "validate", m)
@@ -222,7 +246,6 @@ def test_a_sigterm_whose_exception_was_swallowed_still_ends_the_run_as_terminate
     prints its exception as "Exception ignored" and the command goes on; when it returns,
     the run still ends as terminated (143), not as a success."""
     import gc
-    import os
     import signal
 
     from swathflow.flows.cli import commands
@@ -425,7 +448,6 @@ def test_readme_path_simulate_then_run(tmp_path):
 @pytest.mark.slow
 def test_sigterm_during_run_stops_the_prefect_server(fault_base, tmp_path):
     """SIGTERM while the flow runs: exit 143, and no server process of ours is left."""
-    import os
     import signal
     proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(fault_base),
                              "--out", str(tmp_path / "o")], stderr=subprocess.PIPE, text=True,
@@ -503,30 +525,46 @@ def test_sigterm_while_the_workers_rectify_stops_everything(fault_base, tmp_path
     assert not alive, f"left running: {alive}"
 
 
+def _run_until_rectifying(base, tmp_path):
+    """``swathflow run`` of ``base`` started as a terminal's job would be (a process group
+    of its own, stdout and stderr to one file), returned once its workers have rectified
+    a swing: (the process, the processes it started, the file)."""
+    import psutil
+    out, err_file = tmp_path / "o", tmp_path / "stderr.txt"
+    with open(err_file, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run",
+                                 str(base), "--out", str(out), "--calibration",
+                                 str(base / "truth" / "calibration.json")],
+                                stdout=err, stderr=err, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None \
+            and not list((out / "rectified").glob("*.swathflow.json")):
+        time.sleep(0.02)
+    started = psutil.Process(proc.pid).children(recursive=True)
+    assert proc.poll() is None and started, "the run ended before a swing was rectified"
+    return proc, started, err_file
+
+
+def _end(started) -> None:
+    """End what a test's run left running, by process id."""
+    import psutil
+    for p in started:
+        with contextlib.suppress(psutil.Error):
+            p.kill()
+
+
 @pytest.mark.slow
 def test_kill_9_of_a_run_leaves_nothing_on_the_terminal(fault_base, tmp_path):
     """``kill -9`` of ``swathflow run`` while the workers rectify: what the run started
     goes on writing to the same terminal once the shell's prompt is back (Python's
     multiprocessing resource tracker reported the semaphores of Dask's nannies in a
-    two-line UserWarning; workers whose parent died printed BrokenPipe tracebacks):
-    nothing of that reaches it. Checked once the run's worker processes and its resource
-    tracker have ended (polled); what is still serving is ended by process id after."""
+    two-line UserWarning): nothing of that reaches it. Checked once the run's worker
+    processes and its resource tracker have ended (polled); what is still serving is
+    ended by process id after."""
     import signal
 
     import psutil
-    out, err_file = tmp_path / "o", tmp_path / "stderr.txt"
-    with open(err_file, "w") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run",
-                                 str(fault_base), "--out", str(out), "--calibration",
-                                 str(fault_base / "truth" / "calibration.json")],
-                                stdout=err, stderr=err, start_new_session=True)
-    run = psutil.Process(proc.pid)
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None \
-            and not list((out / "rectified").glob("*.swathflow.json")):
-        time.sleep(0.02)
-    started = run.children(recursive=True)
-    assert proc.poll() is None and started, "the run ended before a swing was rectified"
+    proc, started, err_file = _run_until_rectifying(fault_base, tmp_path)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     try:
@@ -537,9 +575,29 @@ def test_kill_9_of_a_run_leaves_nothing_on_the_terminal(fault_base, tmp_path):
         text = err_file.read_text()
         assert not [ln for ln in text.splitlines() if ln.strip()], text
     finally:
-        for p in started:
-            with contextlib.suppress(psutil.Error):
-                p.kill()
+        _end(started)
+
+
+@pytest.mark.slow
+def test_ctrl_c_at_the_terminal_prints_one_line(fault_base, tmp_path):
+    """Ctrl-C while the workers rectify: the terminal sends SIGINT to the whole job, the
+    Dask workers and Prefect's temporary server too. Each worker printed a
+    KeyboardInterrupt traceback, and Prefect's event and log workers an ERROR line and
+    "--- Error logging to API ---" for each call that no longer reached the server: now
+    the run's one line, exit 130, once everything it started has ended (polled)."""
+    import signal
+
+    import psutil
+    proc, started, err_file = _run_until_rectifying(fault_base, tmp_path)
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        assert proc.wait(timeout=120) == 130
+        _, alive = psutil.wait_procs(started, timeout=90)
+        assert not alive, f"still running 90 s after: {[p.pid for p in alive]}"
+        lines = [ln for ln in err_file.read_text().splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("swathflow run: interrupted"), lines
+    finally:
+        _end(started)
 
 
 def _cmdline(p) -> str:

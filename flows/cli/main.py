@@ -146,6 +146,15 @@ def _apply_verbosity(args) -> None:
         # variables); the flow run's logs still reach Prefect's API and are stored
         os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "CRITICAL")
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+        # Prefect's internal services too (its "debug" handler: after Ctrl-C, whose SIGINT
+        # also stops Prefect's temporary server, its event and log workers reported every
+        # call that no longer reached it)
+        os.environ.setdefault("PREFECT_LOGGING_HANDLERS_DEBUG_LEVEL", "CRITICAL")
+        if args.command == "run":
+            # ... and its API log handler wrote "--- Error logging to API ---" straight to
+            # stderr: what the standard library's logging.raiseExceptions = False, its
+            # documented setting for production use, leaves out
+            logging.raiseExceptions = False
         # a run killed by SIGKILL: Python's multiprocessing resource tracker (a child,
         # on the same terminal) frees the semaphores of Dask's nannies and says so in a
         # two-line UserWarning after the shell's prompt is back; it inherits the
