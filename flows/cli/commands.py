@@ -231,8 +231,10 @@ def run(args) -> int:
         return 0
     _checked(args.mission, args.calibration)
     run_flow = _flow_run()
-    result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
-                      args.cluster, args.jobs)
+    from swathflow.flows.services import interrupt_quickly
+    with interrupt_quickly():
+        result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
+                          args.cluster, args.jobs)
     _print_summary(result, args)
     return 0
 

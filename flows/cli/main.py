@@ -462,6 +462,9 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
             code = 2
     if program and args.command in QUICK_EXIT:
         _CODE[0] = code
+    if program and args.command == "run" and code in (130, 143):     # interrupted
+        from swathflow.flows.services import leave_if_prefect_stopped
+        leave_if_prefect_stopped(code)
     return code
 
 
