@@ -1,6 +1,7 @@
 """The services a run uses, reached through their public APIs: Prefect's API (the server
-named by ``PREFECT_API_URL`` or Prefect's own temporary server) checked with a timeout, and
-the processes of a run killed by SIGKILL found and ended by the next run."""
+named by ``PREFECT_API_URL`` or Prefect's own temporary server) checked with a timeout, a
+run interrupted without waiting on a Prefect server the same Ctrl-C stopped, and the
+processes of a run killed by SIGKILL found and ended by the next run."""
 from __future__ import annotations
 
 import contextlib
@@ -134,3 +135,52 @@ def _alive(owner: str) -> bool:
         return abs(psutil.Process(int(pid)).create_time() - float(start)) < 0.01
     except (ValueError, psutil.Error):
         return False
+
+
+@contextlib.contextmanager
+def interrupt_quickly():
+    """Ctrl-C inside the block: Prefect's client stops retrying for the rest of the block,
+    then KeyboardInterrupt as usual. A terminal's Ctrl-C reaches every process of the
+    job, Prefect's temporary server too: Prefect's report of the interrupted flow run
+    retried each call to the stopped server with growing waits (minutes before the
+    prompt came back). Prefect's public ``temporary_settings`` say no retries (this
+    thread's; see :func:`leave_if_prefect_stopped` for the queues drained at exit)."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    entered = []
+
+    def interrupted(signum, frame):
+        from prefect.settings import PREFECT_CLIENT_MAX_RETRIES, temporary_settings
+        settings = temporary_settings({PREFECT_CLIENT_MAX_RETRIES: 0})
+        settings.__enter__()
+        entered.append(settings)
+        raise KeyboardInterrupt
+    previous = signal.signal(signal.SIGINT, interrupted)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        for settings in reversed(entered):
+            with contextlib.suppress(Exception):   # entered inside a context now left
+                settings.__exit__(None, None, None)
+
+
+def leave_if_prefect_stopped(code: int, timeout: float = 2.0) -> None:
+    """After an interrupted run: when Prefect's API no longer answers (its temporary
+    server stopped by the same Ctrl-C), end the process now with ``code``, stdout and
+    stderr flushed: Prefect's log and event queues, drained as the process ends, could
+    only retry the stopped server for minutes (the Dask cluster is closed by then). With
+    the server answering, nothing happens: the usual way out records the queued logs."""
+    import sys
+    try:
+        _healthy(timeout)
+        return
+    except SwathflowError:
+        pass
+    for f in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            f.flush()
+    os._exit(code)

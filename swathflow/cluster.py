@@ -67,20 +67,34 @@ def dask_client(address: str | None = None, n_workers: int | None = None,
         except ImportError:  # pragma: no cover - a main dependency
             raise SwathflowError("--cluster slurm needs dask-jobqueue: pip install "
                                  "dask-jobqueue") from None
+        import shutil
+        if shutil.which("sbatch") is None:
+            raise SwathflowError("--cluster slurm: SLURM's sbatch is not on PATH here; run "
+                                 "on a SLURM login node (or load its module), or use "
+                                 "--cluster local")
         with SLURMCluster(**slurm_options()) as slurm, Client(slurm) as client:
             slurm.scale(jobs=jobs or 1)
-            try:
-                client.wait_for_workers(1, timeout=timeout)
-            except TimeoutError:
-                raise SwathflowError(
-                    f"no SLURM worker job started within {timeout:.0f} s: check `squeue` "
-                    f"and the jobqueue.slurm settings (queue, account, walltime)") from None
+            first_worker(client, timeout)
             yield client
         return
     if cluster != "local":
         raise SwathflowError(f"unknown cluster {cluster!r}: use one of {', '.join(CLUSTERS)}")
     with local_cluster(n_workers, preload) as local, Client(local) as client:
         yield client
+
+
+def first_worker(client, timeout: float) -> None:
+    """Wait until a worker has joined ``client``'s scheduler, polled (Dask's own
+    ``wait_for_workers`` on a SLURMCluster ignored its timeout: a job that never started
+    kept the run waiting for good); a :class:`SwathflowError` after ``timeout`` s."""
+    import time
+    deadline = time.monotonic() + timeout
+    while not client.scheduler_info().get("workers"):
+        if time.monotonic() > deadline:
+            raise SwathflowError(
+                f"no SLURM worker job started within {timeout:.0f} s: check `squeue` "
+                f"and the jobqueue.slurm settings (queue, account, walltime)")
+        time.sleep(0.5)
 
 
 def leave_quickly() -> None:
@@ -101,17 +115,31 @@ def leave_quickly() -> None:
 NO_HTTP = {"distributed.scheduler.http.routes": [], "distributed.worker.http.routes": []}
 
 
+def dask_setup(worker=None) -> None:
+    """Dask's worker preload hook of every worker of :func:`local_cluster`: Ctrl-C ends a
+    worker the way it ends any program, silently. A terminal sends SIGINT to every process
+    of its foreground job, the local workers too: Python's KeyboardInterrupt then printed
+    a traceback from each, on that terminal, while the run was stopping anyway. (Ignoring
+    SIGINT instead kept the workers alive and Prefect's report of the interrupted run
+    waiting on its server, which the same Ctrl-C stops: minutes of retries.)"""
+    import signal
+    import threading
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def local_cluster(n_workers: int | None = None, preload: tuple[str, ...] = ()):
     """A ``distributed.LocalCluster`` on this machine: ``n_workers`` single-threaded worker
     processes (default :func:`default_workers`) started by Dask's nannies, the scheduler
     on loopback; ``preload``: modules whose ``dask_setup(worker)`` each worker runs as it
-    starts (Dask's worker preload). Use it as a context manager (closed on exit)."""
+    starts (Dask's worker preload), after this module's (:func:`dask_setup`). Use it as a
+    context manager (closed on exit)."""
     import dask
     from distributed import LocalCluster
     if n_workers is not None and n_workers < 1:
         raise SwathflowError(f"workers must be at least 1, not {n_workers}")
     n = n_workers or default_workers()
-    extra = {"preload": list(preload)} if preload else {}
+    extra = {"preload": [__name__, *preload]}
     with dask.config.set(NO_HTTP):
         return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                             host="127.0.0.1", dashboard_address=None, **extra,

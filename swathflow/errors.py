@@ -17,3 +17,12 @@ class FormatError(SwathflowError, ValueError):
 
 class OutOfRangeError(SwathflowError, ValueError):
     """A request falls outside the data (times outside a trajectory, rays off a DEM...)."""
+
+
+class ArgumentError(SwathflowError, ValueError):
+    """An argument of a Python API call outside the values it accepts (named, with them)."""
+
+
+class ArgumentTypeError(SwathflowError, TypeError):
+    """An argument of a Python API call of a type it does not accept (named, with those it
+    does)."""

@@ -81,3 +81,39 @@ def tiny_mission(tmp_path_factory):
             simulate(out, preset="tiny", seed=1)
             done.touch()
     return out
+
+
+def _simulated(tmp_path_factory, name: str, *options) -> Path:
+    from swathflow.flows.cli import main
+    out = tmp_path_factory.mktemp(name) / "tiny"
+    assert main(["simulate", str(out), "--preset", "tiny", "--seed", "3", "--geometry-only",
+                 *options]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def fault_base(tmp_path_factory) -> Path:
+    """The fault suites' mission (tests/test_faults*.py): a simulated ``tiny`` mission,
+    geometry only (its images a constant 1000, its control points exact), seed 3; shared,
+    treat as read-only (break the copy ``m``)."""
+    return _simulated(tmp_path_factory, "faults")
+
+
+@pytest.fixture(scope="session")
+def fault_envi(tmp_path_factory) -> Path:
+    """:func:`fault_base` with ENVI raw images; shared, treat as read-only."""
+    return _simulated(tmp_path_factory, "faults-envi", "--image-format", "envi")
+
+
+@pytest.fixture
+def m(fault_base, tmp_path) -> Path:
+    """A copy of :func:`fault_base` of the test's own, to break."""
+    import shutil
+    return Path(shutil.copytree(fault_base, tmp_path / "m"))
+
+
+@pytest.fixture
+def m_envi(fault_envi, tmp_path) -> Path:
+    """A copy of :func:`fault_envi` of the test's own, to break."""
+    import shutil
+    return Path(shutil.copytree(fault_envi, tmp_path / "e"))

@@ -6,7 +6,8 @@ breaks one thing the way a user would, and runs the real command line.
 """
 from __future__ import annotations
 
-import shutil
+import contextlib
+import os
 import subprocess
 import sys
 import time
@@ -16,84 +17,32 @@ import numpy as np
 import pandas as pd
 import pytest
 import rasterio
+from faultkit import bad, pos_csv, run, run_fresh, toml
 from swathflow.flows.cli import main
 from swathflow.formats.pos import read_pos
-
-
-@pytest.fixture(scope="module")
-def base(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("faults") / "tiny"
-    assert main(["simulate", str(out), "--preset", "tiny", "--seed", "1",
-                 "--geometry-only"]) == 0
-    return out
-
-
-@pytest.fixture
-def m(base, tmp_path) -> Path:
-    dst = tmp_path / "m"
-    shutil.copytree(base, dst)
-    return dst
-
-
-def _run(capsys, *argv) -> tuple[int, str]:
-    code = main([str(a) for a in argv])
-    cap = capsys.readouterr()
-    text = cap.out + cap.err
-    assert "Traceback" not in text
-    return code, text
-
-
-def _bad(capsys, m, *words) -> str:
-    """validate exits 2 and one problem line holds every word."""
-    code, text = _run(capsys, "validate", m)
-    assert code == 2, text
-    lines = [ln for ln in text.splitlines() if all(w.lower() in ln.lower() for w in words)]
-    assert lines, f"no line with {words}:\n{text}"
-    assert "fix:" in lines[0]
-    return lines[0]
-
-
-def _toml(m, old, new):
-    p = m / "mission.toml"
-    s = p.read_text()
-    assert old in s
-    p.write_text(s.replace(old, new, 1))
-
-
-def _pos_csv(m, change) -> None:
-    ds = read_pos(m / "pos.sbet")
-    df = pd.DataFrame({"time": ds.time.values, **{k: ds[k].values for k in ds.data_vars}})
-    df = change(df)
-    df.to_csv(m / "pos.csv", index=False, float_format="%.10f")
-    (m / "pos.sbet").unlink()
-    _toml(m, 'file = "pos.sbet"\nformat = "sbet"', 'file = "pos.csv"\nformat = "csv"')
 
 
 # ------------------------------------------------------------------------------------------
 # silently wrong results
 
 def test_pos_angles_in_radians(m, capsys):
-    _pos_csv(m, lambda d: d.assign(**{k: np.radians(d[k]) for k in ("roll", "pitch",
-                                                                      "heading")}))
-    _bad(capsys, m, "pos.csv", "radians", "degrees")
+    pos_csv(m, lambda d: d.assign(**{k: np.radians(d[k]) for k in ("roll", "pitch",
+                                                                     "heading")}))
+    bad(capsys, m, "pos.csv", "radians", "degrees")
 
 
 def test_swing_column_in_radians(m, capsys):
     p = m / "images" / "L1.lines.csv"
     d = pd.read_csv(p)
     d.assign(swing=np.radians(d.swing)).to_csv(p, index=False)
-    _bad(capsys, m, "L1.lines.csv", "swing", "radians")
+    bad(capsys, m, "L1.lines.csv", "swing", "radians")
 
 
-def test_truncated_envi_refused(tmp_path, capsys):
-    mm = tmp_path / "e"
-    assert main(["simulate", str(mm), "--preset", "tiny", "--geometry-only",
-                 "--image-format", "envi"]) == 0
-    capsys.readouterr()
-    img = next((mm / "images").glob("L1*.img"))
+def test_truncated_envi_refused(m_envi, capsys):
+    img = next((m_envi / "images").glob("L1*.img"))
     data = img.read_bytes()
     img.write_bytes(data[: len(data) // 2])
-    _bad(capsys, mm, "L1", "truncated")
+    bad(capsys, m_envi, "L1", "truncated")
 
 
 def test_truncated_geotiff_refused(m, capsys):
@@ -102,7 +51,7 @@ def test_truncated_geotiff_refused(m, capsys):
     p = m / "images" / "L1.tif"
     data = p.read_bytes()
     p.write_bytes(data[: len(data) - 200])
-    _bad(capsys, m, "L1.tif", "truncated")
+    bad(capsys, m, "L1.tif", "truncated")
 
 
 def test_multiband_image_warned(m, capsys):
@@ -113,54 +62,54 @@ def test_multiband_image_warned(m, capsys):
     with rasterio.open(p, "w", **prof) as dst:
         for b in (1, 2, 3):
             dst.write(a, b)
-    code, text = _run(capsys, "validate", m)
+    code, text = run(capsys, "validate", m)
     assert code == 0 and "warning" in text and "every band is rectified" in text
 
 
-def test_simulated_pos_is_continuous(base):
+def test_simulated_pos_is_continuous(fault_base):
     """The simulator's POS: no epoch left at the origin (was lat 0, lon 118.5)."""
-    ds = read_pos(base / "pos.sbet")
+    ds = read_pos(fault_base / "pos.sbet")
     lat = ds.lat.values
     assert np.ptp(lat) < 0.01 and np.abs(np.diff(ds["roll"].values)).max() < 1.0
 
 
 def test_pos_position_jump(m, capsys):
-    _pos_csv(m, lambda d: d.assign(lat=np.r_[d.lat.values[:-1], 0.0]))
-    _bad(capsys, m, "pos.csv", "jump")
+    pos_csv(m, lambda d: d.assign(lat=np.r_[d.lat.values[:-1], 0.0]))
+    bad(capsys, m, "pos.csv", "jump")
 
 
 def test_pos_gap_inside_image_warned(m, capsys):
     t = pd.read_csv(m / "images" / "L1.lines.csv").time.values
     mid = 0.5 * (t[0] + t[-1])
-    _pos_csv(m, lambda d: d[(d.time < mid) | (d.time > mid + 0.3)])
-    code, text = _run(capsys, "validate", m)
+    pos_csv(m, lambda d: d[(d.time < mid) | (d.time > mid + 0.3)])
+    code, text = run(capsys, "validate", m)
     assert code == 0 and "warning" in text and "POS gap" in text and "L1.lines.csv" in text
 
 
 def test_misspelt_terrain_key(m, capsys):
-    _toml(m, 'vertical = "ellipsoidal"', 'vertcal = "orthometric"')
-    _bad(capsys, m, "vertcal", "vertical")
+    toml(m, 'vertical = "ellipsoidal"', 'vertcal = "orthometric"')
+    bad(capsys, m, "vertcal", "vertical")
 
 
 def test_misspelt_sensor_key(m, capsys):
-    _toml(m, "focal_length =", "focal_lenght =")
-    _bad(capsys, m, "focal_lenght", "focal_length")
+    toml(m, "focal_length =", "focal_lenght =")
+    bad(capsys, m, "focal_lenght", "focal_length")
 
 
 def test_sensor_model_not_a_name(m, capsys):
     """Found by the mission.toml fuzzer: a list as the model name was a TypeError."""
-    _toml(m, 'model = "pendulum"', 'model = []')
-    _bad(capsys, m, "[sensor].model", "swathflow sensors")
+    toml(m, 'model = "pendulum"', 'model = []')
+    bad(capsys, m, "[sensor].model", "swathflow sensors")
 
 
 def test_fractional_n_elements(m, capsys):
-    _toml(m, "n_elements = 64", "n_elements = 64.5")
-    _bad(capsys, m, "n_elements", "whole number")
+    toml(m, "n_elements = 64", "n_elements = 64.5")
+    bad(capsys, m, "n_elements", "whole number")
 
 
 def test_two_images_on_one_file(m, capsys):
-    _toml(m, 'file = "images/R1.tif"', 'file = "images/L1.tif"')
-    _bad(capsys, m, "R1", "also the file")
+    toml(m, 'file = "images/R1.tif"', 'file = "images/L1.tif"')
+    bad(capsys, m, "R1", "also the file")
 
 
 # ------------------------------------------------------------------------------------------
@@ -170,28 +119,46 @@ def test_two_images_on_one_file(m, capsys):
                                         ("0.002", ("gsd", "max_pixels")),
                                         ("1e6", ("gsd", "footprint"))])
 def test_gsd_out_of_proportion(m, capsys, gsd, words):
-    _toml(m, "gsd = 0.4", f"gsd = {gsd}")
-    _bad(capsys, m, *words)
+    toml(m, "gsd = 0.4", f"gsd = {gsd}")
+    bad(capsys, m, *words)
+
+
+def test_run_on_slurm_without_sbatch_is_refused_at_once(m, tmp_path, monkeypatch, capsys):
+    """``run --cluster slurm`` on a machine without SLURM waited for a worker for good."""
+    monkeypatch.setenv("PATH", str(tmp_path))           # no sbatch there
+    t0 = time.monotonic()
+    code, text = run(capsys, "run", m, "--out", tmp_path / "o", "--cluster", "slurm",
+                     "--calibration", m / "truth" / "calibration.json")
+    assert code == 2 and "sbatch" in text and "--cluster local" in text, text
+    assert time.monotonic() - t0 < 300          # not the first worker's wait (600 s)
+
+
+def test_waiting_for_the_first_worker_ends(tmp_path):
+    """A SLURM job that never starts: the wait for its worker ends after its timeout with
+    a message saying what to check (Dask's own wait ignored the timeout there)."""
+    from swathflow.cluster import first_worker
+    from swathflow.errors import SwathflowError
+
+    class NoWorkers:                    # a scheduler no worker ever joins
+        def scheduler_info(self):
+            return {"workers": {}}
+    with pytest.raises(SwathflowError, match="no SLURM worker job started within 1 s"):
+        first_worker(NoWorkers(), 1.0)
 
 
 def test_max_pixels_lifts_the_limit(m, capsys):
-    _toml(m, "gsd = 0.4", "gsd = 0.002\nmax_pixels = 1e12")
-    code, text = _run(capsys, "validate", m)
+    toml(m, "gsd = 0.4", "gsd = 0.002\nmax_pixels = 1e12")
+    code, text = run(capsys, "validate", m)
     assert code == 0, text
 
 
 def test_run_validates_before_starting_prefect(m, tmp_path):
     """Bad input is reported before the flow (Prefect) or a Dask cluster is even imported:
     checked in a fresh interpreter, from the modules loaded when the command returns."""
-    _toml(m, "gsd = 0.4", "gsd = -1")
-    code = ("import sys\nfrom swathflow.flows.cli import main\n"
-            f"rc = main(['run', {str(m)!r}, '--out', {str(tmp_path / 'o')!r}])\n"
-            "print('RC', rc, 'flow' if 'swathflow.flows.mission' in sys.modules else '-', "
-            "'dask' if 'distributed' in sys.modules else '-')\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       timeout=300)
-    assert "[mission].gsd" in r.stderr + r.stdout
-    assert "RC 2 - -" in r.stdout, r.stdout + r.stderr
+    toml(m, "gsd = 0.4", "gsd = -1")
+    status, text = run_fresh("run", m, "--out", tmp_path / "o")
+    assert "[mission].gsd" in text
+    assert status == "RC 2 - -", text
 
 
 # ------------------------------------------------------------------------------------------
@@ -204,21 +171,21 @@ def test_mosaic_never_writes_over_an_input(tmp_path, capsys):
     write_geotiff(d / "L1.tif", a, "EPSG:32651", (1, 0, 0, 0, -1, 8), nodata=-9999.0,
                   tags={"image_id": "L1"})
     before = (d / "L1.tif").read_bytes()
-    code, text = _run(capsys, "mosaic", d, "--out", d / "L1.tif", "--workers", "1")
+    code, text = run(capsys, "mosaic", d, "--out", d / "L1.tif", "--workers", "1")
     assert code == 2 and "input" in text
     assert (d / "L1.tif").read_bytes() == before
 
 
 def test_simulate_into_existing_mission_needs_force(m, capsys):
     before = (m / "pos.sbet").read_bytes()
-    code, text = _run(capsys, "simulate", m, "--preset", "tiny", "--seed", "5",
+    code, text = run(capsys, "simulate", m, "--preset", "tiny", "--seed", "5",
                       "--geometry-only")
     assert code == 2 and "--force" in text
     assert (m / "pos.sbet").read_bytes() == before
 
 
 def test_simulate_gross_errors_out_of_range(tmp_path, capsys):
-    code, text = _run(capsys, "simulate", tmp_path / "g", "--gross-errors", "2.0")
+    code, text = run(capsys, "simulate", tmp_path / "g", "--gross-errors", "2.0")
     assert code == 2 and "--gross-errors" in text
     assert not (tmp_path / "g").exists()
 
@@ -279,7 +246,6 @@ def test_a_sigterm_whose_exception_was_swallowed_still_ends_the_run_as_terminate
     prints its exception as "Exception ignored" and the command goes on; when it returns,
     the run still ends as terminated (143), not as a success."""
     import gc
-    import os
     import signal
 
     from swathflow.flows.cli import commands
@@ -308,8 +274,8 @@ def test_a_sigterm_whose_exception_was_swallowed_still_ends_the_run_as_terminate
                                   ["mosaic", "SRC", "--feather", "0", "--out", "x.tif"],
                                   ["mosaic", "SRC", "--workers", "0", "--out", "x.tif"],
                                   ["mosaic", "SRC", "--max-shift", "-1", "--out", "x.tif"]])
-def test_non_positive_arguments(base, argv, capsys):
-    argv = [str(base) if a == "SRC" else a for a in argv]
+def test_non_positive_arguments(fault_base, argv, capsys):
+    argv = [str(fault_base) if a == "SRC" else a for a in argv]
     with pytest.raises(SystemExit) as e:
         main(argv)
     assert e.value.code == 2
@@ -319,16 +285,16 @@ def test_non_positive_arguments(base, argv, capsys):
 
 @pytest.mark.parametrize("cmd", ["calibrate", "rectify", "run"])
 @pytest.mark.parametrize("where", ["file", "proc"])
-def test_out_unusable(base, tmp_path, capsys, cmd, where):
+def test_out_unusable(fault_base, tmp_path, capsys, cmd, where):
     out = tmp_path / "f" if where == "file" else Path("/proc/swathflow-out")
     if where == "file":
         out.write_text("x")
-    code, text = _run(capsys, cmd, base, "--out", out)
+    code, text = run(capsys, cmd, fault_base, "--out", out)
     assert code == 2 and str(out) in text
 
 
-def test_mosaic_out_under_proc(base, capsys):
-    code, text = _run(capsys, "mosaic", base, "--out", "/proc/x/m.tif")
+def test_mosaic_out_under_proc(fault_base, capsys):
+    code, text = run(capsys, "mosaic", fault_base, "--out", "/proc/x/m.tif")
     assert code == 2 and "/proc/x" in text
 
 
@@ -336,13 +302,13 @@ def test_mosaic_out_under_proc(base, capsys):
 # misleading messages
 
 def test_swapped_lat_lon(m, capsys):
-    _pos_csv(m, lambda d: d.rename(columns={"lat": "lon", "lon": "lat"}))
-    _bad(capsys, m, "pos.csv", "swap")
+    pos_csv(m, lambda d: d.rename(columns={"lat": "lon", "lon": "lat"}))
+    bad(capsys, m, "pos.csv", "swap")
 
 
 def test_latitude_out_of_range(m, capsys):
-    _pos_csv(m, lambda d: d.assign(lat=d.lat + 100.0))
-    line = _bad(capsys, m, "pos.csv", "lat", "outside")
+    pos_csv(m, lambda d: d.assign(lat=d.lat + 100.0))
+    line = bad(capsys, m, "pos.csv", "lat", "outside")
     assert "DEM" not in line
 
 
@@ -353,7 +319,7 @@ def test_sbet_holding_degrees(m, capsys):
     for k in ("lat", "lon", "roll", "pitch", "heading"):
         deg[k] = np.degrees(ds[k])              # the file then stores degrees
     write_sbet(deg, m / "pos.sbet")
-    line = _bad(capsys, m, "pos.sbet", "degrees")
+    line = bad(capsys, m, "pos.sbet", "degrees")
     assert "DEM" not in line
 
 
@@ -363,24 +329,24 @@ def test_dem_above_the_aircraft(m, capsys):
         a, prof = src.read(1), src.profile
     with rasterio.open(p, "w", **prof) as dst:
         dst.write(a + 5000.0, 1)
-    _bad(capsys, m, "dem.tif", "above the aircraft")
+    bad(capsys, m, "dem.tif", "above the aircraft")
 
 
 def test_gcp_x_y_swapped(m, capsys):
     p = m / "gcp.csv"
     d = pd.read_csv(p)
     d.rename(columns={"x": "y", "y": "x"}).to_csv(p, index=False)
-    _bad(capsys, m, "gcp.csv", "swap the x and y")
+    bad(capsys, m, "gcp.csv", "swap the x and y")
 
 
-def test_readme_path_simulate_then_calibrate(base, tmp_path, capsys):
-    code, text = _run(capsys, "calibrate", base, "--out", tmp_path / "cal")
+def test_readme_path_simulate_then_calibrate(fault_base, tmp_path, capsys):
+    code, text = run(capsys, "calibrate", fault_base, "--out", tmp_path / "cal")
     assert code == 0, text
     assert (tmp_path / "cal" / "calibration.json").exists()
 
 
-def test_rectify_without_calibration_says_so(base, tmp_path, capsys):
-    code, text = _run(capsys, "rectify", base, "--out", tmp_path / "r", "--images", "L1")
+def test_rectify_without_calibration_says_so(fault_base, tmp_path, capsys):
+    code, text = run(capsys, "rectify", fault_base, "--out", tmp_path / "r", "--images", "L1")
     assert code == 0 and "no --calibration" in text
     with rasterio.open(tmp_path / "r" / "L1.tif") as src:
         assert src.tags()["calibration"].startswith("none")
@@ -410,7 +376,7 @@ def test_broken_plugin_warns_and_is_skipped(tmp_path, monkeypatch, capsys, body)
     sys.modules.pop("badplugin_mod", None)
     reg = _plugin(tmp_path, monkeypatch, body)
     try:
-        code, text = _run(capsys, "sensors")
+        code, text = run(capsys, "sensors")
         assert code == 0 and "pendulum" in text and "broken" in text and "skipped" in text
         assert "broken" not in reg.list_sensors()
     finally:
@@ -432,7 +398,7 @@ def test_mosaic_shift_stays_within_the_input_range():
 # ------------------------------------------------------------------------------------------
 # resources: locks, full disks
 
-def test_second_run_on_one_out_names_the_lock_holder(base, tmp_path, capsys):
+def test_second_run_on_one_out_names_the_lock_holder(fault_base, tmp_path, capsys):
     out = tmp_path / "o"
     out.mkdir()
     holder = subprocess.Popen(
@@ -445,7 +411,7 @@ def test_second_run_on_one_out_names_the_lock_holder(base, tmp_path, capsys):
          "    time.sleep(60)\n", str(out)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
-        code, text = _run(capsys, "rectify", base, "--out", out)
+        code, text = run(capsys, "rectify", fault_base, "--out", out)
         assert code == 2 and f"process {holder.pid}" in text
     finally:
         holder.kill()
@@ -480,11 +446,10 @@ def test_readme_path_simulate_then_run(tmp_path):
 
 
 @pytest.mark.slow
-def test_sigterm_during_run_stops_the_prefect_server(base, tmp_path):
+def test_sigterm_during_run_stops_the_prefect_server(fault_base, tmp_path):
     """SIGTERM while the flow runs: exit 143, and no server process of ours is left."""
-    import os
     import signal
-    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(base),
+    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(fault_base),
                              "--out", str(tmp_path / "o")], stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     children = []
@@ -520,28 +485,21 @@ def test_run_checks_the_calibration_before_starting_prefect(m, tmp_path, content
     from swathflow.formats.calibfile import FORMAT
     cal = tmp_path / "cal.json"
     cal.write_text(content.replace("swathflow-calibration", FORMAT))
-    code = ("import sys\nfrom swathflow.flows.cli import main\n"
-            f"rc = main(['run', {str(m)!r}, '--out', {str(tmp_path / 'o')!r}, "
-            f"'--calibration', {str(cal)!r}])\n"
-            "print('RC', rc, 'flow' if 'swathflow.flows.mission' in sys.modules else '-', "
-            "'dask' if 'distributed' in sys.modules else '-')\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       timeout=300)
-    text = r.stdout + r.stderr
-    assert "RC 2 - -" in r.stdout, text
+    status, text = run_fresh("run", m, "--out", tmp_path / "o", "--calibration", cal)
+    assert status == "RC 2 - -", text
     assert str(cal) in text and all(w in text for w in words), text
     assert "Traceback" not in text
 
 
-def test_sigterm_while_the_workers_rectify_stops_everything(base, tmp_path):
+def test_sigterm_while_the_workers_rectify_stops_everything(fault_base, tmp_path):
     """SIGTERM once the workers are rectifying (the calibration given): exit 143, one
     line, and no process of ours left (the cluster and the server closed on the way
     out), waited for by polling, not by fixed sleeps."""
     import signal
     out = tmp_path / "o"
-    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(base),
+    proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run", str(fault_base),
                              "--out", str(out), "--calibration",
-                             str(base / "truth" / "calibration.json")],
+                             str(fault_base / "truth" / "calibration.json")],
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None \
@@ -565,3 +523,86 @@ def test_sigterm_while_the_workers_rectify_stops_everything(base, tmp_path):
                 alive.discard(pid)
         time.sleep(0.05)
     assert not alive, f"left running: {alive}"
+
+
+def _run_until_rectifying(base, tmp_path):
+    """``swathflow run`` of ``base`` started as a terminal's job would be (a process group
+    of its own, stdout and stderr to one file), returned once its workers have rectified
+    a swing: (the process, the processes it started, the file)."""
+    import psutil
+    out, err_file = tmp_path / "o", tmp_path / "stderr.txt"
+    with open(err_file, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "run",
+                                 str(base), "--out", str(out), "--calibration",
+                                 str(base / "truth" / "calibration.json")],
+                                stdout=err, stderr=err, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None \
+            and not list((out / "rectified").glob("*.swathflow.json")):
+        time.sleep(0.02)
+    started = psutil.Process(proc.pid).children(recursive=True)
+    assert proc.poll() is None and started, "the run ended before a swing was rectified"
+    return proc, started, err_file
+
+
+def _end(started) -> None:
+    """End what a test's run left running, by process id."""
+    import psutil
+    for p in started:
+        with contextlib.suppress(psutil.Error):
+            p.kill()
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_run_leaves_nothing_on_the_terminal(fault_base, tmp_path):
+    """``kill -9`` of ``swathflow run`` while the workers rectify: what the run started
+    goes on writing to the same terminal once the shell's prompt is back (Python's
+    multiprocessing resource tracker reported the semaphores of Dask's nannies in a
+    two-line UserWarning): nothing of that reaches it. Checked once the run's worker
+    processes and its resource tracker have ended (polled); what is still serving is
+    ended by process id after."""
+    import signal
+
+    import psutil
+    proc, started, err_file = _run_until_rectifying(fault_base, tmp_path)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    try:
+        multi = [p for p in started if "multiprocessing" in _cmdline(p)]
+        assert multi, "no worker or resource tracker among the run's processes"
+        _, alive = psutil.wait_procs(multi, timeout=90)
+        assert not alive, f"still running 90 s after the kill: {[p.pid for p in alive]}"
+        text = err_file.read_text()
+        assert not [ln for ln in text.splitlines() if ln.strip()], text
+    finally:
+        _end(started)
+
+
+@pytest.mark.slow
+def test_ctrl_c_at_the_terminal_prints_one_line(fault_base, tmp_path):
+    """Ctrl-C while the workers rectify: the terminal sends SIGINT to the whole job, the
+    Dask workers and Prefect's temporary server too. Each worker printed a
+    KeyboardInterrupt traceback, and Prefect's event and log workers an ERROR line and
+    "--- Error logging to API ---" for each call that no longer reached the server: now
+    the run's one line, exit 130, once everything it started has ended (polled)."""
+    import signal
+
+    import psutil
+    proc, started, err_file = _run_until_rectifying(fault_base, tmp_path)
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        assert proc.wait(timeout=120) == 130
+        _, alive = psutil.wait_procs(started, timeout=90)
+        assert not alive, f"still running 90 s after: {[p.pid for p in alive]}"
+        lines = [ln for ln in err_file.read_text().splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("swathflow run: interrupted"), lines
+    finally:
+        _end(started)
+
+
+def _cmdline(p) -> str:
+    import psutil
+    try:
+        return " ".join(p.cmdline())
+    except psutil.Error:
+        return ""

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -18,58 +17,10 @@ import numpy as np
 import pandas as pd
 import pytest
 import rasterio
+from faultkit import bad, pos_csv, run, toml
 from swathflow.flows.cli import main
 
 pytestmark = pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
-
-
-@pytest.fixture(scope="module")
-def base(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("inputs") / "tiny"
-    assert main(["simulate", str(out), "--preset", "tiny", "--seed", "3",
-                 "--geometry-only"]) == 0
-    return out
-
-
-@pytest.fixture
-def m(base, tmp_path) -> Path:
-    dst = tmp_path / "m"
-    shutil.copytree(base, dst)
-    return dst
-
-
-@pytest.fixture(scope="module")
-def envi(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("inputs") / "envi"
-    assert main(["simulate", str(out), "--preset", "tiny", "--seed", "3",
-                 "--geometry-only", "--image-format", "envi"]) == 0
-    return out
-
-
-def _run(capsys, *argv) -> tuple[int, str]:
-    code = main([str(a) for a in argv])
-    cap = capsys.readouterr()
-    text = cap.out + cap.err
-    assert "Traceback" not in text
-    return code, text
-
-
-def _bad(capsys, m, *words) -> str:
-    """validate exits 2 and one problem line holds every word (and a fix)."""
-    code, text = _run(capsys, "validate", m)
-    assert code == 2, text
-    lines = [ln for ln in text.splitlines() if all(w.lower() in ln.lower() for w in words)]
-    assert lines, f"no line with {words}:\n{text}"
-    assert "fix:" in lines[0]
-    assert "unexpected content" not in text
-    return lines[0]
-
-
-def _toml(m, old, new):
-    p = m / "mission.toml"
-    s = p.read_text()
-    assert old in s, old
-    p.write_text(s.replace(old, new, 1))
 
 
 def _argv_refused(capsys, argv, *words) -> str:
@@ -92,7 +43,7 @@ def _gcps_moved(m, **change) -> None:
 # ------------------------------------------------------------------------------------------
 # a calibration that estimated nothing is an error; each dropped observation is named
 
-def test_calibration_from_no_usable_observation_is_an_error(base):
+def test_calibration_from_no_usable_observation_is_an_error(fault_base):
     """GCP heights 30 km off: every observation unprojectable; calibrate wrote the priors
     as the calibration ("sigma0 nan, 0 iterations", converged) and exited 0."""
     import dataclasses
@@ -101,7 +52,7 @@ def test_calibration_from_no_usable_observation_is_an_error(base):
     from swathflow.calibration.unknowns import CalibrationError
     from swathflow.geometry.geodesy import geodetic_to_ecef
     from swathflow.ingest.mission import load_mission
-    mission = load_mission(base)
+    mission = load_mission(fault_base)
     g = mission.gcps.copy()
     xyz = geodetic_to_ecef(np.stack([g["lat"], g["lon"], g["h"] + 30000.0], -1))
     g["X"], g["Y"], g["Z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
@@ -113,18 +64,32 @@ def test_calibration_from_no_usable_observation_is_an_error(base):
 def test_gcp_heights_above_the_aircraft_fail_validation(m, capsys):
     """validate said OK for GCP heights off by 30 km (or in millimetres)."""
     _gcps_moved(m, z=lambda d: d.z + 30000.0)
-    _bad(capsys, m, "gcp.csv", "column z", "above the aircraft")
+    bad(capsys, m, "gcp.csv", "column z", "above the aircraft")
 
 
-def test_a_control_point_the_adjustment_cannot_use_is_warned_by_id(m, tmp_path, capsys):
-    """A GCP 9 km off was dropped without a word: now one warning names it and its image
-    (the calibration still runs on the others)."""
+def test_a_control_point_the_adjustment_cannot_use_is_named_everywhere(m, tmp_path,
+                                                                        capsys):
+    """A GCP 9 km off was dropped without a word: now it is in the calibration's rejected
+    list (phase "dropped", with the reason), in the report and in one warning naming its
+    image (the calibration still runs on the others)."""
+    import json
     d = pd.read_csv(m / "gcp.csv", dtype={"gcp_id": str, "image_id": str})
     moved = d.gcp_id.iloc[0]
+    image = d.image_id.iloc[0]
     _gcps_moved(m, x=lambda d: np.where(d.gcp_id == moved, d.x + 0.096, d.x))  # ~9 km east
-    code, text = _run(capsys, "calibrate", m, "--out", tmp_path / "cal")
-    lines = [ln for ln in text.splitlines() if moved in ln]
-    assert lines and ("warning" in lines[0] or "rejected" in lines[0]), text
+    code, text = run(capsys, "calibrate", m, "--out", tmp_path / "cal")
+    assert code == 0, text
+    warned = [ln for ln in text.splitlines() if moved in ln]
+    assert len(warned) == 1 and "warning:" in warned[0] and image in warned[0], text
+    assert "does not project into the image" in warned[0]
+    assert "1 dropped" in text
+    doc = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    rows = [r for r in doc["rejected"] if r["gcp_id"] == moved]
+    assert rows == [{**rows[0], "name": f"{moved}@{image}", "phase": "dropped",
+                     "image_id": image}]
+    assert "does not project into the image" in rows[0]["reason"]
+    html = (tmp_path / "cal" / "report.html").read_text()
+    assert f"{moved}@{image}" in html and "1 dropped" in html
 
 
 # ------------------------------------------------------------------------------------------
@@ -132,18 +97,18 @@ def test_a_control_point_the_adjustment_cannot_use_is_warned_by_id(m, tmp_path, 
 
 @pytest.mark.parametrize("sigma", ["-1.0", "nan", "inf"])
 def test_bad_prior_sigma_refused(m, capsys, sigma):
-    _toml(m, "opk_sen = { value = [0.0, 0.0, 0.0], sigma = [1.0, 1.0, 1.0] }",
+    toml(m, "opk_sen = { value = [0.0, 0.0, 0.0], sigma = [1.0, 1.0, 1.0] }",
           f"opk_sen = {{ value = [0.0, 0.0, 0.0], sigma = [1.0, {sigma}, 1.0] }}")
-    _bad(capsys, m, "[calibration].opk_sen.sigma", ">= 0")
+    bad(capsys, m, "[calibration].opk_sen.sigma", ">= 0")
 
 
 def test_prior_sigma_zero_holds_the_parameter_at_its_value(m, tmp_path, capsys):
     """sigma 0 means "fixed": the calibration keeps exactly the value given (0.3 deg, the
     truth being another), while the other parameters are estimated."""
     import json
-    _toml(m, "opk_sen = { value = [0.0, 0.0, 0.0], sigma = [1.0, 1.0, 1.0] }",
+    toml(m, "opk_sen = { value = [0.0, 0.0, 0.0], sigma = [1.0, 1.0, 1.0] }",
           "opk_sen = { value = [0.3, 0.0, 0.0], sigma = [0.0, 1.0, 1.0] }")
-    code, text = _run(capsys, "calibrate", m, "--out", tmp_path / "cal")
+    code, text = run(capsys, "calibrate", m, "--out", tmp_path / "cal")
     assert code == 0, text
     doc = json.loads((tmp_path / "cal" / "calibration.json").read_text())
     assert doc["parameters"]["opk_sen"]["value"][0] == 0.3
@@ -152,8 +117,8 @@ def test_prior_sigma_zero_holds_the_parameter_at_its_value(m, tmp_path, capsys):
 
 def test_absurd_prior_angle_is_named_as_such(m, capsys):
     """An ``opk_sen`` prior of 1e308 degrees was reported as a DEM not covering the ground."""
-    _toml(m, "opk_sen = { value = [0.0, 0.0, 0.0]", "opk_sen = { value = [1e308, 0.0, 0.0]")
-    line = _bad(capsys, m, "[calibration].opk_sen", "degrees")
+    toml(m, "opk_sen = { value = [0.0, 0.0, 0.0]", "opk_sen = { value = [1e308, 0.0, 0.0]")
+    line = bad(capsys, m, "[calibration].opk_sen", "degrees")
     assert "DEM" not in line
 
 
@@ -165,18 +130,18 @@ def test_calibration_without_parameters_is_refused():
         calibration_priors({"format": FORMAT, "sensor": "pendulum", "parameters": {}})
 
 
-def test_rectify_api_refuses_a_calibration_without_parameters(base):
+def test_rectify_api_refuses_a_calibration_without_parameters(fault_base):
     import swathflow
     from swathflow.errors import FormatError
     from swathflow.formats.calibfile import FORMAT
     with pytest.raises(FormatError, match="no parameters"):
-        swathflow.rectify(base, "L1", {"format": FORMAT, "sensor": "pendulum"})
+        swathflow.rectify(fault_base, "L1", {"format": FORMAT, "sensor": "pendulum"})
 
 
 @pytest.mark.parametrize("rounds", ["0", "-3"])
-def test_rounds_below_one_refused(base, tmp_path, capsys, rounds):
+def test_rounds_below_one_refused(fault_base, tmp_path, capsys, rounds):
     """``--rounds 0`` and ``-3`` ran one round."""
-    _argv_refused(capsys, ["calibrate", base, "--out", tmp_path / "c", "--rounds", rounds],
+    _argv_refused(capsys, ["calibrate", fault_base, "--out", tmp_path / "c", "--rounds", rounds],
                   "--rounds")
 
 
@@ -193,7 +158,7 @@ def test_image_without_a_valid_pixel_refused(m, capsys, fill, nodata):
     prof.update(dtype="float32", nodata=nodata)
     with rasterio.open(p, "w", **prof) as dst:
         dst.write(np.full((1, prof["height"], prof["width"]), fill, np.float32))
-    _bad(capsys, m, "L1.tif", "no valid pixel")
+    bad(capsys, m, "L1.tif", "no valid pixel")
 
 
 def test_image_with_a_few_valid_pixels_passes(m, capsys):
@@ -206,7 +171,7 @@ def test_image_with_a_few_valid_pixels_passes(m, capsys):
     prof.update(dtype="float32", nodata=None)
     with rasterio.open(p, "w", **prof) as dst:
         dst.write(a)
-    code, text = _run(capsys, "validate", m)
+    code, text = run(capsys, "validate", m)
     assert code == 0, text
 
 
@@ -217,41 +182,33 @@ def test_complex_image_refused(m, capsys):
     prof.update(dtype="complex64")
     with rasterio.open(p, "w", **prof) as dst:
         dst.write(a.astype(np.complex64) * (1 + 1j))
-    _bad(capsys, m, "L1.tif", "complex")
+    bad(capsys, m, "L1.tif", "complex")
 
 
-def _envi_copy(envi, tmp_path) -> Path:
-    dst = tmp_path / "e"
-    shutil.copytree(envi, dst)
-    return dst
-
-
-def test_envi_data_larger_than_its_header_refused(envi, tmp_path, capsys):
+def test_envi_data_larger_than_its_header_refused(m_envi, capsys):
     """A 5-band BIL read as 3 came out scrambled: the data file is larger than the header
     accounts for."""
-    mm = _envi_copy(envi, tmp_path)
-    img = next(p for p in (mm / "images").glob("L1*") if p.suffix not in (".hdr", ".csv"))
+    img = next(p for p in (m_envi / "images").glob("L1*") if p.suffix not in (".hdr", ".csv"))
     img.write_bytes(img.read_bytes() * 2)
-    _bad(capsys, mm, "L1", "header")
+    bad(capsys, m_envi, "L1", "header")
 
 
-def test_envi_wavelength_list_of_the_wrong_length_fails_validation(envi, tmp_path, capsys):
+def test_envi_wavelength_list_of_the_wrong_length_fails_validation(m_envi, capsys):
     """validate said OK, rectify then refused the header."""
-    mm = _envi_copy(envi, tmp_path)
-    hdr = next((mm / "images").glob("L1*.hdr"))
+    hdr = next((m_envi / "images").glob("L1*.hdr"))
     hdr.write_text(hdr.read_text() + "wavelength = {500, 600}\nfwhm = {10}\n")
-    _bad(capsys, mm, "L1", "wavelength")
+    bad(capsys, m_envi, "L1", "wavelength")
 
 
 @pytest.mark.parametrize("bands", ['"4"', '"550nm"', '"x-y"', "[0]"])
 def test_rectify_bands_that_do_not_fit_fail_validation(m, capsys, bands):
-    _toml(m, "[calibration]", f"[rectify]\nbands = {bands}\n\n[calibration]")
-    _bad(capsys, m, "[rectify].bands")
+    toml(m, "[calibration]", f"[rectify]\nbands = {bands}\n\n[calibration]")
+    bad(capsys, m, "[rectify].bands")
 
 
 def test_reference_table_is_validated(m, capsys):
-    _toml(m, "[calibration]", '[reference]\northo = "nowhere.tif"\n\n[calibration]')
-    _bad(capsys, m, "nowhere.tif", "not found")
+    toml(m, "[calibration]", '[reference]\northo = "nowhere.tif"\n\n[calibration]')
+    bad(capsys, m, "nowhere.tif", "not found")
 
 
 def _ortho(path, crs, transform, shape=(64, 64)):
@@ -266,8 +223,8 @@ def test_reference_in_degrees_fails_validation_and_never_allocates(m, capsys):
     from swathflow.calibration.reference import open_reference
     from swathflow.errors import FormatError
     _ortho(m / "ref.tif", "EPSG:4326", (4e-6, 0, 120.44, 0, -4e-6, 32.54))
-    _toml(m, "[calibration]", '[reference]\northo = "ref.tif"\n\n[calibration]')
-    _bad(capsys, m, "ref.tif", "not projected")
+    toml(m, "[calibration]", '[reference]\northo = "ref.tif"\n\n[calibration]')
+    bad(capsys, m, "ref.tif", "not projected")
     with pytest.raises(FormatError, match="not projected"):
         open_reference(m / "ref.tif")
 
@@ -300,16 +257,16 @@ def test_a_reference_finer_than_the_swing_is_matched_on_coarser_pixels():
     (["run", "SRC", "--out", "OUT", "--jobs", "0"], ("--jobs",)),
     (["simulate", "OUT", "--gcp-noise", "nan"], ("--gcp-noise", "finite")),
 ])
-def test_out_of_range_arguments_refused(base, tmp_path, capsys, argv, words):
-    argv = [str(base) if a == "SRC" else str(tmp_path / "o") + a[3:] if a.startswith("OUT")
+def test_out_of_range_arguments_refused(fault_base, tmp_path, capsys, argv, words):
+    argv = [str(fault_base) if a == "SRC" else str(tmp_path / "o") + a[3:] if a.startswith("OUT")
             else a for a in argv]
     _argv_refused(capsys, argv, *words)
     assert not (tmp_path / "o").exists()
 
 
 def test_max_pixels_of_1e300_refused(m, capsys):
-    _toml(m, "gsd = 0.4", "gsd = 0.4\nmax_pixels = 1e300")
-    _bad(capsys, m, "[mission].max_pixels")
+    toml(m, "gsd = 0.4", "gsd = 0.4\nmax_pixels = 1e300")
+    bad(capsys, m, "[mission].max_pixels")
 
 
 @pytest.mark.parametrize("name, kind", [("gcp.csv", "fifo"), ("gcp.csv", "device"),
@@ -328,74 +285,112 @@ def test_mission_file_that_is_a_fifo_or_a_device_refused(m, name, kind):
     assert name in r.stdout and "not a regular file" in r.stdout, r.stdout
 
 
-def test_read_pos_with_a_number_as_format_is_a_clear_error(base):
+def test_read_pos_with_a_number_as_format_is_a_clear_error(fault_base):
     from swathflow.errors import FormatError
     from swathflow.formats.pos import read_pos
     with pytest.raises(FormatError, match="format"):
-        read_pos(base / "pos.sbet", format=5)
+        read_pos(fault_base / "pos.sbet", format=5)
 
 
 # ------------------------------------------------------------------------------------------
 # messages name the file, row or key and the real cause
 
-def _pos_csv(m, change) -> None:
-    from swathflow.formats.pos import read_pos
-    ds = read_pos(m / "pos.sbet")
-    df = pd.DataFrame({"time": ds.time.values, **{k: ds[k].values for k in ds.data_vars}})
-    change(df).to_csv(m / "pos.csv", index=False, float_format="%.10f")
-    (m / "pos.sbet").unlink()
-    _toml(m, 'file = "pos.sbet"\nformat = "sbet"', 'file = "pos.csv"\nformat = "csv"')
-
-
-def test_nan_time_in_an_sbet_names_the_file_and_epoch(m, capsys):
-    """A NaN time gave "unexpected content (ValueError: cannot convert float NaN to
-    integer) ... report as a bug" with no file or epoch."""
-    from swathflow.formats.pos import read_pos, write_sbet
+def _pos_with_nan_time(m: Path, fmt: str) -> Path:
+    """The mission's POS written in format ``fmt`` (mission.toml pointed at it) with a NaN
+    time at epoch 7 (after t of epoch 6, which the message names): the written file."""
+    from swathflow.formats.navigation.lcf import write_lcf
+    from swathflow.formats.pos import read_pos, write_pos_csv, write_sbet
     ds = read_pos(m / "pos.sbet")
     t = ds.time.values.copy()
     t[7] = np.nan
-    write_sbet(ds.assign_coords(time=t), m / "pos.sbet")
-    _bad(capsys, m, "pos.sbet", "epoch 7", "time")
+    ds = ds.assign_coords(time=t)
+    path = m / f"nav.{fmt}"
+    if fmt == "sbet":
+        write_sbet(ds, path)
+    elif fmt == "csv":
+        write_pos_csv(ds, path)
+    elif fmt == "lcf":
+        write_lcf(ds, path)
+    else:                               # an Inertial Explorer export, "nan" as exported
+        pd.DataFrame({"GPSTime": t, "Latitude": ds.lat.values, "Longitude": ds.lon.values,
+                      "H-Ell": ds.h.values, "Roll": ds["roll"].values,
+                      "Pitch": ds["pitch"].values, "Heading": ds["heading"].values}
+                     ).to_csv(path, index=False, na_rep="nan", float_format="%.10f")
+    (m / "pos.sbet").unlink()
+    toml(m, 'file = "pos.sbet"\nformat = "sbet"', f'file = "nav.{fmt}"\nformat = "{fmt}"')
+    return path
 
 
-def test_nan_time_in_a_csv_names_the_file_and_epoch(m, capsys):
-    def change(d):
-        d.loc[7, "time"] = np.nan
-        return d
-    _pos_csv(m, change)
-    _bad(capsys, m, "pos.csv", "epoch", "time")
+@pytest.mark.parametrize("fmt", ["sbet", "csv", "lcf", "ascii"])
+def test_nan_time_in_every_pos_format_names_the_file_and_epoch(m, capsys, fmt):
+    """A NaN time gave "unexpected content (ValueError: cannot convert float NaN to
+    integer) ... report as a bug" with no file or epoch."""
+    path = _pos_with_nan_time(m, fmt)
+    line = bad(capsys, m, path.name, "column time", "epoch 7", "nan")
+    assert "after t=" in line
+
+
+@pytest.mark.parametrize("fmt", ["sbet", "csv", "lcf", "ascii"])
+def test_read_pos_refuses_a_nan_time(m, fmt):
+    """The Python API too: read_pos let a NaN time through (the times' order was tested
+    with NaN comparing false), to fail later far from the file."""
+    from swathflow.errors import FormatError
+    from swathflow.formats.pos import read_pos
+    path = _pos_with_nan_time(m, fmt)
+    with pytest.raises(FormatError) as e:
+        read_pos(path, fmt)
+    assert str(path) in str(e.value) and "epoch 7" in str(e.value) and "time" in str(e.value)
+
+
+def test_a_plugin_pos_format_with_a_nan_time_names_the_file_and_epoch(tmp_path,
+                                                                       monkeypatch):
+    """A third-party reader (tests/plugins/posformat, which leaves the checks to the
+    registry) returning a NaN time: the registry's check names the file and epoch."""
+    from swathflow.errors import FormatError
+    from swathflow.formats.navigation import registry
+    from swathflow.formats.pos import read_pos
+    monkeypatch.syspath_prepend(str(Path(__file__).parent / "plugins" / "posformat"))
+    from swathflow_sample_posformat import FORMAT
+    formats = {**registry.list_formats(), FORMAT.name: FORMAT}
+    monkeypatch.setattr(registry, "list_formats", lambda: formats)
+    rows = [f"{100.0 + i};32.5;120.4;500;0;0;90" for i in range(10)]
+    rows[4] = "nan;32.5;120.4;500;0;0;90"
+    (tmp_path / "nav.semi").write_text("\n".join(rows) + "\n")
+    with pytest.raises(FormatError, match=r"nav\.semi: column time, epoch 4 \(counted from 0, "
+                                          r"after t=103\.000 s\): time is nan"):
+        read_pos(tmp_path / "nav.semi")
 
 
 def test_pos_times_in_minutes_are_not_called_a_jump(m, capsys):
-    _pos_csv(m, lambda d: d.assign(time=d.time / 60.0))
-    line = _bad(capsys, m, "pos.csv", "minutes")
+    pos_csv(m, lambda d: d.assign(time=d.time / 60.0))
+    line = bad(capsys, m, "pos.csv", "minutes")
     assert "jump" not in line
 
 
 def test_mission_toml_with_a_utf8_bom_is_read(m, capsys):
     p = m / "mission.toml"
     p.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
-    code, text = _run(capsys, "validate", m)
+    code, text = run(capsys, "validate", m)
     assert code == 0, text
 
 
 def test_warnings_have_one_prefix_and_q_silences_them(m, tmp_path, capsys):
     """Mission warnings printed as ``warning: warning:``, and ``-q`` did not silence
     them."""
-    _toml(m, "gsd = 0.4", "gsd = 0.4\ncolour = 1")          # an unknown key: a warning
+    toml(m, "gsd = 0.4", "gsd = 0.4\ncolour = 1")          # an unknown key: a warning
     cal = m / "truth" / "calibration.json"
-    code, text = _run(capsys, "rectify", m, "--out", tmp_path / "r", "--images", "L1",
+    code, text = run(capsys, "rectify", m, "--out", tmp_path / "r", "--images", "L1",
                       "--calibration", cal)
     assert code == 0 and "colour" in text, text
     assert "warning: warning:" not in text
-    code, text = _run(capsys, "rectify", m, "--out", tmp_path / "r2", "--images", "L1",
+    code, text = run(capsys, "rectify", m, "--out", tmp_path / "r2", "--images", "L1",
                       "--calibration", cal, "-q")
     assert code == 0 and "warning" not in text, text
 
 
-def test_a_closed_pipe_ends_quietly(base):
+def test_a_closed_pipe_ends_quietly(fault_base):
     """Output to a reader that went away (a killed parent, ``| head``): no traceback."""
-    p = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "validate", str(base)],
+    p = subprocess.Popen([sys.executable, "-m", "swathflow.flows.cli", "validate", str(fault_base)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     p.stdout.close()
     err = p.stderr.read().decode()
@@ -412,9 +407,9 @@ def test_reference_dem_in_millimetres_fails_validation(m, capsys):
     with rasterio.open(m / "refdem.tif", "w", **prof) as dst:
         dst.write(a * 1000.0)
     _ortho(m / "ref.tif", "EPSG:32651", (0.4, 0, 500000, 0, -0.4, 3600000))
-    _toml(m, "[calibration]", '[reference]\northo = "ref.tif"\ndem = "refdem.tif"\n\n'
+    toml(m, "[calibration]", '[reference]\northo = "ref.tif"\ndem = "refdem.tif"\n\n'
           '[calibration]')
-    _bad(capsys, m, "refdem.tif", "above the aircraft")
+    bad(capsys, m, "refdem.tif", "above the aircraft")
 
 
 @pytest.mark.slow
@@ -430,9 +425,41 @@ def test_reference_dem_missing_the_swath_is_blamed_on_the_dem(tmp_path, capsys):
     with rasterio.open(tmp_path / "far.tif", "w", **prof) as dst:      # 50 km east
         dst.write(a)
     capsys.readouterr()
-    code, text = _run(capsys, "calibrate", mm, "--out", tmp_path / "cal", "--reference",
+    code, text = run(capsys, "calibrate", mm, "--out", tmp_path / "cal", "--reference",
                       mm / "truth" / "ortho.tif", "--reference-dem", tmp_path / "far.tif",
                       "--rounds", "1")
     assert code == 2, text
     line = next(ln for ln in text.splitlines() if "error" in ln)
     assert "far.tif" in line and "misses the swath" in line, text
+
+
+def test_validate_warnings_have_one_prefix_and_q_silences_them(m, capsys):
+    """validate printed a usable mission's warnings as ``  - warning: ...`` lines of its
+    own; now as every command does, and ``-q`` silences them."""
+    toml(m, "gsd = 0.4", "gsd = 0.4\ncolour = 1")          # an unknown key: a warning
+    code, text = run(capsys, "validate", m)
+    lines = [ln for ln in text.splitlines() if "colour" in ln]
+    assert code == 0 and len(lines) == 1, text
+    assert lines[0].startswith("swathflow validate: warning: ") and "mission.toml" in lines[0]
+    assert lines[0].count("warning:") == 1, lines[0]
+    code, text = run(capsys, "validate", m, "-q")
+    assert code == 0 and "warning" not in text and "colour" not in text, text
+
+
+def test_q_silences_a_librarys_warnings_too(tmp_path):
+    """``-q`` prints nothing but errors: a warning of a library the command calls (here
+    a RuntimeWarning) is not printed either; without ``-q`` it is. In a fresh interpreter
+    (pytest records warnings instead of printing them)."""
+    code = ("import sys, warnings\n"
+            "from swathflow.flows.cli import commands, main\n"
+            "def validate(args):\n"
+            "    warnings.warn('overflow in a library', RuntimeWarning, stacklevel=2)\n"
+            "    return 0\n"
+            "commands.validate = validate\n"
+            "sys.exit(main(['validate', sys.argv[1], *sys.argv[2:]]))\n")
+    quiet = subprocess.run([sys.executable, "-c", code, str(tmp_path), "-q"],
+                           capture_output=True, text=True, timeout=120)
+    loud = subprocess.run([sys.executable, "-c", code, str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert quiet.returncode == 0 and quiet.stdout + quiet.stderr == "", quiet.stderr
+    assert loud.returncode == 0 and "overflow in a library" in loud.stderr, loud.stderr

@@ -9,37 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from swathflow.flows.cli import main
-
-
-@pytest.fixture(scope="module")
-def base(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("outputs") / "tiny"
-    assert main(["simulate", str(out), "--preset", "tiny", "--seed", "3",
-                 "--geometry-only"]) == 0
-    return out
-
-
-@pytest.fixture
-def m(base, tmp_path) -> Path:
-    dst = tmp_path / "m"
-    shutil.copytree(base, dst)
-    return dst
-
-
-def _run(capsys, *argv) -> tuple[int, str]:
-    code = main([str(a) for a in argv])
-    cap = capsys.readouterr()
-    text = cap.out + cap.err
-    assert "Traceback" not in text
-    return code, text
-
-
-def _toml(m, old, new, count=1):
-    p = m / "mission.toml"
-    s = p.read_text()
-    assert old in s
-    p.write_text(s.replace(old, new, count))
+from faultkit import run, toml
 
 
 def _snapshot(folder: Path) -> dict:
@@ -63,7 +33,7 @@ def test_out_folder_holding_the_raw_images_is_refused(m, capsys, cmd):
     before = _snapshot(m)
     extra = (["--calibration", m / "truth" / "calibration.json"]
              if cmd in ("rectify", "run") else [])
-    code, text = _run(capsys, cmd, m, "--out", m / "images", *extra)
+    code, text = run(capsys, cmd, m, "--out", m / "images", *extra)
     assert code == 2 and "input" in text and "images" in text, text
     assert _snapshot(m) == before
 
@@ -73,9 +43,9 @@ def test_calibrate_out_holding_the_prior_calibration_file_is_refused(m, capsys):
     overwrote the prior calibration with the result."""
     (m / "prior").mkdir()
     shutil.copy(m / "truth" / "calibration.json", m / "prior" / "calibration.json")
-    _toml(m, "[calibration]\n", '[calibration]\nfile = "prior/calibration.json"\n')
+    toml(m, "[calibration]\n", '[calibration]\nfile = "prior/calibration.json"\n')
     before = (m / "prior" / "calibration.json").read_bytes()
-    code, text = _run(capsys, "calibrate", m, "--out", m / "prior")
+    code, text = run(capsys, "calibrate", m, "--out", m / "prior")
     assert code == 2 and "calibration.json" in text, text
     assert (m / "prior" / "calibration.json").read_bytes() == before
 
@@ -87,7 +57,7 @@ def test_rectify_out_where_it_writes_its_calibration_is_refused(m, tmp_path, cap
     cal_dir.mkdir()
     shutil.copy(m / "truth" / "calibration.json", cal_dir / "rectify.json")
     before = (cal_dir / "rectify.json").read_bytes()
-    code, text = _run(capsys, "rectify", m, "--calibration", cal_dir / "rectify.json",
+    code, text = run(capsys, "rectify", m, "--calibration", cal_dir / "rectify.json",
                       "--out", cal_dir)
     assert code == 2 and "rectify.json" in text, text
     assert (cal_dir / "rectify.json").read_bytes() == before
@@ -101,7 +71,7 @@ def test_rectify_into_the_calibrate_output_folder_keeps_the_calibration(m, tmp_p
     cal_dir.mkdir()
     shutil.copy(m / "truth" / "calibration.json", cal_dir / "calibration.json")
     before = (cal_dir / "calibration.json").read_bytes()
-    code, text = _run(capsys, "rectify", m, "--calibration", cal_dir / "calibration.json",
+    code, text = run(capsys, "rectify", m, "--calibration", cal_dir / "calibration.json",
                       "--out", cal_dir, "--images", "L1")
     assert code == 0, text
     assert (cal_dir / "calibration.json").read_bytes() == before
@@ -115,7 +85,7 @@ def test_mosaic_out_on_a_mission_file_is_refused(m, capsys, target):
     _swing(m / "rectified" / "L1.tif", "L1")
     _swing(m / "rectified" / "R1.tif", "R1")
     before = _snapshot(m)
-    code, text = _run(capsys, "mosaic", m, "--out", m / target, "--workers", "1")
+    code, text = run(capsys, "mosaic", m, "--out", m / target, "--workers", "1")
     assert code == 2 and "input" in text, text
     assert _snapshot(m) == before
 
@@ -128,9 +98,9 @@ def test_mosaic_with_mission_out_on_its_gcp_sidecar_is_refused(m, tmp_path, caps
     _swing(d / "L1.tif", "L1")
     _swing(d / "R1.tif", "R1")
     shutil.copy(m / "gcp.csv", m / "gcp.png")           # a file the toml names
-    _toml(m, 'file = "gcp.csv"', 'file = "gcp.csv"\nphoto = "gcp.png"')
+    toml(m, 'file = "gcp.csv"', 'file = "gcp.csv"\nphoto = "gcp.png"')
     before = _snapshot(m)
-    code, text = _run(capsys, "mosaic", d, "--mission", m, "--out", m / "gcp.tif",
+    code, text = run(capsys, "mosaic", d, "--mission", m, "--out", m / "gcp.tif",
                       "--workers", "1")
     assert code == 2 and "gcp.png" in text, text
     assert _snapshot(m) == before
@@ -143,16 +113,16 @@ def test_mosaic_with_mission_out_on_its_gcp_sidecar_is_refused(m, tmp_path, caps
 def test_image_id_must_be_a_plain_name(m, capsys, bad):
     """``id = "../dem"`` made rectify overwrite ``M/dem.tif``; an image called ``mosaic``
     clobbered the mosaic's STAC item."""
-    _toml(m, 'id = "L1"', f'id = "{bad}"')
-    code, text = _run(capsys, "validate", m)
+    toml(m, 'id = "L1"', f'id = "{bad}"')
+    code, text = run(capsys, "validate", m)
     assert code == 2 and "id=" in text, text
     assert any(w in text for w in ("plain name", "own products", "another image")), text
 
 
 def test_rectify_refuses_a_path_as_image_id(m, tmp_path, capsys):
-    _toml(m, 'id = "L1"', 'id = "../dem"')
+    toml(m, 'id = "L1"', 'id = "../dem"')
     before = _snapshot(m)
-    code, text = _run(capsys, "rectify", m, "--out", tmp_path / "o" / "r",
+    code, text = run(capsys, "rectify", m, "--out", tmp_path / "o" / "r",
                       "--calibration", m / "truth" / "calibration.json")
     assert code == 2 and "../dem" in text, text
     assert _snapshot(m) == before
@@ -167,7 +137,7 @@ def test_run_out_with_a_hash_never_touches_another_file(m, tmp_path, capsys):
     (the writer read '#' as a URL fragment) and exited 0."""
     victim = tmp_path / "victim.txt"
     victim.write_text("keep me")
-    code, text = _run(capsys, "run", m, "--out", f"{victim}#2",
+    code, text = run(capsys, "run", m, "--out", f"{victim}#2",
                       "--calibration", m / "truth" / "calibration.json")
     assert code == 2 and "#" in text, text
     assert victim.read_text() == "keep me"
@@ -194,12 +164,12 @@ def test_mosaic_leaves_an_earlier_mosaic_in_the_folder_out(tmp_path, capsys):
     d = tmp_path / "r"
     d.mkdir()
     _swing(d / "L1.tif", "L1", value=1.0)
-    code, text = _run(capsys, "mosaic", d, "--out", d / "mosaic.tif", "--workers", "1",
+    code, text = run(capsys, "mosaic", d, "--out", d / "mosaic.tif", "--workers", "1",
                       "--no-match")
     assert code == 0, text
     with rasterio.open(d / "mosaic.tif", "r+", IGNORE_COG_LAYOUT_BREAK="YES") as ds:
         ds.write(np.full((1, ds.height, ds.width), 50.0, np.float32))
-    code, text = _run(capsys, "mosaic", d, "--out", d / "m2.tif", "--workers", "1",
+    code, text = run(capsys, "mosaic", d, "--out", d / "m2.tif", "--workers", "1",
                       "--no-match")
     assert code == 0, text
     with rasterio.open(d / "m2.tif") as src:
@@ -212,7 +182,7 @@ def test_mosaic_refuses_swings_of_two_missions(tmp_path, capsys):
     d.mkdir()
     _swing(d / "L1.tif", "L1", mission="north")
     _swing(d / "R1.tif", "R1", mission="south")
-    code, text = _run(capsys, "mosaic", d, "--out", tmp_path / "m.tif", "--workers", "1")
+    code, text = run(capsys, "mosaic", d, "--out", tmp_path / "m.tif", "--workers", "1")
     assert code == 2 and "north" in text and "south" in text, text
     assert not (tmp_path / "m.tif").exists()
 
@@ -223,7 +193,7 @@ def test_run_into_another_missions_products_is_refused(m, tmp_path, capsys):
     out = tmp_path / "o"
     (out / "rectified").mkdir(parents=True)
     _swing(out / "rectified" / "X7.tif", "X7", mission="another")
-    code, text = _run(capsys, "run", m, "--out", out,
+    code, text = run(capsys, "run", m, "--out", out,
                       "--calibration", m / "truth" / "calibration.json")
     assert code == 2 and "another" in text, text
 
@@ -232,7 +202,7 @@ def test_simulate_into_the_folder_of_its_own_dem_is_refused(m, capsys):
     """``simulate M --dem M/dem.tif --force`` would write the simulated DEM over the one
     it reads."""
     before = (m / "dem.tif").read_bytes()
-    code, text = _run(capsys, "simulate", m, "--dem", m / "dem.tif", "--force",
+    code, text = run(capsys, "simulate", m, "--dem", m / "dem.tif", "--force",
                       "--geometry-only")
     assert code == 2 and "dem.tif" in text, text
     assert (m / "dem.tif").read_bytes() == before

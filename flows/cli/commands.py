@@ -43,7 +43,8 @@ def validate(args) -> int:
         print(format_problems(args.mission, problems))
         return 2
     for pr in problems:                 # warnings only: the mission is usable
-        _echo(args, f"  - {pr}")
+        if not getattr(args, "quiet", False):
+            print(f"swathflow validate: warning: {pr.text()}", file=sys.stderr)
     n = 0 if p["gcps"] is None else len(p["gcps"])
     _echo(args, f"mission {args.mission}: OK ({len(p['images'])} images, {n} GCP observations, "
           f"sensor {p['sensor'].get('model')}, output {p['crs']} at {p['gsd']} m"
@@ -230,8 +231,10 @@ def run(args) -> int:
         return 0
     _checked(args.mission, args.calibration)
     run_flow = _flow_run()
-    result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
-                      args.cluster, args.jobs)
+    from swathflow.flows.services import interrupt_quickly
+    with interrupt_quickly():
+        result = run_flow(args.mission, args.out, args.calibration, args.dask_address,
+                          args.cluster, args.jobs)
     _print_summary(result, args)
     return 0
 

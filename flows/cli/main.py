@@ -10,6 +10,8 @@ import argparse
 import sys
 from importlib import import_module
 
+from swathflow import arguments
+
 
 def _sensors(args) -> int:
     from swathflow.sensormodel import list_sensors
@@ -45,21 +47,16 @@ def _int_between(lo: int, hi: int, step: int = 1):
             v = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if v < 1 <= lo:
-            raise argparse.ArgumentTypeError(f"must be 1 or more, got {v}")
-        if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"must be from {lo} to {hi}, got {v}")
-        if v % step:
-            raise argparse.ArgumentTypeError(f"must be a multiple of {step} (a TIFF tile "
-                                             f"size), got {v}")
+        why = arguments.out_of_range(v, lo, hi, step)
+        if why is not None:
+            raise argparse.ArgumentTypeError(why)
         return v
     parse.__name__ = "number"       # argparse names the type in its messages
     return parse
 
 
-#: output tile sizes in pixels: TIFF tiles are multiples of 16; beyond 4096 a tile
-#: (and its compression buffer) no longer fits a worker's share of memory
-TILE = _int_between(16, 4096, 16)
+#: output tile sizes in pixels (the Python API's bounds)
+TILE = _int_between(*arguments.TILE)
 #: the mosaic's search range S: each search holds (2 S + 1)^2 costs of 8 bytes (S = 100000
 #: asked for 299 GiB; 256 asks 2 MiB, and is 100 m at 0.4 m pixels)
 MAX_SHIFT = _int_between(1, 256)
@@ -128,6 +125,10 @@ def _verbosity_parser() -> argparse.ArgumentParser:
     return common
 
 
+#: the warning filter (``PYTHONWARNINGS``) that quiets the resource tracker's leak report
+TRACKER_QUIET = "ignore::UserWarning:multiprocessing.resource_tracker"
+
+
 def _apply_verbosity(args) -> None:
     import logging
     import os
@@ -145,6 +146,22 @@ def _apply_verbosity(args) -> None:
         # variables); the flow run's logs still reach Prefect's API and are stored
         os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "CRITICAL")
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+        # Prefect's internal services too (its "debug" handler: after Ctrl-C, whose SIGINT
+        # also stops Prefect's temporary server, its event and log workers reported every
+        # call that no longer reached it)
+        os.environ.setdefault("PREFECT_LOGGING_HANDLERS_DEBUG_LEVEL", "CRITICAL")
+        if args.command == "run":
+            # ... and its API log handler wrote "--- Error logging to API ---" straight to
+            # stderr: what the standard library's logging.raiseExceptions = False, its
+            # documented setting for production use, leaves out
+            logging.raiseExceptions = False
+        # a run killed by SIGKILL: Python's multiprocessing resource tracker (a child,
+        # on the same terminal) frees the semaphores of Dask's nannies and says so in a
+        # two-line UserWarning after the shell's prompt is back; it inherits the
+        # warning filters of the environment (Python's documented PYTHONWARNINGS)
+        given = os.environ.get("PYTHONWARNINGS", "")
+        if TRACKER_QUIET not in given.split(","):
+            os.environ["PYTHONWARNINGS"] = ",".join(filter(None, (given, TRACKER_QUIET)))
     # Prefect's client telemetry (and the notice it prints on a first interactive run): off
     # for the command line unless the environment says otherwise; importing swathflow's
     # modules from Python changes no setting
@@ -445,6 +462,9 @@ def _main(argv: list[str] | None, program: bool = False) -> int:
             code = 2
     if program and args.command in QUICK_EXIT:
         _CODE[0] = code
+    if program and args.command == "run" and code in (130, 143):     # interrupted
+        from swathflow.flows.services import leave_if_prefect_stopped
+        leave_if_prefect_stopped(code)
     return code
 
 
@@ -475,23 +495,24 @@ def _signalled(command: str, exc: BaseException) -> int:
 
 def _show_warnings(command: str, quiet: bool = False) -> None:
     """swathflow's own warnings (mission, sensor plugins) as one plain line each, with one
-    ``warning:`` prefix (a mission problem's text carries its own); none with ``-q``."""
+    ``swathflow <command>: warning:`` prefix (their texts carry none); with ``-q`` no
+    warning at all."""
     import warnings
 
     # the base class, not the modules that raise them: importing those (pandas, xarray,
     # dask) before every command cost about 0.3 CPU-s
     from swathflow.errors import SwathflowWarning
-    previous = warnings.showwarning
+    # the one before any command's (main called again in one process: not a chain)
+    previous = getattr(warnings.showwarning, "before_swathflow", warnings.showwarning)
 
     def show(message, category, filename, lineno, file=None, line=None):
+        if quiet:               # -q: nothing but errors, a library's warnings neither
+            return
         if issubclass(category, SwathflowWarning):
-            if quiet:
-                return
-            text = str(message)
-            text = text[len("warning: "):] if text.startswith("warning: ") else text
-            print(f"swathflow {command}: warning: {text}", file=sys.stderr)
+            print(f"swathflow {command}: warning: {message}", file=sys.stderr)
         else:
             previous(message, category, filename, lineno, file, line)
+    show.before_swathflow = previous
     warnings.showwarning = show
 
 

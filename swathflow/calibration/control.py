@@ -361,20 +361,40 @@ def _residuals(models, obs, mats, unk, vec_after, prior_params) -> pd.DataFrame:
     return pd.concat(res, ignore_index=True)
 
 
+#: why a control observation is dropped from the adjustment
+DROPPED_REASON = ("its ground position does not project into the image (outside the "
+                  "swing's lines or field of view): check its coordinates and height")
+#: the columns of a result's ``rejected`` table
+REJECTED_COLUMNS = ["name", "statistic", "critical", "phase", "gcp_id", "image_id", "x", "y",
+                    "reason"]
+
+
 def _rejected(sol, cal_obs, residuals) -> pd.DataFrame:
-    """The points the blunder tests rejected, with their residuals after; marks them in
+    """The points the blunder tests rejected, with their residuals after, then the control
+    observations the adjustment could not use (phase ``dropped``: not computable, e.g. a
+    point 9 km off its image), each with its ``reason``; marks the rejected ones in
     ``residuals`` (column ``rejected``)."""
     rej = pd.DataFrame(sol.rejected, columns=["group", "point", "name", "statistic",
                                               "critical", "phase"])
-    if not len(rej):
+    after = residuals[residuals["stage"] == "after"].set_index("row")
+    if len(rej):
+        sub = cal_obs.iloc[rej["point"].to_numpy()]
+        rej["gcp_id"] = sub["gcp_id"].to_numpy()
+        rej["image_id"] = sub["image_id"].to_numpy()
+        rr = after.loc[sub.index]
+        rej["x"] = rr["x"].to_numpy()
+        rej["y"] = rr["y"].to_numpy()
+        rej["reason"] = "its residual fails the blunder test (statistic above critical)"
+        residuals["rejected"] = residuals["row"].isin(set(sub.index))
+    else:
         residuals["rejected"] = False
-        return pd.DataFrame(columns=["name", "statistic", "critical", "phase", "gcp_id",
-                                     "image_id", "x", "y"])
-    sub = cal_obs.iloc[rej["point"].to_numpy()]
-    rej["gcp_id"] = sub["gcp_id"].to_numpy()
-    rej["image_id"] = sub["image_id"].to_numpy()
-    rr = residuals[residuals["stage"] == "after"].set_index("row").loc[sub.index]
-    rej["x"] = rr["x"].to_numpy()
-    rej["y"] = rr["y"].to_numpy()
-    residuals["rejected"] = residuals["row"].isin(set(sub.index))
-    return rej.drop(columns=["group", "point"])
+    lost = cal_obs[after.loc[cal_obs.index, ["x", "y"]].isna().any(axis=1).to_numpy()]
+    dropped = pd.DataFrame({
+        "name": [f"{g}@{i}" for g, i in zip(lost["gcp_id"], lost["image_id"])],
+        "statistic": np.nan, "critical": np.nan, "phase": "dropped",
+        "gcp_id": lost["gcp_id"].to_numpy(), "image_id": lost["image_id"].to_numpy(),
+        "x": np.nan, "y": np.nan, "reason": DROPPED_REASON})
+    parts = [p[REJECTED_COLUMNS] for p in (rej.drop(columns=["group", "point"]), dropped)
+             if len(p)]
+    return (pd.concat(parts, ignore_index=True) if parts
+            else pd.DataFrame(columns=REJECTED_COLUMNS))

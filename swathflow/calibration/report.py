@@ -155,14 +155,17 @@ def render_report(result) -> str:
     res = result.residuals
     tab = result.parameter_table()[["name", "units", "value", "sigma", "prior",
                                     "prior_sigma", "change", "fixed", "data_share"]]
-    rejected = (table(result.rejected, 3, left=("name", "phase", "gcp_id", "image_id"))
+    rejected = (table(result.rejected, 3, left=("name", "phase", "gcp_id", "image_id",
+                                                 "reason"))
                 if len(result.rejected) else None)
+    dropped = int(result.rejected["phase"].eq("dropped").sum()) if len(result.rejected) else 0
     px = {c: "px" for c in ("mean_x", "std_x", "mean_y", "std_y", "rms_x", "rms_y")}
     return render(
         "calibration_report.html.j2", result=result, opts=opts, sol=sol,
         model=opts.get("model"), shared=bool(opts.get("shared_boresight")),
         fixed=opts.get("fixed") or (), sigma0=num(result.sigma0),
-        redundancy=num(sol.redundancy, 1), n_rejected=len(result.rejected),
+        redundancy=num(sol.redundancy, 1), n_rejected=len(result.rejected) - dropped,
+        n_dropped=dropped,
         accuracy=_accuracy(res),
         parameters=table(tab, 5, left=("name", "units")),
         t_ref=None if result.t_ref is None else f"{result.t_ref:.3f}",

@@ -173,10 +173,12 @@ class CalibrationResult:
     def summary_lines(self) -> list[str]:
         """What a person reads on the terminal after a calibration."""
         s = self.summary
+        dropped = int(self.rejected["phase"].eq("dropped").sum()) if len(self.rejected) else 0
         out = [f"calibrated {len(self.unknowns.names)} parameters from "
                f"{int((self.residuals['stage'] == 'after').sum())} image points "
-               f"(sigma0 {self.sigma0:.3f}, {len(self.rejected)} rejected, "
-               f"{self.iterations} iterations)"]
+               f"(sigma0 {self.sigma0:.3f}, {len(self.rejected) - dropped} rejected, "
+               + (f"{dropped} dropped (not computable), " if dropped else "")
+               + f"{self.iterations} iterations)"]
         for _, r in s[s["stage"] == "after"].iterrows():
             out.append(f"  {r['image_id']:>8} {r['role']:<8} n={r['n']:4d}  mean x "
                        f"{r['mean_x']:+8.3f} y {r['mean_y']:+8.3f}  std x {r['std_x']:7.3f} "

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Protocol
 
-from swathflow.calibration.control import calibrate
+from swathflow.calibration.control import DROPPED_REASON, calibrate
 from swathflow.calibration.unknowns import CalibrationError
 from swathflow.errors import SwathflowWarning
 
@@ -130,8 +130,8 @@ def estimated(result, mission=None):
     dropped = _dropped(result)
     for gcp, image in dropped[:50]:
         warnings.warn(CalibrationWarning(
-            f"control point {gcp} in image {image}: not used (its ground position does not "
-            f"project into the image: check its coordinates and height)"), stacklevel=3)
+            f"control point {gcp} in image {image}: not used ({DROPPED_REASON})"),
+            stacklevel=3)
     if len(dropped) > 50:
         warnings.warn(CalibrationWarning(f"... and {len(dropped) - 50} more control point "
                                          f"observations not used"), stacklevel=3)

@@ -39,10 +39,17 @@ def pos_dataset(time, lat, lon, h, roll, pitch, heading, source: str,
 
 
 def check_trajectory(ds: xr.Dataset, source: str = "trajectory") -> xr.Dataset:
-    """Raise :class:`FormatError` unless times increase strictly and values are finite."""
-    t = ds["time"].values
+    """Raise :class:`FormatError` unless every time is a number, times increase strictly
+    and values are finite (the file, the variable and the first bad epoch named)."""
+    t = np.asarray(ds["time"].values, dtype=float)
     if t.size < 2:
         raise FormatError(f"{source}: a trajectory needs at least 2 epochs, found {t.size}")
+    nan = np.flatnonzero(~np.isfinite(t))
+    if nan.size:
+        i = int(nan[0])
+        after = f", after t={t[i - 1]:.3f} s" if i > 0 and np.isfinite(t[i - 1]) else ""
+        raise FormatError(f"{source}: column time, epoch {i} (counted from 0{after}): time "
+                          f"is {t[i]} ({nan.size} epoch(s) in all); every epoch needs a time")
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
         raise FormatError(f"{source}: times must increase strictly; epoch {bad[0] + 1} "

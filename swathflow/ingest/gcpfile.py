@@ -5,6 +5,7 @@ import numpy as np
 import pandas as pd
 
 from swathflow.errors import SwathflowError
+from swathflow.ingest.csvtable import finite_columns, read_table
 from swathflow.ingest.keys import KNOWN_KEYS
 from swathflow.ingest.problems import Collector, check_crs, check_keys, first_rows, rel
 
@@ -36,7 +37,8 @@ def check_gcps(cfg, root, toml, parts, c: Collector):
         c.add(gp, "", "not a regular file (a folder, device or FIFO)",
               "name the GCP table's CSV file in [gcp].file")
         return None
-    df = _read(gp, c)
+    df = read_table(gp, GCP_COLUMNS, c, "observation",
+                    dtype={"gcp_id": str, "image_id": str, "role": str})
     if df is None:
         return None
     n0 = len(c.problems)
@@ -89,32 +91,11 @@ def _heights(g, gp, parts, c) -> bool:
     return True
 
 
-def _read(gp, c):
-    try:
-        df = pd.read_csv(gp, dtype={"gcp_id": str, "image_id": str, "role": str})
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
-            ValueError, OSError) as exc:
-        c.add(gp, "", f"cannot be read as CSV: {str(exc).splitlines()[0][:200]}",
-              f"write a header row {','.join(GCP_COLUMNS)} and one row per observation")
-        return None
-    df.columns = [str(col).strip() for col in df.columns]
-    miss = [col for col in GCP_COLUMNS if col not in df.columns]
-    if miss:
-        c.add(gp, "header", f"missing column(s) {', '.join(miss)}",
-              f"the header must contain {','.join(GCP_COLUMNS)}")
-        return None
-    return df
-
-
 def _values(df, gp, c) -> None:
-    for col in ("line", "element", "x", "y", "z"):
-        v = pd.to_numeric(df[col], errors="coerce")
-        bad = ~np.isfinite(v.to_numpy(float))
-        if bad.any():
-            c.add(gp, f"column {col}, file row(s) {first_rows(bad)}",
-                  f"{int(bad.sum())} missing, NaN or non-numeric value(s)",
-                  "every GCP row needs finite numbers (delete unmeasured rows)")
-        df[col] = v.astype(float)
+    for col, v in finite_columns(df, gp, ("line", "element", "x", "y", "z"), c,
+                                 "every GCP row needs finite numbers (delete unmeasured "
+                                 "rows)").items():
+        df[col] = v
     role = df["role"].astype(str).str.strip().str.lower()
     bad = ~role.isin(GCP_ROLES).to_numpy()
     if bad.any():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from swathflow.ingest.csvtable import finite_columns, read_table
 from swathflow.ingest.problems import Collector, first_rows
 
 
@@ -36,31 +37,13 @@ def line_table(entry, need, shape, traj, c: Collector) -> dict | None:
     cols = plain_table(lp)
     if cols is not None and all(col in cols for col in need):
         return _check_rows(lp, entry, cols, shape, traj, c)
-    try:
-        df = pd.read_csv(lp)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
-            ValueError, OSError) as exc:
-        c.add(lp, "", f"cannot be read as CSV: {str(exc).splitlines()[0][:200]}",
-              "write one header row and one row per image line")
-        return None
-    df.columns = [str(col).strip() for col in df.columns]
-    miss = [col for col in need if col not in df.columns]
-    if miss:
-        c.add(lp, "header", f"missing column(s) {', '.join(miss)}",
-              f"the header must contain {','.join(need)}")
+    df = read_table(lp, need, c, "image line")
+    if df is None:
         return None
     n0 = len(c.problems)
-    cols = {}
     check = list(need) + [col for col in df.columns if col not in need
                           and pd.api.types.is_numeric_dtype(df[col])]
-    for col in dict.fromkeys(check):
-        v = pd.to_numeric(df[col], errors="coerce").to_numpy(float)
-        bad = ~np.isfinite(v)
-        if bad.any():
-            c.add(lp, f"column {col}, file row(s) {first_rows(bad)}",
-                  f"{int(bad.sum())} missing, NaN or non-numeric value(s)",
-                  "every line needs finite numbers")
-        cols[col] = v
+    cols = finite_columns(df, lp, check, c, "every line needs finite numbers")
     return _check_rows(lp, entry, cols, shape, traj, c, n0)
 
 

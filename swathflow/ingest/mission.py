@@ -155,7 +155,7 @@ def load_mission(path) -> Mission:
     if _errors(problems):
         raise SwathflowError(format_problems(path, _errors(problems)))
     for pr in problems:
-        warnings.warn(MissionWarning(str(pr)), stacklevel=2)
+        warnings.warn(MissionWarning(pr.text()), stacklevel=2)
     return Mission(path=p["root"], name=p["name"], config=p["config"], crs=p["crs"],
                    gsd=float(p["gsd"]), sensor=dict(p["sensor"]), pos=p["pos"],
                    trajectory=p["trajectory"], images=p["images"], gcps=p["gcps"],

@@ -28,33 +28,12 @@ def _wrap(a):
 def check_pos_plausible(ds, pp, fmt: str, c) -> bool:
     """Angle ranges, motion, angle units of a POS; False when it is unusable."""
     with np.errstate(all="ignore"):
-        if not _pos_times(ds, pp, c) or not _pos_ranges(ds, pp, fmt, c):
+        if not _pos_ranges(ds, pp, fmt, c):
             return False
         if not _pos_time_unit(ds, pp, c):
             return False
         ok = _pos_motion(ds, pp, c)
         return _pos_units(ds, pp, fmt, c) and ok
-
-
-def _pos_times(ds, pp, c) -> bool:
-    """Every epoch has a finite time, and times increase (the file and epoch named)."""
-    t = np.asarray(ds["time"].values, float)
-    bad = ~np.isfinite(t)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        after = f" (after t={t[i - 1]:.3f} s)" if i > 0 and np.isfinite(t[i - 1]) else ""
-        c.add(pp, f"column time, epoch {i}{after}", f"time is {t[i]} ({int(bad.sum())} "
-              f"epoch(s) in all)", "re-export the POS with a time at every epoch, or cut "
-              "those epochs")
-        return False
-    back = np.flatnonzero(np.diff(t) <= 0)
-    if back.size:
-        i = int(back[0]) + 1
-        c.add(pp, f"column time, epoch {i}", f"t={t[i]:.6g} s does not follow "
-              f"t={t[i - 1]:.6g} s ({back.size} epoch(s) in all)",
-              "times must increase strictly: sort the POS and drop repeated epochs")
-        return False
-    return True
 
 
 #: units a POS time column is mistaken for, and their length in seconds

@@ -23,10 +23,13 @@ class Problem:
     fix: str = ""
     level: str = "error"      # "error": the mission is unusable; "warning": it loads
 
-    def __str__(self) -> str:
+    def text(self) -> str:
+        """The problem without its level: file, place, message and fix."""
         loc = f"{self.file}: {self.where}: " if self.where else f"{self.file}: "
-        head = "warning: " if self.level == "warning" else ""
-        return head + loc + self.message + (f" -> fix: {self.fix}" if self.fix else "")
+        return loc + self.message + (f" -> fix: {self.fix}" if self.fix else "")
+
+    def __str__(self) -> str:
+        return ("warning: " if self.level == "warning" else "") + self.text()
 
 
 

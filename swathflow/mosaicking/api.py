@@ -45,7 +45,9 @@ def _plan_and_write(paths, out, feather, mode, tile, cache_mb, options):
     ``(planned, report)``; the one code path of :func:`mosaic` and :func:`write_mosaic`."""
     import rasterio
 
+    from swathflow.arguments import tile_size
     from swathflow.mosaicking.mosaic import finish_mosaic, plan_mosaic, swing_store
+    tile = tile_size(tile)
     unknown = set(options) - set(_PLAN) - set(_FINISH)
     if unknown:
         raise FormatError(f"mosaic: unknown option(s) {', '.join(sorted(unknown))}")

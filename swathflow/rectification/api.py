@@ -20,7 +20,8 @@ from collections.abc import Mapping
 import numpy as np
 import xarray as xr
 
-from swathflow.errors import FormatError
+from swathflow.arguments import tile_size
+from swathflow.errors import ArgumentTypeError, FormatError
 from swathflow.formats.calibfile import calibration_priors, read_calibration
 from swathflow.geometry.grid import Grid, footprint_grid
 from swathflow.ingest.api import as_mission, netcdf_attrs
@@ -212,6 +213,7 @@ def rectify(mission, image_id: str, calibration=None, *, gsd: float | None = Non
     if method not in METHODS:
         raise FormatError(f"unknown rectification method {method!r}; use one of "
                           f"{', '.join(METHODS)}")
+    tile = tile_size(tile)
     tol = TOLERANCE_PX if tol is None else tol
     m, model, terrain, grid, cal_tag = _swing(mission, image_id, calibration, gsd, crs)
     source = open_raw_image(m.images[image_id].file, bands=bands)
@@ -349,6 +351,7 @@ def geolocation(mission, image_id: str, calibration=None, product: str = "glt", 
     from swathflow.rectification.tiles import check_inputs, glt_blocks
     if product not in ("glt", "igm"):
         raise FormatError(f"unknown product {product!r}; use glt, igm")
+    tile = tile_size(tile)
     tol = TOLERANCE_PX if tol is None else tol
     m, model, terrain, grid, cal_tag = _swing(mission, image_id, calibration, gsd, crs)
     attrs = _tags(m, image_id, model, "exact", kernel, tol, cal_tag, terrain)
@@ -417,6 +420,13 @@ def to_cog(da: xr.DataArray, path, *, tags: Mapping | None = None, blocksize: in
     import dask.array as dsa
 
     from swathflow.rectification.writing import write_cogs
+    if not isinstance(da, xr.DataArray):
+        raise ArgumentTypeError(
+            f"to_cog: da must be an xarray.DataArray (e.g. swathflow.rectify(...)), got "
+            f"{type(da).__module__}.{type(da).__qualname__}: wrap an array as "
+            f"xarray.DataArray(a, dims=('y', 'x')) with its CRS and transform "
+            f"(da.rio.write_crs, da.rio.write_transform), or none for raw geometry")
+    blocksize = tile_size(blocksize, "blocksize")
     grid = _grid_of(da)
     nodata = da.rio.nodata if grid is not None else da.attrs.get("_FillValue")
     data = da.data if hasattr(da.data, "chunks") else dsa.from_array(np.asarray(da.data),
