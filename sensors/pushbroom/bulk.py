@@ -9,7 +9,8 @@ between the line times) is
 interpolated linearly at ``t``, the fix corrections linear between fixes and held outside
 them. The point is seen at the line and element where ``(g_x / -g_z - tan_psi_x(s),
 g_y / -g_z - tan_psi_y(s)) = 0``, solved jointly in (line, element) by Newton (the
-derivative along the line a central difference), from the caller's start or from the line
+derivative along the line a difference inside the piece where the interpolations are
+smooth: with a noisy POS the slope jumps at every epoch), from the caller's start or from the line
 bracketed by the viewing plane of the middle element. The kernel returns, per point, the
 line, the element, the 2x2 Jacobian of the conditions there and the POS row at its time:
 the partial derivatives follow in numpy
@@ -93,6 +94,39 @@ def camera_vector(line, g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, 
     for c in range(3):
         out[c] = rbs[0, c] * x + rbs[1, c] * y + rbs[2, c] * z
     return t
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _smooth_piece(line, ltime, time, ft):
+    """The ends (lines) of the difference along the line at ``line``: ``LINE_STEP`` either
+    side, inside the piece where the camera vector is smooth (between the line times, the
+    POS epochs and the fix times around it, where the linear interpolations kink); wider
+    across a kink only when the piece is too short to difference over."""
+    n = ltime.shape[0]
+    j = min(max(int(math.floor(line)), 0), n - 2)
+    t0, t1 = ltime[j], ltime[j + 1]
+    t = t0 + (t1 - t0) * (line - j)
+    lo_t, hi_t = -math.inf, math.inf
+    if line >= 0.0:
+        lo_t = t0
+    if line <= n - 1.0:
+        hi_t = t1
+    k = np.searchsorted(time, t, side="right") - 1
+    if 0 <= k < time.shape[0]:
+        lo_t = max(lo_t, time[k])
+    if 0 <= k + 1 < time.shape[0]:
+        hi_t = min(hi_t, time[k + 1])
+    f = np.searchsorted(ft, t, side="right") - 1
+    if 0 <= f < ft.shape[0]:
+        lo_t = max(lo_t, ft[f])
+    if 0 <= f + 1 < ft.shape[0]:
+        hi_t = min(hi_t, ft[f + 1])
+    lo = j + (lo_t - t0) / (t1 - t0)
+    hi = j + (hi_t - t0) / (t1 - t0)
+    lm, lp = max(line - LINE_STEP, lo), min(line + LINE_STEP, hi)
+    if lp - lm < 0.1 * LINE_STEP:          # a sliver between two kinks: difference across
+        lm, lp = line - LINE_STEP, line + LINE_STEP
+    return lm, lp
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -194,7 +228,7 @@ def project(points, image, start, ltime_all, line_off, time_all, table_all, pos_
         ok = False
         j00 = j01 = j10 = j11 = math.nan
         for _ in range(MAX_ITER):
-            lp, lm = line + LINE_STEP, line - LINE_STEP
+            lm, lp = _smooth_piece(line, ltime, time, f_)
             tp = camera_vector(lp, g, ltime, time, table, gap, f_, dn, do, R, u, pos, cp)
             tm = camera_vector(lm, g, ltime, time, table, gap, f_, dn, do, R, u, pos, cm)
             t = camera_vector(line, g, ltime, time, table, gap, f_, dn, do, R, u, pos, cam)
