@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from swathflow.adjustment import RankDeficiencyError, solve
@@ -120,7 +121,9 @@ def solve_two_step(st: Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
     if not converged and best is not None and best[0] < gap:
         final = best[1]
     z = final.x.copy()          # the values measured closest to the joint optimum
-    if vce or not final.cov.any():  # statistics at the two-step solution (no step taken)
+    no_cov = (final.cov.count_nonzero() == 0 if sp.issparse(final.cov)
+              else not final.cov.any())
+    if vce or no_cov:               # statistics at the two-step solution (no step taken)
         final = _run(st.problem(z, free, obs_sigma, tie_sigma), vce, False, alpha,
                      tol=np.inf)
         final.x[:] = z
