@@ -74,8 +74,9 @@ def scipy_side_by_side(st, free, obs_sigma: float, tie_sigma: float, ours) -> st
     x = full(res.x)[:st.n_par]
     s = ours.sigma[:st.n_par]
     dz = np.abs(x - ours.x[:st.n_par]) / np.where(s > 0, s, np.nan)
-    cost_ours = float(np.sum(fun(np.linalg.lstsq(N.toarray(), ours.x[fr] - x0,
-                                                 rcond=None)[0]) ** 2))
+    dz_ours = ours.x[fr] - x0              # N's columns: unit vectors, then Nc orthonormal
+    cost_ours = float(np.sum(fun(np.concatenate([dz_ours[rest],
+                                                 Nc.T @ dz_ours[touched]])) ** 2))
     return (f"scipy least_squares (trf, sparse Jacobian, lsmr): {wall:.2f} s wall, "
             f"{cpu:.2f} s CPU, {res.nfev} evaluations, {res.njev} Jacobians ({res.message}); "
             f"cost {2 * res.cost:.2f} (ours {cost_ours:.2f}); largest parameter difference "
