@@ -20,9 +20,8 @@ from typing import Sequence
 import numpy as np
 
 from swathflow.geometry.navkernel import pos_table
-from swathflow.geometry.rotations import T, r_en, r_nb
+from swathflow.geometry.rotations import T, opk_derivatives, r_en, r_nb
 from swathflow.sensormodel.projection import Projection, Projector
-from swathflow.sensors.pendulum.projection import opk_derivatives
 from swathflow.sensors.pushbroom import bulk
 from swathflow.sensors.pushbroom.viewing import ap_name
 
