@@ -190,6 +190,40 @@ def _first_guess(g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, coef, t
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _newton(line, s, g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, coef, pos, cam,
+            cp, cm, jac):
+    """Newton jointly in (line, element) from ``(line, s)``: the solution and whether it
+    converged, with the Jacobian of the conditions there in ``jac`` (2, 2)."""
+    n = ltime.shape[0]
+    for _ in range(MAX_ITER):
+        lm, lp = _smooth_piece(line, ltime, time, ft)
+        tp = camera_vector(lp, g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, pos, cp)
+        tm = camera_vector(lm, g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, pos, cm)
+        t = camera_vector(line, g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, pos,
+                          cam)
+        if not (math.isfinite(t) and math.isfinite(tp) and math.isfinite(tm)) \
+                or not cam[2] < 0.0:
+            return line, s, False
+        tx, ty, dtx, dty = _tangents(coef, s)
+        jac[0, 0] = (cp[0] / -cp[2] - cm[0] / -cm[2]) / (lp - lm)
+        jac[1, 0] = (cp[1] / -cp[2] - cm[1] / -cm[2]) / (lp - lm)
+        jac[0, 1], jac[1, 1] = -dtx, -dty
+        f0, f1 = cam[0] / -cam[2] - tx, cam[1] / -cam[2] - ty
+        det = jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]
+        if det == 0.0 or not math.isfinite(det):
+            return line, s, False
+        # a step of more than the image is a miss far away: limit it (Newton then walks
+        # there or the final test rejects the point)
+        d_l = min(max((jac[1, 1] * f0 - jac[0, 1] * f1) / det, -float(n)), float(n))
+        d_s = (jac[0, 0] * f1 - jac[1, 0] * f0) / det
+        line -= d_l
+        s -= d_s
+        if abs(d_l) < TOL and abs(d_s) < TOL:
+            return line, s, True
+    return line, s, False
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def project(points, image, start, ltime_all, line_off, time_all, table_all, pos_off, pos_of,
             max_gap, ft, dned, dopk, rbs, ugps, coef_all, coef_off, tx_mid, out, jac,
             times, pos_out):
@@ -212,7 +246,6 @@ def project(points, image, start, ltime_all, line_off, time_all, table_all, pos_
         time = time_all[pos_off[p]:pos_off[p + 1]]
         table = table_all[pos_off[p]:pos_off[p + 1]]
         coef = coef_all[:, coef_off[m]:coef_off[m + 1]]
-        gap, f_, dn, do, R, u = max_gap[m], ft, dned[m], dopk[m], rbs[m], ugps[m]
         g = points[i]
         n = ltime.shape[0]
         out[i, 0] = math.nan
@@ -221,49 +254,20 @@ def project(points, image, start, ltime_all, line_off, time_all, table_all, pos_
             continue
         line, s = start[i, 0], start[i, 1]
         if not (math.isfinite(line) and math.isfinite(s)):
-            line, s = _first_guess(g, ltime, time, table, gap, f_, dn, do, R, u, coef,
-                                   tx_mid[m], pos, cam)
+            line, s = _first_guess(g, ltime, time, table, max_gap[m], ft, dned[m], dopk[m],
+                                   rbs[m], ugps[m], coef, tx_mid[m], pos, cam)
             if not math.isfinite(line):
                 continue
-        ok = False
-        j00 = j01 = j10 = j11 = math.nan
-        for _ in range(MAX_ITER):
-            lm, lp = _smooth_piece(line, ltime, time, f_)
-            tp = camera_vector(lp, g, ltime, time, table, gap, f_, dn, do, R, u, pos, cp)
-            tm = camera_vector(lm, g, ltime, time, table, gap, f_, dn, do, R, u, pos, cm)
-            t = camera_vector(line, g, ltime, time, table, gap, f_, dn, do, R, u, pos, cam)
-            if not (math.isfinite(t) and math.isfinite(tp) and math.isfinite(tm)) \
-                    or not cam[2] < 0.0:
-                break
-            iz = -1.0 / cam[2]
-            r, q = cam[0] * iz, cam[1] * iz
-            dr = (cp[0] / -cp[2] - cm[0] / -cm[2]) / (lp - lm)
-            dq = (cp[1] / -cp[2] - cm[1] / -cm[2]) / (lp - lm)
-            tx, ty, dtx, dty = _tangents(coef, s)
-            f0, f1 = r - tx, q - ty
-            j00, j01, j10, j11 = dr, -dtx, dq, -dty
-            det = j00 * j11 - j01 * j10
-            if det == 0.0 or not math.isfinite(det):
-                break
-            d_l = (j11 * f0 - j01 * f1) / det
-            d_s = (j00 * f1 - j10 * f0) / det
-            # a step of more than the image is a miss far away: limit it (Newton then
-            # walks there or the final test rejects the point)
-            lim = float(n)
-            d_l = min(max(d_l, -lim), lim)
-            line -= d_l
-            s -= d_s
-            if abs(d_l) < TOL and abs(d_s) < TOL:
-                ok = True
-                break
+        line, s, ok = _newton(line, s, g, ltime, time, table, max_gap[m], ft, dned[m],
+                              dopk[m], rbs[m], ugps[m], coef, pos, cam, cp, cm, jac[i])
         if not ok or not (-1e-6 <= line <= n - 1 + 1e-6):
             continue
-        t = camera_vector(line, g, ltime, time, table, gap, f_, dn, do, R, u, pos, cam)
+        t = camera_vector(line, g, ltime, time, table, max_gap[m], ft, dned[m], dopk[m],
+                          rbs[m], ugps[m], pos, cam)
         if not (math.isfinite(t) and cam[2] < 0.0):
             continue
         out[i, 0] = line
         out[i, 1] = s
-        jac[i, 0, 0], jac[i, 0, 1], jac[i, 1, 0], jac[i, 1, 1] = j00, j01, j10, j11
         times[i] = t
         for c in range(8):
             pos_out[i, c] = pos[c]

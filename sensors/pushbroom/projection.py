@@ -33,52 +33,58 @@ def _t(a) -> np.ndarray:
     return np.swapaxes(a, -1, -2)
 
 
+def _offsets(sizes) -> np.ndarray:
+    """Start offsets of pieces of ``sizes`` laid end to end, and the total."""
+    return np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+
+
 class PushbroomProjector(Projector):
     """Bulk projection over push-broom images (see the module docstring)."""
 
     def __init__(self, models: Sequence):
         super().__init__(models)
-        params = self.models[0].parameters
-        flat = params.flat_names()
-        col = {name: i for i, name in enumerate(flat)}
+        flat = self.models[0].parameters.flat_names()
         self._ft = np.ascontiguousarray(self.models[0].fix_times, dtype=float)
-        nf = self._ft.size
         for m in self.models:
             if m.parameters.flat_names() != flat or not np.array_equal(m.fix_times, self._ft):
                 raise ValueError("a push-broom projector needs images of one camera (the same "
                                  "parameters and orientation fixes)")
+        self._columns({name: i for i, name in enumerate(flat)})
+        ltimes = [np.asarray(m.lines["time"], float) for m in self.models]
+        self._ltime = np.ascontiguousarray(np.concatenate(ltimes))
+        self._line_off = _offsets([t.size for t in ltimes])
+        self._pos_tables()
+        self._segs = [m.segments for m in self.models]
+        self._coef_off = _offsets([m.n_elements for m in self.models])
+
+    def _columns(self, col) -> None:
+        """The flat parameter columns of the lever arm, the boresight, the fix corrections
+        ``(fixes, 3)`` and, per image, its view's APs ``(2, segments, 4)`` (ax, bx)."""
+        nf = self._ft.size
         self._u_cols = np.array([col[f"u_gps[{i}]"] for i in range(3)])
         self._opk_cols = np.array([col[f"opk_cam[{i}]"] for i in range(3)])
         self._ned_cols = np.array([[col[f"d_ned_{k}[{i}]"] for i in range(3)]
                                    for k in range(nf)], np.intp).reshape(nf, 3)
         self._dopk_cols = np.array([[col[f"d_opk_{k}[{i}]"] for i in range(3)]
                                     for k in range(nf)], np.intp).reshape(nf, 3)
-        ltimes, trajs, pos_of, gaps, self._ap_cols, self._segs = [], {}, [], [], [], []
+        self._ap_cols = [np.array([[[col[f"{ap_name(kind, m.view, i)}[{c}]"] for c in range(4)]
+                                    for i in range(m.segments.size)]
+                                   for kind in ("ax", "bx")], np.intp) for m in self.models]
+
+    def _pos_tables(self) -> None:
+        """The POS tables of the images' trajectories (each once), side by side."""
+        trajs, pos_of = {}, []
         for m in self.models:
-            ltimes.append(np.asarray(m.lines["time"], float))
             key = id(m.trajectory)
             if key not in trajs:
                 trajs[key] = pos_table(m.trajectory)
             pos_of.append(list(trajs).index(key))
-            gaps.append(trajs[key][2])
-            nseg = m.segments.size
-            self._segs.append(m.segments)
-            # (2, segments, 4): the ax and bx coefficient columns of this image's view
-            self._ap_cols.append(np.array([[[col[f"{ap_name(kind, m.view, i)}[{c}]"]
-                                             for c in range(4)] for i in range(nseg)]
-                                           for kind in ("ax", "bx")], np.intp))
-        self._ltime = np.ascontiguousarray(np.concatenate(ltimes))
-        self._line_off = np.concatenate([[0], np.cumsum([t.size for t in ltimes])]).astype(
-            np.intp)
         tabs = list(trajs.values())
         self._time = np.ascontiguousarray(np.concatenate([t[0] for t in tabs]))
         self._table = np.ascontiguousarray(np.concatenate([t[1] for t in tabs]))
-        self._pos_off = np.concatenate([[0], np.cumsum([t[0].size for t in tabs])]).astype(
-            np.intp)
+        self._pos_off = _offsets([t[0].size for t in tabs])
         self._pos_of = np.asarray(pos_of, np.intp)
-        self._gaps = np.asarray(gaps, float)
-        nel = [m.n_elements for m in self.models]
-        self._coef_off = np.concatenate([[0], np.cumsum(nel)]).astype(np.intp)
+        self._gaps = np.array([tabs[k][2] for k in pos_of], float)
 
     # --- the parameters of every image ----------------------------------------------------
     def _camera(self, v):
