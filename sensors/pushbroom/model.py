@@ -10,7 +10,10 @@ the line chosen by the image attribute ``view`` (see docs/mission-format-pushbro
 The viewing angles per element and the additional parameters (APs) are in
 :mod:`~swathflow.sensors.pushbroom.viewing`, ground to image in
 :mod:`~swathflow.sensors.pushbroom.solve`, the partial derivatives in
-:mod:`~swathflow.sensors.pushbroom.partials`. The LIM orientation-fix model corrects position
+:mod:`~swathflow.sensors.pushbroom.partials`, the bulk projection of every observation of
+every image for the adjustment (:meth:`PushbroomModel.projector`) in
+:mod:`~swathflow.sensors.pushbroom.projection` and :mod:`~swathflow.sensors.pushbroom.bulk`.
+The LIM orientation-fix model corrects position
 and attitude by ``d_ned`` (m) and ``d_opk`` (deg) interpolated linearly in time between
 fixes (held constant outside them).
 """
