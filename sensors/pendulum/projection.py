@@ -9,43 +9,13 @@ from typing import Sequence
 import numpy as np
 
 from swathflow.geometry.navkernel import pos_table
-from swathflow.geometry.rotations import T, rx, ry, rz
+from swathflow.geometry.rotations import T, opk_derivatives
 from swathflow.sensormodel.projection import Projection, Projector
 from swathflow.sensors.pendulum import bulk
 
 #: the parameter blocks, in the order of the kernel's partials (the boresight block is the
 #: swing direction's)
 BLOCKS = ("u_gps", "u_sen", "opk_sen", "opk_pos")
-
-
-def _d_rx(a):
-    c, s = np.cos(a), np.sin(a)
-    out = np.zeros(a.shape + (3, 3))
-    out[..., 1, 1], out[..., 1, 2], out[..., 2, 1], out[..., 2, 2] = -s, -c, c, -s
-    return out
-
-
-def _d_ry(a):
-    c, s = np.cos(a), np.sin(a)
-    out = np.zeros(a.shape + (3, 3))
-    out[..., 0, 0], out[..., 0, 2], out[..., 2, 0], out[..., 2, 2] = -s, c, -c, -s
-    return out
-
-
-def _d_rz(a):
-    c, s = np.cos(a), np.sin(a)
-    out = np.zeros(a.shape + (3, 3))
-    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = -s, -c, c, -s
-    return out
-
-
-def opk_derivatives(opk_deg) -> tuple[np.ndarray, np.ndarray]:
-    """``r_opk`` of angles ``(m, 3)`` in degrees, ``(m, 3, 3)``, and its derivatives by
-    omega, phi, kappa (per radian), ``(m, 3, 3, 3)``."""
-    w, p, k = np.radians(np.asarray(opk_deg, float)).T
-    X, Y, Z = rx(w), ry(p), rz(k)
-    d = np.stack([_d_rx(w) @ Y @ Z, X @ _d_ry(p) @ Z, X @ Y @ _d_rz(k)], axis=1)
-    return X @ Y @ Z, d
 
 
 class PendulumProjector(Projector):

@@ -10,7 +10,10 @@ the line chosen by the image attribute ``view`` (see docs/mission-format-pushbro
 The viewing angles per element and the additional parameters (APs) are in
 :mod:`~swathflow.sensors.pushbroom.viewing`, ground to image in
 :mod:`~swathflow.sensors.pushbroom.solve`, the partial derivatives in
-:mod:`~swathflow.sensors.pushbroom.partials`. The LIM orientation-fix model corrects position
+:mod:`~swathflow.sensors.pushbroom.partials`, the bulk projection of every observation of
+every image for the adjustment (:meth:`PushbroomModel.projector`) in
+:mod:`~swathflow.sensors.pushbroom.projection` and :mod:`~swathflow.sensors.pushbroom.bulk`.
+The LIM orientation-fix model corrects position
 and attitude by ``d_ned`` (m) and ``d_opk`` (deg) interpolated linearly in time between
 fixes (held constant outside them).
 """
@@ -50,6 +53,13 @@ class PushbroomModel(GroundSolver, Partials, SensorModel):
     def calibration_strategy(cls):
         from swathflow.sensors.pushbroom.calibration import STRATEGY
         return STRATEGY
+
+    @classmethod
+    def projector(cls, models):
+        """Bulk projection for the adjustment: one compiled call over every observation of
+        every image, analytic partials (:mod:`~swathflow.sensors.pushbroom.projection`)."""
+        from swathflow.sensors.pushbroom.projection import PushbroomProjector
+        return PushbroomProjector(models)
 
     @classmethod
     def simulator(cls):
@@ -141,7 +151,7 @@ class PushbroomModel(GroundSolver, Partials, SensorModel):
         if self.n_lines > 1 and not np.all(np.diff(self._ltime) > 0):
             raise FormatError(f"pushbroom image {img.get('image_id', '')!r}: line times must "
                               f"increase strictly with the line index")
-        self._coef_t = np.ascontiguousarray(self._tangent_table().T)   # (8, n_elements)
+        self._coef_t = self.tangent_coefficients(self._ax, self._bx)   # (8, n_elements)
         self._setup_knots()
         # which parameters this image depends on (others have zero partials)
         self._relevant = self._relevant_mask()
@@ -178,12 +188,18 @@ class PushbroomModel(GroundSolver, Partials, SensorModel):
         pos = np.abs(cm - 0.5 * (C[1:] + C[:-1])).max() / 100.0   # at >= 100 m range
         self._interp_px = float(max(ang, pos) / self._pixel_angle())
 
-    def _tangent_table(self) -> np.ndarray:
-        """See :func:`~swathflow.sensors.pushbroom.viewing.tangent_table`."""
+    def tangent_coefficients(self, ax, bx) -> np.ndarray:
+        """The viewing tangents' cubic coefficients ``(8, n_elements)`` of this image's CCD
+        line with the APs ``ax``, ``bx`` ``(segments, 4)`` (see
+        :func:`~swathflow.sensors.pushbroom.viewing.tangent_table`)."""
+        ax = np.asarray(ax, float).reshape(self._seg.size, 4)
+        bx = np.asarray(bx, float).reshape(self._seg.size, 4)
         if self._tab is None:
-            return tangent_table(self._nel, self._seg, self._ax, self._bx,
-                                 nominal=(self._tpx0, self._k, self._sc))
-        return tangent_table(self._nel, self._seg, self._ax, self._bx, table=self._tab)
+            out = tangent_table(self._nel, self._seg, ax, bx,
+                                nominal=(self._tpx0, self._k, self._sc))
+        else:
+            out = tangent_table(self._nel, self._seg, ax, bx, table=self._tab)
+        return np.ascontiguousarray(out.T)
 
     def _pixel_angle(self) -> float:
         if self._tab is None:
@@ -205,6 +221,16 @@ class PushbroomModel(GroundSolver, Partials, SensorModel):
                 ok = True
             mask += [ok] * b.size
         return np.array(mask, bool)
+
+    @property
+    def segments(self) -> np.ndarray:
+        """The first element of each CCD segment of this image's line."""
+        return self._seg.copy()
+
+    @property
+    def fix_times(self) -> np.ndarray:
+        """The times of the orientation fixes (s, POS time scale)."""
+        return self._ft.copy()
 
     @property
     def view(self) -> str:

@@ -61,10 +61,14 @@ class SchurNormal:
         Jc, jp, blk = split.Jc, split.jp, split.block
         has = blk >= 0
         Ncc = (Jc * w[:, None]).T @ Jc
-        H = np.zeros((P, k, k))
-        np.add.at(H, blk[has], w[has, None, None] * jp[has, :, None] * jp[has, None, :])
-        W = np.zeros((P, nc, k))
-        np.add.at(W, blk[has], w[has, None, None] * Jc[has, :, None] * jp[has, None, :])
+        # the sums over each point's rows as sparse products: Sel[row, block * k + a] =
+        # w jp[row, a], so (Sel' jp)[(p, a), b] = H[p, a, b], (Sel' Jc)[(p, a), c] = W[p, c, a]
+        rows = np.flatnonzero(has)
+        Sel = sp.csr_matrix(((w[rows, None] * jp[rows]).ravel(),
+                             (np.repeat(rows, k), (blk[rows, None] * k + np.arange(k)).ravel())),
+                            shape=(Jc.shape[0], P * k))
+        H = np.asarray(Sel.T @ jp).reshape(P, k, k)
+        W = np.ascontiguousarray(np.asarray(Sel.T @ Jc).reshape(P, k, nc).transpose(0, 2, 1))
         self.diag_c = np.diag(Ncc).copy()
         self.diag_p = np.einsum("pii->pi", H).copy()
         if damping:
@@ -74,7 +78,9 @@ class SchurNormal:
         self._check_points(H, names, free_blocks, rcond)
         self.Hinv = np.linalg.inv(H)
         self.B = W @ self.Hinv                                      # (P, nc, k)
-        S = Ncc - np.einsum("pck,pdk->cd", self.B, W)
+        # sum over points of B_p W_p' as one matrix product (einsum's loop: 0.4 s here)
+        S = Ncc - self.B.transpose(1, 0, 2).reshape(nc, -1) @ W.transpose(1, 0, 2).reshape(
+            nc, -1).T
         S = 0.5 * (S + S.T)
         C = [((A.tocsc()[:, free_cam].toarray() if sp.issparse(A) else
                np.asarray(A)[:, free_cam]), d) for A, d in constraints]
@@ -171,7 +177,7 @@ class SchurCovariance:
         valid = obs_idx >= 0
         flat = np.where(valid, obs_idx, 0)
         U = self.U[flat] * valid[..., None]                          # (Pt, k, nc)
-        out = np.einsum("pic,cd,pjd->pij", U, self.Qcc, U)
+        out = np.einsum("pic,cd,pjd->pij", U, self.Qcc, U, optimize=True)
         b = np.where(valid, s.block[flat], -1)
         jp = s.jp[flat] * valid[..., None]
         same = (b[:, :, None] == b[:, None, :]) & (b[:, :, None] >= 0)
@@ -186,7 +192,7 @@ class SchurCovariance:
     def point(self) -> np.ndarray:
         """The point blocks of the cofactor matrix ``(P, k, k)``."""
         ne = self.ne
-        return ne.Hinv + np.einsum("pck,cd,pdl->pkl", ne.B, self.Qcc, ne.B)
+        return ne.Hinv + np.einsum("pck,cd,pdl->pkl", ne.B, self.Qcc, ne.B, optimize=True)
 
     def full(self, sparse: bool) -> np.ndarray | sp.spmatrix:
         """The cofactor matrix over the free unknowns: dense, or (``sparse``) its camera

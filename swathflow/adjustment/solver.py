@@ -152,7 +152,10 @@ class _Solver:
             if self._split is None or self._split[0] is not J:
                 self._split = (J, PointSplit(self._free_columns(J), cam, point_of, slot_of,
                                              fb.shape[0], fb.shape[1]))
-            return SchurNormal(self._split[1], w, cam, fb, self.cons, lam, self.names_free,
+            # the reduced system is over the free unknowns: so are its constraints' columns
+            cons = [(A[:, self.free] if not sp.issparse(A) else
+                     sp.csc_matrix(A)[:, self.free], d) for A, d in self.cons]
+            return SchurNormal(self._split[1], w, cam, fb, cons, lam, self.names_free,
                                self.rcond)
         return _Normal(J, w, self.free, self.cons, lam, bool(self.use_sparse),
                        self.names_free, self.rcond)

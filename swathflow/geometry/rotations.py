@@ -112,3 +112,34 @@ def apply(r: np.ndarray, v: np.ndarray) -> np.ndarray:
 def apply_t(r: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``r.T @ v`` for stacks."""
     return np.einsum("...ji,...j->...i", r, v)
+
+
+def _d_rx(a):
+    c, s = np.cos(a), np.sin(a)
+    out = np.zeros(a.shape + (3, 3))
+    out[..., 1, 1], out[..., 1, 2], out[..., 2, 1], out[..., 2, 2] = -s, -c, c, -s
+    return out
+
+
+def _d_ry(a):
+    c, s = np.cos(a), np.sin(a)
+    out = np.zeros(a.shape + (3, 3))
+    out[..., 0, 0], out[..., 0, 2], out[..., 2, 0], out[..., 2, 2] = -s, c, -c, -s
+    return out
+
+
+def _d_rz(a):
+    c, s = np.cos(a), np.sin(a)
+    out = np.zeros(a.shape + (3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = -s, -c, c, -s
+    return out
+
+
+def opk_derivatives(opk_deg) -> tuple[np.ndarray, np.ndarray]:
+    """``r_opk`` of angles ``(m, 3)`` in degrees (as parameter vectors hold them),
+    ``(m, 3, 3)``, and its derivatives by
+    omega, phi, kappa (per radian), ``(m, 3, 3, 3)``."""
+    w, p, k = np.radians(np.asarray(opk_deg, float)).T
+    X, Y, Z = rx(w), ry(p), rz(k)
+    d = np.stack([_d_rx(w) @ Y @ Z, X @ _d_ry(p) @ Z, X @ Y @ _d_rz(k)], axis=1)
+    return X @ Y @ Z, d

@@ -6,13 +6,16 @@ Unknowns: the lever arm ``u_gps``, the boresight ``opk_cam``, the per-segment cu
 ``d_ned_<k>`` / ``d_opk_<k>`` (every calibration parameter carries its prior as a
 pseudo-observation), and the ground coordinates (ECEF) of every tie point. Observations: the
 image coordinates of control points (known ground) and of tie points (ground unknown),
-observed minus computed through ``ground_to_image``. The AP continuity (C0) and smoothness
+observed minus computed, every observation of every image in one bulk projection
+(:meth:`PushbroomModel.projector <swathflow.sensors.pushbroom.PushbroomModel.projector>`:
+compiled, parameters as a vector, analytic partials). The AP continuity (C0) and smoothness
 (C1) conditions at every segment boundary are hard equality constraints
 (:func:`swathflow.sensors.pushbroom.continuity_matrix`), solved exactly.
 
 The Jacobian is sparse (a tie point's rows touch its own three coordinates and the
 parameters of one image, and an image depends only on the fixes around its time), so the
-generic engine :func:`swathflow.adjustment.solve` runs on sparse normal equations (SuperLU).
+generic engine :func:`swathflow.adjustment.solve` eliminates the tie coordinates point by
+point (Schur complement) and solves the reduced system over the parameters.
 Internally every parameter is scaled by its prior sigma (AP coefficients span 12 orders of
 magnitude otherwise).
 

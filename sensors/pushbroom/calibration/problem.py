@@ -37,6 +37,10 @@ class Setup:
     cons_A: np.ndarray               # C0/C1 rows over the model vector
     cons_labels: list
     ap_mask: np.ndarray              # over the parameters
+    projector: object                # the bulk projection over the images (image_ids)
+    obs_image: np.ndarray            # (n_obs,) the image of each observation
+    ground: np.ndarray               # (n_obs, 3) control coordinates (NaN for ties)
+    obs_tie: np.ndarray              # (n_obs,) the tie of each observation (-1: control)
     cache: dict = field(default_factory=dict)
 
     @property
@@ -50,50 +54,45 @@ class Setup:
         return self.T0 + z[self.n_par:].reshape(-1, 3)
 
     def fn(self, z, jacobian=True):
+        """Observed minus computed image coordinates at the scaled unknowns ``z`` and their
+        sparse Jacobian: every observation of every image in one bulk projection
+        (:meth:`PushbroomModel.projector`), started at the previous evaluation's answer."""
         key = z.tobytes()
         ent = self.cache.get(key)
-        if ent is None:
-            self.cache.clear()
+        if ent is None or (jacobian and ent[1] is None):
             p = self.params(z)
-            T = self.ties(z)
-            comp = np.empty_like(self.l_obs)
-            mods, grounds = {}, []
-            for iid, sl, G, ti in self.spans:
-                m = mods.get(iid)
-                if m is None:           # one model per image (its control and tie spans)
-                    m = mods[iid] = self.models[iid].with_vector(p)
-                g = G if ti is None else T[ti]
-                grounds.append(g)
-                comp[sl] = m.ground_to_image(g, clip=False).ravel()
-            ent = self.cache[key] = [comp, mods, grounds, None]
-        comp, mods, grounds, J = ent
-        r = self.l_obs - comp
-        if jacobian and J is None:
-            J = self._jacobian(mods, grounds)
-            ent[3] = J
-        return r, (J if jacobian else None)
+            ground = self.ground.copy()
+            if self.tie_ids.size:
+                ground[self.obs_tie >= 0] = self.ties(z)[self.obs_tie[self.obs_tie >= 0]]
+            V = np.broadcast_to(p, (len(self.projector.models), p.size))
+            out = self.projector.project(self.obs_image, ground, V, partials=jacobian,
+                                         start=self.cache.get("start"))
+            good = np.isfinite(out.image).all(axis=1)
+            start = self.cache.get("start", np.full_like(out.image, np.nan))
+            start[good] = out.image[good]
+            self.cache.clear()
+            self.cache["start"] = start
+            J = self._jacobian(out) if jacobian else None
+            ent = self.cache[key] = (out.image.ravel(), J)
+        comp, J = ent
+        return self.l_obs - comp, (J if jacobian else None)
 
-    def _jacobian(self, mods, grounds):
-        rows, cols, vals = [], [], []
-        for (iid, sl, _, ti), g in zip(self.spans, grounds):
-            m = mods[iid]
-            r0 = sl.start
-            nobs = g.shape[0]
-            D = m.parameter_partials(g) * self.scale          # (n, 2, P)
-            D = D.reshape(2 * nobs, self.n_par)
-            rr, cc = np.nonzero(np.nan_to_num(D))
-            rows.append(rr + r0)
-            cols.append(cc)
-            vals.append(D[rr, cc])
-            if ti is not None:
-                Dg = m.ground_partials(g).reshape(2 * nobs, 3)   # (2n, 3)
-                rr = np.repeat(np.arange(2 * nobs), 3)
-                cc = self.n_par + 3 * np.repeat(ti, 2 * 3) + np.tile(np.arange(3), 2 * nobs)
-                rows.append(rr + r0)
-                cols.append(cc)
-                vals.append(Dg.ravel())
+    def _jacobian(self, out):
+        """The sparse Jacobian of the computed coordinates (rows interleaved line, element)
+        by the scaled unknowns: the parameter columns where non-zero, and each tie
+        observation's three ground columns."""
+        m = out.image.shape[0]
+        D = np.nan_to_num(out.d_parameters * self.scale, nan=0.0).reshape(2 * m, self.n_par)
+        rr, cc = np.nonzero(D)
+        rows, cols, vals = [rr], [cc], [D[rr, cc]]
+        tie = np.flatnonzero(self.obs_tie >= 0)
+        if tie.size:
+            Dg = np.nan_to_num(out.d_ground[tie], nan=0.0)                # (t, 2, 3)
+            rows.append(np.repeat(2 * tie[:, None] + np.arange(2), 3, axis=1).ravel())
+            cols.append(np.tile(self.n_par + 3 * self.obs_tie[tie][:, None]
+                                + np.arange(3), (1, 2)).ravel())
+            vals.append(Dg.ravel())
         rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
-        vals = np.where(np.isfinite(vals), vals, 0.0)
         return sp.csr_matrix((vals, (rows, cols)), shape=(self.l_obs.size, self.n))
 
     def problem(self, z0, free_params: np.ndarray, obs_sigma: float, tie_sigma: float):
@@ -207,8 +206,23 @@ def build_setup(models, gcps, ties, priors, fixed, calibration_images) -> tuple[
     spans, l_obs, comp, names = _observations(calibration_images, ctrl, tobs, tie_ids)
     A, labels = continuity_matrix(first.sensor, priors)
     ap = np.array([n.startswith(("ax_", "bx_")) for n in unk.names])
+    image_ids = list(dict.fromkeys(iid for iid, *_ in spans))
+    pos = {iid: k for k, iid in enumerate(image_ids)}
+    n_obs = l_obs.size // 2
+    obs_image = np.zeros(n_obs, np.intp)
+    ground = np.full((n_obs, 3), np.nan)
+    obs_tie = -np.ones(n_obs, np.intp)
+    for iid, sl, G, ti in spans:
+        rows = slice(sl.start // 2, sl.stop // 2)
+        obs_image[rows] = pos[iid]
+        if ti is None:
+            ground[rows] = G
+        else:
+            obs_tie[rows] = ti
+    projector = type(first).projector([models[i] for i in image_ids])
     st = Setup(dict(models), unk, p0, scale, p0.size, tie_ids, T0, spans, l_obs,
-               np.array(comp, dtype=object), np.array(names, dtype=object), A, labels, ap)
+               np.array(comp, dtype=object), np.array(names, dtype=object), A, labels, ap,
+               projector, obs_image, ground, obs_tie)
     return st, info
 
 

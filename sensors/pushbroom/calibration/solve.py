@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.sparse as sp
+from threadpoolctl import threadpool_limits
 
 from swathflow.adjustment import RankDeficiencyError, solve
 from swathflow.calibration.unknowns import CalibrationError
@@ -23,8 +25,11 @@ def _run(P, vce, robust, alpha, tol=None, max_iter=50, damping=True, covariance=
     try:
         # no covariance: the engine forms none above max_dense_cov unknowns
         extra = {} if covariance else {"max_dense_cov": 0}
-        return solve(P, vce=_vce(vce), robust=robust, alpha=alpha, sparse=True, tol=tol,
-                     max_iter=max_iter, damping=damping, **extra)
+        # one BLAS thread: the reduced systems are a few hundred unknowns, where OpenBLAS's
+        # threads only wait on each other (measured 80x slower on a busy 2-core machine)
+        with threadpool_limits(1, user_api="blas"):
+            return solve(P, vce=_vce(vce), robust=robust, alpha=alpha, sparse=True, tol=tol,
+                         max_iter=max_iter, damping=damping, **extra)
     except RankDeficiencyError as exc:
         raise CalibrationError(
             f"the observations cannot determine the parameters: {exc}. Add control or tie "
@@ -116,7 +121,9 @@ def solve_two_step(st: Setup, z0, free, *, vce, alpha, obs_sigma, tie_sigma,
     if not converged and best is not None and best[0] < gap:
         final = best[1]
     z = final.x.copy()          # the values measured closest to the joint optimum
-    if vce or not final.cov.any():  # statistics at the two-step solution (no step taken)
+    no_cov = (final.cov.count_nonzero() == 0 if sp.issparse(final.cov)
+              else not final.cov.any())
+    if vce or no_cov:               # statistics at the two-step solution (no step taken)
         final = _run(st.problem(z, free, obs_sigma, tie_sigma), vce, False, alpha,
                      tol=np.inf)
         final.x[:] = z
