@@ -8,6 +8,9 @@ Reproduce:  python benchmarks/bench_flow.py --preset survey --workers 1,2
             the flow's fixed cost: every stage's output fresh, only the run manifest gone;
             --timeline: each run's timeline, stages and Dask tasks per worker, with the
             workers' idle time)
+            python benchmarks/bench_flow.py --prefect 240
+            (only Prefect's own cost: a flow of 240 task runs that do nothing, the CPU
+            seconds of this process and of Prefect's temporary server, its start apart)
 The mission is simulated once into --work (default: a temporary folder); the truth
 calibration is passed so every run does the same work (ingest, POS, rectify, mosaic).
 CPU seconds are the run's process and its reaped children (the Dask workers and Prefect's
@@ -55,6 +58,42 @@ _CLI_ENV = {"PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL": "CRITICAL",
             "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120"}
 
 
+# a flow of N task runs that do nothing, as the mission flow's rectify tasks are declared;
+# the server's CPU read after it has recorded them (it records task runs from their events,
+# in batches, after the flow has returned)
+_PREFECT = ("import os, sys, time, resource\nN = int(sys.argv[1])\n"
+            "from prefect import flow, task, unmapped\n"
+            "from prefect.cache_policies import NO_CACHE\n"
+            "@task(name='t', cache_policy=NO_CACHE, retries=1, retry_delay_seconds=2, "
+            "task_run_name='t-{i}')\n"
+            "def t(i: int, x: str) -> str:\n    return str(i)\n"
+            "@flow(name='swathflow-bench-prefect', log_prints=False)\n"
+            "def f(n: int):\n"
+            "    return [x.result() for x in t.map(i=list(range(n)), x=unmapped('a'))]\n"
+            "import psutil\n"
+            "def server():\n"
+            "    ps = [p for p in psutil.Process().children(recursive=True)\n"
+            "          if 'uvicorn' in ' '.join(p.cmdline())]\n"
+            "    return sum(p.cpu_times().user + p.cpu_times().system for p in ps)\n"
+            "f(1)\ntime.sleep(10)\ns0 = server()\nc0 = time.process_time()\n"
+            "f(N)\nc1 = time.process_time()\nlast, now = -1.0, server()\n"
+            "while now - last > 0.5:\n    time.sleep(5)\n    last, now = now, server()\n"
+            "print('START', s0)\nprint('OWN', c1 - c0)\nprint('SERVER', now - s0)\n")
+
+
+def prefect_cost(n: int) -> int:
+    """Prefect's own cost of ``n`` task runs (see :data:`_PREFECT`)."""
+    wall, cpu, text = _timed([sys.executable, "-c", _PREFECT, str(n)])
+    get = lambda k: float(text.split(k, 1)[1].split()[0])  # noqa: E731
+    print(f"Prefect, {n} task runs that do nothing (load {os.getloadavg()[0]:.1f}): "
+          f"temporary server's start and a first flow {get('START'):.1f} CPU-s; then "
+          f"{n} task runs {get('OWN'):.2f} CPU-s in the flow's process and "
+          f"{get('SERVER'):.2f} CPU-s in the server ({1e3 * get('SERVER') / n:.0f} ms a "
+          f"task run, recorded after the flow returns); {cpu:.1f} CPU-s in all")
+    print(f"reproduce: python benchmarks/bench_flow.py --prefect {n}")
+    return 0
+
+
 def _timed(cmd: list[str]) -> tuple[float, float, str]:
     """Wall and CPU seconds of a command in a fresh process, and its stdout."""
     c0, t0 = children_cpu(), time.perf_counter()
@@ -84,7 +123,11 @@ def main(argv=None) -> int:
                     help="only the rectify stage's CPU per swing in this process (N swings, "
                          "sync scheduler): run it with main's interpreter beside this one "
                          "to compare the engines")
+    ap.add_argument("--prefect", type=int, metavar="N",
+                    help="only Prefect's own cost of N task runs that do nothing")
     args = ap.parse_args(argv)
+    if args.prefect:
+        return prefect_cost(args.prefect)
     work = Path(args.work or tempfile.mkdtemp(prefix="swathflow-bench-"))
     mission = work / f"{args.preset}-mission"
     if not (mission / "mission.toml").exists():

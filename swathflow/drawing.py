@@ -78,12 +78,18 @@ def svg(fig: Figure) -> str:
     return text[:a] + text[b + len("</metadata>"):] if 0 <= a < b else text
 
 
+#: Pillow's PNG options of a written figure: zlib level 3 encoded the mosaic's report
+#: picture's map 2.5x faster than Pillow's default 6 (65 against 161 ms), 1 % larger
+PNG_OPTIONS = {"compress_level": 3}
+
+
 def write_png(fig: Figure, path) -> str:
-    """Write the figure as PNG to ``path`` atomically; returns the path."""
+    """Write the figure as PNG to ``path`` atomically (:data:`PNG_OPTIONS`); returns the
+    path."""
     import os
     path = os.fspath(path)
     with report_style(), atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", metadata={"Software": None})
+        fig.savefig(tmp, format="png", metadata={"Software": None}, pil_kwargs=PNG_OPTIONS)
     return path
 
 

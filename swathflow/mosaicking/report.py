@@ -138,6 +138,7 @@ def _backdrop(ax, grey, layout):
 def map_panel(ax, rep: dict, grey, layout):
     """The residual map on ``ax``; returns the colour mapping (for a colour bar)."""
     import matplotlib
+    from matplotlib.collections import PatchCollection
     from matplotlib.patches import Rectangle
 
     from swathflow.drawing import map_frame
@@ -145,25 +146,32 @@ def map_panel(ax, rep: dict, grey, layout):
     cmap = matplotlib.colormaps[COLOUR_MAP]
     norm = matplotlib.colors.Normalize(0.0, top)
     _backdrop(ax, grey, layout)
-    kinds = set()
+    # every overlap's window in one collection of its kind (one artist each, not one a
+    # window: the survey's 600 windows drew in seconds as patches of their own)
+    boxes: dict = {"used": [], "rejected": [], "skipped": []}
+    colours = []
     for o, r in zip(rep.get("overlaps", []), res):
         r0, c0, r1, c1 = o["window"]
         x, y = _to_map(layout, r1, c0)                         # lower left corner
         w, h = (c1 - c0) * abs(layout.transform.a), (r1 - r0) * abs(layout.transform.e)
-        if np.isfinite(r):
-            ax.add_patch(Rectangle((x, y), w, h, fc=cmap(norm(r)), ec="none", alpha=0.6))
-            kinds.add("used")
-        elif o["ok"]:
-            ax.add_patch(Rectangle((x, y), w, h, fc="none", ec=REJECTED, lw=1.2))
-            kinds.add("rejected")
-        else:
-            ax.add_patch(Rectangle((x, y), w, h, fc="none", ec=SKIPPED, lw=0.8, ls=":"))
-            kinds.add("skipped")
+        kind = "used" if np.isfinite(r) else ("rejected" if o["ok"] else "skipped")
+        boxes[kind].append(Rectangle((float(x), float(y)), float(w), float(h)))
+        if kind == "used":
+            colours.append(cmap(norm(r)))
+    styles = {"used": dict(facecolors=colours, edgecolors="none", alpha=0.6),
+              "rejected": dict(facecolors="none", edgecolors=REJECTED, linewidths=1.2),
+              "skipped": dict(facecolors="none", edgecolors=SKIPPED, linewidths=0.8,
+                              linestyles=":")}
+    for kind, patches in boxes.items():
+        if patches:
+            ax.add_collection(PatchCollection(patches, match_original=False, **styles[kind]))
+    kinds = {k for k, v in boxes.items() if v}
     ends, gain = arrow_ends(rep, layout)
-    for (xa, ya), (xb, yb) in ends:
-        ax.annotate("", xy=(xb, yb), xytext=(xa, ya),
-                    arrowprops=dict(arrowstyle="-|>", color="#00bcd4", lw=1.3,
-                                    shrinkA=0, shrinkB=0))
+    if ends:                # every residual vector in one quiver, from start to end
+        (a, b) = np.array(ends, float).transpose(1, 0, 2)
+        ax.quiver(a[:, 0], a[:, 1], b[:, 0] - a[:, 0], b[:, 1] - a[:, 1], angles="xy",
+                  scale_units="xy", scale=1, color="#00bcd4", width=0.003, headwidth=4,
+                  headlength=5, headaxislength=4.5, zorder=3)
     map_frame(ax, _crs_name(layout))
     _map_legend(ax, kinds, bool(ends), gain, layout)
     return matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
@@ -223,6 +231,7 @@ def _node_places(rep: dict, layout) -> dict:
 def graph_panel(ax, rep: dict, layout):
     """The overlap graph on ``ax`` (map coordinates); returns the colour mapping."""
     import matplotlib
+    from matplotlib.collections import LineCollection, PatchCollection
     from matplotlib.lines import Line2D
     from matplotlib.patches import Rectangle
 
@@ -233,20 +242,29 @@ def graph_panel(ax, rep: dict, layout):
     x0, x1, y0, y1 = _extent(layout)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
+    # the footprints, the edges and the swings' centres one collection each (one artist
+    # each, not one a swing and two an overlap: 1,200 artists on the survey)
+    boxes = []
     for s in layout.swings:
         x, y = _to_map(layout, s.row + s.height, s.col)
-        ax.add_patch(Rectangle((float(x), float(y)), s.width * abs(layout.transform.a),
-                               s.height * abs(layout.transform.e), fc="#f3f3f3",
-                               ec="#bbbbbb", lw=0.6, zorder=0))
-    states = set()
-    for e in graph_edges(rep, layout):
-        (xa, ya), (xb, yb) = e["a"], e["b"]
-        states.add(e["state"])
-        kw = (dict(color=cmap(norm(e["residual"])), lw=2.5) if e["state"] == "used" else
-              dict(color=REJECTED, lw=1.5) if e["state"] == "rejected" else
-              dict(color=SKIPPED, lw=1.0, ls=":"))
-        ax.plot([xa, xb], [ya, yb], zorder=2, solid_capstyle="round", **kw)
-        ax.plot([xa, xb], [ya, yb], "o", ms=2.5, color="#555555", zorder=3)
+        boxes.append(Rectangle((float(x), float(y)), s.width * abs(layout.transform.a),
+                               s.height * abs(layout.transform.e)))
+    if boxes:
+        ax.add_collection(PatchCollection(boxes, facecolors="#f3f3f3", edgecolors="#bbbbbb",
+                                          linewidths=0.6, zorder=0))
+    edges = graph_edges(rep, layout)
+    states = {e["state"] for e in edges}
+    style = {"used": (2.5, "solid"), "rejected": (1.5, "solid"), "skipped": (1.0, ":")}
+    # drawn in the order of the overlaps, as one line each before
+    if edges:
+        ax.add_collection(LineCollection(
+            [[e["a"], e["b"]] for e in edges], zorder=2, capstyle="round",
+            colors=[cmap(norm(e["residual"])) if e["state"] == "used" else
+                    REJECTED if e["state"] == "rejected" else SKIPPED for e in edges],
+            linewidths=[style[e["state"]][0] for e in edges],
+            linestyles=[style[e["state"]][1] for e in edges]))
+        ends = np.array([p for e in edges for p in (e["a"], e["b"])], float)
+        ax.plot(ends[:, 0], ends[:, 1], "o", ms=2.5, color="#555555", zorder=3)
     places = _node_places(rep, layout)
     anchors = set(rep.get("anchors", []))
     sig = {n["node"]: n["sigma"] for n in rep.get("nodes", [])}
