@@ -42,27 +42,22 @@ def enu_basis(lat_deg, lon_deg) -> np.ndarray:
     return np.stack([east, north, up], -2)
 
 
-def ground_jacobian(model, xyz: np.ndarray, lat, lon, step: float = 0.5,
-                    at: np.ndarray | None = None) -> np.ndarray:
-    """``(n, 2, 3)``: d(line, element) / d(east, north, up) (px per m) of ``model`` at the
-    ECEF points ``xyz`` by forward differences of ``step`` metres (``at``: the points'
-    image coordinates, when known)."""
+def ground_jacobian(d_ground: np.ndarray, lat, lon) -> np.ndarray:
+    """``(n, 2, 3)``: d(line, element) / d(east, north, up) (px per m) from the partials
+    ``d_ground`` ``(n, 2, 3)`` by the ECEF coordinates (a projector's, analytic) at points
+    of geodetic ``lat``, ``lon`` (deg)."""
     basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))      # (n, 3, 3)
-    at = model.ground_to_image(xyz, clip=False) if at is None else at
-    out = np.empty((len(xyz), 2, 3))
-    for k in range(3):
-        out[:, :, k] = (model.ground_to_image(xyz + step * basis[:, k, :], clip=False)
-                        - at) / step
-    return out
+    return np.einsum("nax,nkx->nak", np.asarray(d_ground, float), basis)
 
 
-def mono_errors(model, xyz: np.ndarray, lat, lon, image: np.ndarray, jac: np.ndarray,
+def mono_errors(project, xyz: np.ndarray, lat, lon, image: np.ndarray, jac: np.ndarray,
                 computed: np.ndarray, iterations: int = 8) -> np.ndarray:
     """``(n, 2)``: east, north (m) of where each observed ``image`` point (line, element)
     meets its surveyed point's height, minus the surveyed ECEF point ``xyz``: Newton-chord
-    steps on ``ground_to_image`` in the point's horizontal plane with the Jacobian ``jac``
-    at the surveyed point (``computed``: its image position), one model call a step (a
-    pendulum's line coordinate bends strongly near the swing's ends, where one linear
+    steps on ``project`` (ECEF points ``(n, 3)`` -> their image coordinates ``(n, 2)``, the
+    same observations in the same order) in the point's horizontal plane with the Jacobian
+    ``jac`` at the surveyed point (``computed``: its image position), one bulk call a step
+    (a pendulum's line coordinate bends strongly near the swing's ends, where one linear
     step is off by decimetres)."""
     basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))
     J = jac[:, :, :2]
@@ -77,7 +72,7 @@ def mono_errors(model, xyz: np.ndarray, lat, lon, image: np.ndarray, jac: np.nda
         if not np.nanmax(np.abs(step), initial=0.0) > 1e-4:
             break
         p = xyz + d[:, :1] * basis[:, 0, :] + d[:, 1:] * basis[:, 1, :]
-        r = image - model.ground_to_image(p, clip=False)
+        r = image - project(p)
     return d
 
 

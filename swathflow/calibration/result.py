@@ -15,6 +15,7 @@ import pandas as pd
 from swathflow.adjustment import Solution
 from swathflow.calibration.accuracy import JACOBIAN, MONO, ground_jacobian, mono_errors
 from swathflow.calibration.points import point_context
+from swathflow.sensormodel.projection import projectors
 from swathflow.calibration.unknowns import Unknowns
 
 
@@ -22,35 +23,88 @@ def _direction(model) -> str:
     return str(model.image_attrs.get("direction", "")).upper()
 
 
+def _by_image(obs: pd.DataFrame) -> np.ndarray:
+    """Positions of ``obs`` grouped by image (images in order of appearance, rows stable)."""
+    codes = pd.factorize(obs["image_id"])[0]
+    return np.argsort(codes, kind="stable")
+
+
+def observation_context(models: Mapping, obs: pd.DataFrame) -> pd.DataFrame:
+    """Each observation's context (:func:`~swathflow.calibration.points.point_context`),
+    rows in the order of ``obs``; it does not depend on the parameters: one table serves
+    every stage."""
+    perm = _by_image(obs)
+    srt = obs.iloc[perm]
+    parts = [pd.DataFrame(point_context(models[iid], grp))
+             for iid, grp in srt.groupby("image_id", sort=False)]
+    if not parts:
+        return pd.DataFrame(index=obs.index)
+    ctx = pd.concat(parts, ignore_index=True)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(perm.size)
+    return ctx.iloc[inv].set_axis(obs.index)
+
+
+def _project_all(models: Mapping, vectors: Mapping, ids: np.ndarray, xyz: np.ndarray):
+    """``project(points, partials)`` over the observations (image ``ids``, in that order):
+    one bulk call per sensor (:meth:`SensorModel.projector`), each image's ``vectors``."""
+    order = list(dict.fromkeys(ids.tolist()))
+    pos = {iid: k for k, iid in enumerate(order)}
+    image = np.array([pos[i] for i in ids], dtype=np.intp)
+    groups = []
+    for proj, members in projectors([models[iid] for iid in order]):
+        rows = np.flatnonzero(np.isin(image, members))
+        V = np.stack([np.asarray(vectors[order[k]], float) for k in members])
+        groups.append((proj, rows, np.searchsorted(members, image[rows]), V))
+
+    def project(points, partials=False):
+        out = np.full((len(points), 2), np.nan)
+        dg = np.full((len(points), 2, 3), np.nan) if partials else None
+        for proj, rows, local, V in groups:
+            p = proj.project(local, points[rows], V, partials)
+            out[rows] = p.image
+            if partials:
+                dg[rows] = p.d_ground
+        return (out, dg) if partials else out
+
+    return project
+
+
 def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.DataFrame,
-                   stage: str) -> pd.DataFrame:
+                   stage: str, context: pd.DataFrame | None = None) -> pd.DataFrame:
     """Observed minus computed per observation: x (element), y (line), pixels; with the
-    point's context (:func:`~swathflow.calibration.points.point_context`) and the model's
-    Jacobian d(line, element) / d(east, north, up) in px per metre at the surveyed point
-    (:data:`~swathflow.calibration.accuracy.JACOBIAN`) and the observation's own ground
-    error east, north in metres (:data:`~swathflow.calibration.accuracy.MONO`): what
-    :func:`~swathflow.calibration.accuracy.point_errors` makes the ground errors of."""
-    out = []
-    for iid, grp in obs.groupby("image_id", sort=False):
-        m = models[iid].with_vector(vectors[iid])
-        xyz = grp[["X", "Y", "Z"]].to_numpy(float)
-        comp = m.ground_to_image(xyz, clip=False)
-        ctx = point_context(models[iid], grp)
-        jac = ground_jacobian(m, xyz, ctx["lat"], ctx["lon"], at=comp)
-        mono = mono_errors(m, xyz, ctx["lat"], ctx["lon"],
-                           grp[["line", "element"]].to_numpy(float), jac, comp)
-        jac = jac.reshape(-1, 6)
-        out.append(pd.DataFrame({
-            "row": grp.index.to_numpy(), "gcp_id": grp["gcp_id"].to_numpy(), "image_id": iid,
-            "direction": _direction(models[iid]), "role": grp["role"].to_numpy(),
-            "stage": stage, "x": grp["element"].to_numpy(float) - comp[:, 1],
-            "y": grp["line"].to_numpy(float) - comp[:, 0],
-            **ctx, **{c: jac[:, k] for k, c in enumerate(JACOBIAN)},
-            **{c: mono[:, k] for k, c in enumerate(MONO)}}, index=grp.index))
-    if not out:
+    point's context (:func:`observation_context`; ``context``: already computed for
+    ``obs``) and the model's Jacobian d(line, element) / d(east, north, up) in px per metre
+    at the surveyed point (:data:`~swathflow.calibration.accuracy.JACOBIAN`, from the
+    projector's analytic partials) and the observation's own ground error east, north in
+    metres (:data:`~swathflow.calibration.accuracy.MONO`): what
+    :func:`~swathflow.calibration.accuracy.point_errors` makes the ground errors of. Every
+    image's observations in one bulk projection per sensor."""
+    if not len(obs):
         return pd.DataFrame(columns=["row", "gcp_id", "image_id", "direction", "role", "stage",
                                      "x", "y"])
-    return pd.concat(out).sort_index()
+    ctx = observation_context(models, obs) if context is None else context
+    perm = _by_image(obs)                # one image's rows together: the projector's order
+    obs, ctx = obs.iloc[perm], ctx.iloc[perm]
+    first = dict.fromkeys(obs["image_id"])
+    ids = obs["image_id"].to_numpy()
+    xyz = obs[["X", "Y", "Z"]].to_numpy(float)
+    observed = obs[["line", "element"]].to_numpy(float)
+    project = _project_all(models, vectors, ids, xyz)
+    comp, dg = project(xyz, True)
+    lat, lon = ctx["lat"].to_numpy(float), ctx["lon"].to_numpy(float)
+    jac = ground_jacobian(dg, lat, lon)
+    mono = mono_errors(project, xyz, lat, lon, observed, jac, comp)
+    jac = jac.reshape(-1, 6)
+    dirs = {iid: _direction(models[iid]) for iid in first}
+    out = pd.DataFrame({
+        "row": obs.index.to_numpy(), "gcp_id": obs["gcp_id"].to_numpy(), "image_id": ids,
+        "direction": [dirs[i] for i in ids], "role": obs["role"].to_numpy(),
+        "stage": stage, "x": observed[:, 1] - comp[:, 1], "y": observed[:, 0] - comp[:, 0],
+        **{c: ctx[c].to_numpy() for c in ctx.columns},
+        **{c: jac[:, k] for k, c in enumerate(JACOBIAN)},
+        **{c: mono[:, k] for k, c in enumerate(MONO)}}, index=obs.index)
+    return out.sort_index(kind="stable")
 
 
 def summarize(res: pd.DataFrame, by=("stage", "image_id", "direction", "role")) -> pd.DataFrame:
