@@ -108,21 +108,30 @@ def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.D
 
 
 def summarize(res: pd.DataFrame, by=("stage", "image_id", "direction", "role")) -> pd.DataFrame:
-    """Mean, std (ddof 1), RMS of x and y and counts per group (NaN rows counted apart)."""
-    rows = []
-    for key, g in res.groupby(list(by), sort=False):
-        ok = g[["x", "y"]].notna().all(axis=1)
-        x, y = g.loc[ok, "x"].to_numpy(), g.loc[ok, "y"].to_numpy()
-        row = dict(zip(by, key if isinstance(key, tuple) else (key,)))
-        row.update(n=int(ok.sum()), n_unprojected=int((~ok).sum()),
-                   mean_x=float(x.mean()) if x.size else np.nan,
-                   std_x=float(x.std(ddof=1)) if x.size > 1 else np.nan,
-                   mean_y=float(y.mean()) if y.size else np.nan,
-                   std_y=float(y.std(ddof=1)) if y.size > 1 else np.nan,
-                   rms_x=float(np.sqrt(np.mean(x ** 2))) if x.size else np.nan,
-                   rms_y=float(np.sqrt(np.mean(y ** 2))) if y.size else np.nan)
-        rows.append(row)
-    return pd.DataFrame(rows)
+    """Mean, std (ddof 1), RMS of x and y and counts per group (NaN rows counted apart);
+    groups in order of appearance."""
+    cols = ["n", "n_unprojected", "mean_x", "std_x", "mean_y", "std_y", "rms_x", "rms_y"]
+    if not len(res):
+        return pd.DataFrame(columns=list(by) + cols)
+    ok = res[["x", "y"]].notna().all(axis=1).to_numpy()
+    x = np.where(ok, res["x"].to_numpy(float), 0.0)
+    y = np.where(ok, res["y"].to_numpy(float), 0.0)
+    frame = pd.DataFrame({"ok": ok.astype(float), "bad": (~ok).astype(float), "x": x, "y": y,
+                          "x2": x * x, "y2": y * y})
+    keys = [res[b].to_numpy() for b in by]
+    g = frame.groupby(keys, sort=False, dropna=False).sum()
+    n = g["ok"].to_numpy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx, my = g["x"].to_numpy() / n, g["y"].to_numpy() / n
+        vx = (g["x2"].to_numpy() - n * mx ** 2) / (n - 1)
+        vy = (g["y2"].to_numpy() - n * my ** 2) / (n - 1)
+        out = {"n": n.astype(int), "n_unprojected": g["bad"].to_numpy().astype(int),
+               "mean_x": mx, "std_x": np.where(n > 1, np.sqrt(np.clip(vx, 0, None)), np.nan),
+               "mean_y": my, "std_y": np.where(n > 1, np.sqrt(np.clip(vy, 0, None)), np.nan),
+               "rms_x": np.sqrt(g["x2"].to_numpy() / n), "rms_y": np.sqrt(g["y2"].to_numpy() / n)}
+    idx = g.index.to_frame(index=False)
+    idx.columns = list(by)
+    return pd.concat([idx, pd.DataFrame(out)], axis=1)
 
 
 @dataclass
