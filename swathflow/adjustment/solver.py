@@ -19,8 +19,10 @@ from swathflow.adjustment.schur import PointSplit, SchurNormal
 #: point's crossing found to a tolerance) make the cost rough at that level, and the
 #: steps below it crawl (the survey took 13 more iterations for 0.01 sigma)
 FTOL = 1e-4
-#: a damped step lowering the cost by less than this fraction ends the iteration
+#: a damped step, or one shorter than STALL_STEP (sigma units), lowering the cost by less
+#: than this fraction ends the iteration
 FTOL_STALL = 1e-6
+STALL_STEP = 0.01
 
 
 def _critical(alpha, dof):
@@ -202,8 +204,10 @@ class _Solver:
             lam = lam / 10.0 if lam > 1e-6 else 0.0
             self.history.append({"cost": cost, "cost_new": cost_new, "step_sigma": step,
                                  "damping": lam, "active": int(act.sum())})
-            if lam > 0.0 and 0.0 <= cost - cost_new < FTOL_STALL * cost:
-                # damped steps that no longer lower the cost (a kinked model): converged
+            if (lam > 0.0 or step < STALL_STEP) and 0.0 <= cost - cost_new < FTOL_STALL * cost:
+                # damped steps, or steps of a hundredth of a sigma, that no longer lower the
+                # cost (a kinked model; a crossing found to a tolerance puts a floor under
+                # the step that grows with the number of unknowns): converged
                 self._remaining(dxf)
                 r, J = self.evaluate(self.x)
                 fresh, conv = True, True
