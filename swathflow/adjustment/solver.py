@@ -204,7 +204,7 @@ class _Solver:
             lam = lam / 10.0 if lam > 1e-6 else 0.0
             self.history.append({"cost": cost, "cost_new": cost_new, "step_sigma": step,
                                  "damping": lam, "active": int(act.sum())})
-            if (lam > 0.0 or step < STALL_STEP) and 0.0 <= cost - cost_new < FTOL_STALL * cost:
+            if (lam > 0.0 or step < STALL_STEP) and cost - cost_new < FTOL_STALL * cost:
                 # damped steps, or steps of a hundredth of a sigma, that no longer lower the
                 # cost (a kinked model; a crossing found to a tolerance puts a floor under
                 # the step that grows with the number of unknowns): converged
@@ -349,10 +349,16 @@ class _Solver:
         cand = self.pts.robust & self.point_ok & (k_p > 0)
         ratio = np.where(cand, T / crit, 0.0)
         if cand.any() and ratio.max() > 1.0:
-            p = int(np.argmax(ratio))
-            self.rejected[p] = {"phase": "snooping", "statistic": float(T[p]),
-                                "dof": int(k_p[p])}
-            self.point_ok[p] = False
+            # the worst point, and with it every failing point with unknowns of its own (a
+            # tie point's ground): a blunder there moves its own ground, hardly the others,
+            # so they are tested in one round, not one re-adjustment each
+            worst = int(np.argmax(ratio))
+            out = (ratio > 1.0) & self._owns_point_block()
+            out[worst] = True
+            for p in np.flatnonzero(out):
+                self.rejected[int(p)] = {"phase": "snooping", "statistic": float(T[p]),
+                                         "dof": int(k_p[p])}
+            self.point_ok[out] = False
             return "rejected"
         if readmit and self.rejected:
             idx = np.arange(blocks.shape[1])
@@ -361,12 +367,25 @@ class _Solver:
             rr = np.where(np.isfinite(r), r, 0.0)
             Tp, kp = _block_stat(rr, qpl, self.pts.obs, qdiag)
             crit_p = _critical(alpha, np.maximum(kp, 1))
-            back = [p for p in self.rejected if Tp[p] <= crit_p[p]]
+            own = self._owns_point_block()
+            back = [p for p in self.rejected if not own[p] and Tp[p] <= crit_p[p]]
             for p in back:
                 self.rejected.pop(p)
                 self.point_ok[p] = True
             return "readmitted" if back else "done"
         return "done"
+
+    def _owns_point_block(self) -> np.ndarray:
+        """Per point: its observations touch point unknowns (a tie point's ground). Such a
+        point, once rejected, is not predicted by the adjustment (its ground then follows
+        only its weak prior): its prediction test always passes, so it is not re-admitted."""
+        own = np.zeros(len(self.pts.group), bool)
+        if self.schur is None or self._split is None:
+            return own
+        blk = self._split[1].block
+        obs = self.pts.obs
+        valid = obs >= 0
+        return (valid & (blk[np.where(valid, obs, 0)] >= 0)).any(axis=1)
 
     def _leave_one_out(self, r, w, act, cov, Jf) -> np.ndarray:
         """Per point, the factor of its estimated variance components were they estimated
