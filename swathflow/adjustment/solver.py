@@ -349,11 +349,11 @@ class _Solver:
         cand = self.pts.robust & self.point_ok & (k_p > 0)
         ratio = np.where(cand, T / crit, 0.0)
         if cand.any() and ratio.max() > 1.0:
-            # the worst point, and with it every failing point with unknowns of its own (a
-            # tie point's ground): a blunder there moves its own ground, hardly the others,
-            # so they are tested in one round, not one re-adjustment each
+            # the worst point, and with it every failing point with unknowns of its own
+            # alone (a tie point's ground, :meth:`_sole_owners`): one round for them all,
+            # not one re-adjustment each
             worst = int(np.argmax(ratio))
-            out = (ratio > 1.0) & self._owns_point_block()
+            out = (ratio > 1.0) & self._sole_owners()
             out[worst] = True
             for p in np.flatnonzero(out):
                 self.rejected[int(p)] = {"phase": "snooping", "statistic": float(T[p]),
@@ -367,7 +367,7 @@ class _Solver:
             rr = np.where(np.isfinite(r), r, 0.0)
             Tp, kp = _block_stat(rr, qpl, self.pts.obs, qdiag)
             crit_p = _critical(alpha, np.maximum(kp, 1))
-            own = self._owns_point_block()
+            own = self._sole_owners()
             back = [p for p in self.rejected if not own[p] and Tp[p] <= crit_p[p]]
             for p in back:
                 self.rejected.pop(p)
@@ -375,17 +375,24 @@ class _Solver:
             return "readmitted" if back else "done"
         return "done"
 
-    def _owns_point_block(self) -> np.ndarray:
-        """Per point: its observations touch point unknowns (a tie point's ground). Such a
-        point, once rejected, is not predicted by the adjustment (its ground then follows
-        only its weak prior): its prediction test always passes, so it is not re-admitted."""
+    def _sole_owners(self) -> np.ndarray:
+        """Per point: it alone observes point unknowns (a tie point tested whole: its
+        ground). Once rejected, such a point is not predicted by the adjustment (its ground
+        then follows only its weak prior, so a prediction test always passes: it is not
+        re-admitted), and a blunder in it moves its own ground, hardly the rest (failing
+        ones are rejected together). Rays of one ground point tested one by one share it:
+        a blunder in one fails the others, so they are rejected one at a time."""
         own = np.zeros(len(self.pts.group), bool)
         if self.schur is None or self._split is None:
             return own
         blk = self._split[1].block
         obs = self.pts.obs
         valid = obs >= 0
-        return (valid & (blk[np.where(valid, obs, 0)] >= 0)).any(axis=1)
+        b = np.where(valid, blk[np.where(valid, obs, 0)], -1).max(axis=1)   # its block
+        has = b >= 0
+        count = np.bincount(b[has], minlength=int(b.max()) + 1 if has.any() else 0)
+        own[has] = count[b[has]] == 1
+        return own
 
     def _leave_one_out(self, r, w, act, cov, Jf) -> np.ndarray:
         """Per point, the factor of its estimated variance components were they estimated

@@ -191,6 +191,7 @@ def match_ties(models, sources, terrain, ref, settings: MatchSettings,
         tables.append(t)
         if stats is not None:
             stats.append(st)
+    tables = [t for t in tables if len(t)]
     if not tables:
         return pd.DataFrame(columns=list(TIE_COLUMNS))
     return pd.concat(tables, ignore_index=True)
