@@ -99,8 +99,10 @@ def test_one_false_tie_in_12_is_rejected(models, priors):
 
 def test_false_ties_are_rejected_together_in_few_iterations(models, priors):
     """Four false ties among 60: all four rejected, no true tie with them, in one
-    snooping round (not one re-adjustment per false tie), in at most 15 iterations."""
+    snooping round (not one re-adjustment per false tie)."""
     res = _run(models, priors, seed=7, n_ties=60, false_shift=6.0, n_false=4)
     info = res.options["ties"]
     assert sorted(info["rejected_names"]) == ["T000", "T001", "T002", "T003"]
-    assert res.solution.iterations <= 15, res.solution.iterations
+    # one snooping round for the four: 8 iterations measured; one re-adjustment per
+    # false tie took 12
+    assert res.solution.iterations <= 10, res.solution.iterations

@@ -376,8 +376,8 @@ class _Solver:
         return "done"
 
     def _sole_owners(self) -> np.ndarray:
-        """Per point: it alone observes point unknowns (a tie point tested whole: its
-        ground). Once rejected, such a point is not predicted by the adjustment (its ground
+        """Per point: of the tested points, it alone observes its point unknowns (a tie
+        point tested whole: its ground). Once rejected, such a point is not predicted by the adjustment (its ground
         then follows only its weak prior, so a prediction test always passes: it is not
         re-admitted), and a blunder in it moves its own ground, hardly the rest (failing
         ones are rejected together). Rays of one ground point tested one by one share it:
@@ -389,7 +389,7 @@ class _Solver:
         obs = self.pts.obs
         valid = obs >= 0
         b = np.where(valid, blk[np.where(valid, obs, 0)], -1).max(axis=1)   # its block
-        has = b >= 0
+        has = (b >= 0) & self.pts.robust             # tested points (not the priors)
         count = np.bincount(b[has], minlength=int(b.max()) + 1 if has.any() else 0)
         own[has] = count[b[has]] == 1
         return own
