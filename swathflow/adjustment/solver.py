@@ -41,8 +41,10 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
     vce: estimate the variance components of all labels (True), of the given labels, or
         none (False). A component whose redundancy is below ``min_redundancy`` keeps 1.
     robust: data snooping removes the worst point while its chi-square test (the 2-D
-        or k-D statistic of the whole point) fails at ``alpha``; rejected points whose
-        prediction passes the test are re-admitted once.
+        or k-D statistic of the whole point) fails at ``alpha``, and with it every failing
+        point that alone observes its point unknowns (a tie point tested whole); rejected
+        points whose prediction passes the test are re-admitted once (not those: once
+        rejected, nothing predicts them).
     tol: convergence when the step's length in sigma units (``sqrt(dx' N dx)``) is below.
     jac_refresh: steps shorter than this (sigma units) keep the Jacobian (modified
         Newton); the final statistics always use a Jacobian at the solution.
@@ -377,11 +379,12 @@ class _Solver:
 
     def _sole_owners(self) -> np.ndarray:
         """Per point: of the tested points, it alone observes its point unknowns (a tie
-        point tested whole: its ground). Once rejected, such a point is not predicted by the adjustment (its ground
-        then follows only its weak prior, so a prediction test always passes: it is not
-        re-admitted), and a blunder in it moves its own ground, hardly the rest (failing
-        ones are rejected together). Rays of one ground point tested one by one share it:
-        a blunder in one fails the others, so they are rejected one at a time."""
+        point tested whole: its ground). Once rejected, such a point is not predicted by
+        the adjustment (its ground then follows only its weak prior, so a prediction test
+        always passes: it is not re-admitted), and a blunder in it moves its own ground,
+        hardly the rest (failing ones are rejected together). Rays of one ground point
+        tested one by one share it: a blunder in one fails the others, so they are
+        rejected one at a time."""
         own = np.zeros(len(self.pts.group), bool)
         if self.schur is None or self._split is None:
             return own
