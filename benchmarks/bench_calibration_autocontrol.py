@@ -45,7 +45,7 @@ def main() -> None:
         m = load_mission(work)
         opts = CalibrationOptions(reference=str(ref), ties=not a.no_ties,
                                   max_rounds=a.rounds)
-        res = calibrate_mission(m, opts)
+        res = calibrate_mission(m, opts, progress=lambda line: print("  " + line, flush=True))
         out = Path(tmp) / "out"
         res.write(out)
         write_report(res, out / "report.html")
