@@ -23,6 +23,9 @@ FTOL = 1e-4
 #: than this fraction ends the iteration
 FTOL_STALL = 1e-6
 STALL_STEP = 0.01
+#: points whose observations all have redundancy numbers above this are rejected together
+#: by data snooping (see _Solver._low_leverage)
+LOW_LEVERAGE = 0.9
 
 
 def _critical(alpha, dof):
@@ -42,7 +45,8 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
         none (False). A component whose redundancy is below ``min_redundancy`` keeps 1.
     robust: data snooping removes the worst point while its chi-square test (the 2-D
         or k-D statistic of the whole point) fails at ``alpha``, and with it every failing
-        point that alone observes its point unknowns (a tie point tested whole); rejected
+        point that alone observes its point unknowns (a tie point tested whole) or whose
+        redundancy numbers are all above ``LOW_LEVERAGE``; rejected
         points whose prediction passes the test are re-admitted once (not those: once
         rejected, nothing predicts them).
     tol: convergence when the step's length in sigma units (``sqrt(dx' N dx)``) is below.
@@ -355,7 +359,7 @@ class _Solver:
             # alone (a tie point's ground, :meth:`_sole_owners`): one round for them all,
             # not one re-adjustment each
             worst = int(np.argmax(ratio))
-            out = (ratio > 1.0) & self._sole_owners()
+            out = (ratio > 1.0) & (self._sole_owners() | self._low_leverage(w, act, Q, Jf))
             out[worst] = True
             for p in np.flatnonzero(out):
                 self.rejected[int(p)] = {"phase": "snooping", "statistic": float(T[p]),
@@ -376,6 +380,18 @@ class _Solver:
                 self.point_ok[p] = True
             return "readmitted" if back else "done"
         return "done"
+
+    def _low_leverage(self, w, act, cov, Jf) -> np.ndarray:
+        """Per point: its observations' redundancy numbers are all at least
+        :data:`LOW_LEVERAGE` (the adjustment hardly leans on it: a blunder in it hardly
+        moves the unknowns or the other points' tests, so failing ones are rejected
+        together; hundreds of automatic control points otherwise cost a re-adjustment
+        each)."""
+        red = np.where(act, 1.0 - w * cov.diag_jqjt(Jf), 0.0)
+        obs = self.pts.obs
+        valid = obs >= 0
+        r = np.where(valid, red[np.where(valid, obs, 0)], np.inf)
+        return valid.any(axis=1) & (r.min(axis=1) >= LOW_LEVERAGE)
 
     def _sole_owners(self) -> np.ndarray:
         """Per point: of the tested points, it alone observes its point unknowns (a tie
