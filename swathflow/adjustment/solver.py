@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import stats
+from scipy.special import chdtri
 
 from swathflow.adjustment.normal import _block_stat, _Normal, _points
 from swathflow.adjustment.problem import AdjustmentError, Problem, Solution
@@ -15,10 +15,23 @@ from swathflow.adjustment.schur import PointSplit, SchurNormal
 
 
 #: relative decrease of the cost a Gauss-Newton step predicts (``step^2 / cost``) below
-#: which a step that does not lower the cost ends the iteration (the model's kinks)
-FTOL = 1e-5
-#: a damped step lowering the cost by less than this fraction ends the iteration
+#: which a step that does not lower the cost ends the iteration: the model's kinks (a
+#: point's crossing found to a tolerance) make the cost rough at that level, and the
+#: steps below it crawl (the survey took 13 more iterations for 0.01 sigma)
+FTOL = 1e-4
+#: a damped step, or one shorter than STALL_STEP (sigma units), lowering the cost by less
+#: than this fraction ends the iteration
 FTOL_STALL = 1e-6
+STALL_STEP = 0.01
+#: points whose observations all have redundancy numbers above this are rejected together
+#: by data snooping (see _Solver._low_leverage)
+LOW_LEVERAGE = 0.9
+
+
+def _critical(alpha, dof):
+    """The chi-square quantile ``1 - alpha`` for ``dof`` degrees of freedom (scipy.special's
+    inverse survival function: scipy.stats costs a second to import)."""
+    return chdtri(dof, alpha)
 
 
 def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = False,
@@ -31,8 +44,11 @@ def solve(problem: Problem, *, vce: bool | Sequence[str] = True, robust: bool = 
     vce: estimate the variance components of all labels (True), of the given labels, or
         none (False). A component whose redundancy is below ``min_redundancy`` keeps 1.
     robust: data snooping removes the worst point while its chi-square test (the 2-D
-        or k-D statistic of the whole point) fails at ``alpha``; rejected points whose
-        prediction passes the test are re-admitted once.
+        or k-D statistic of the whole point) fails at ``alpha``, and with it every failing
+        point that alone observes its point unknowns (a tie point tested whole) or whose
+        redundancy numbers are all above ``LOW_LEVERAGE``; rejected
+        points whose prediction passes the test are re-admitted once (not those: once
+        rejected, nothing predicts them).
     tol: convergence when the step's length in sigma units (``sqrt(dx' N dx)``) is below.
     jac_refresh: steps shorter than this (sigma units) keep the Jacobian (modified
         Newton); the final statistics always use a Jacobian at the solution.
@@ -197,8 +213,10 @@ class _Solver:
             lam = lam / 10.0 if lam > 1e-6 else 0.0
             self.history.append({"cost": cost, "cost_new": cost_new, "step_sigma": step,
                                  "damping": lam, "active": int(act.sum())})
-            if lam > 0.0 and 0.0 <= cost - cost_new < FTOL_STALL * cost:
-                # damped steps that no longer lower the cost (a kinked model): converged
+            if (lam > 0.0 or step < STALL_STEP) and cost - cost_new < FTOL_STALL * cost:
+                # damped steps, or steps of a hundredth of a sigma, that no longer lower the
+                # cost (a kinked model; a crossing found to a tolerance puts a floor under
+                # the step that grows with the number of unknowns): converged
                 self._remaining(dxf)
                 r, J = self.evaluate(self.x)
                 fresh, conv = True, True
@@ -336,14 +354,20 @@ class _Solver:
             return "done"
         T, k_p, blocks, qdiag = self.snoop_stats(Q, Jf, r)
         T = T / self._leave_one_out(r, w, act, Q, Jf)
-        crit = stats.chi2.ppf(1 - alpha, np.maximum(k_p, 1))
+        crit = _critical(alpha, np.maximum(k_p, 1))
         cand = self.pts.robust & self.point_ok & (k_p > 0)
         ratio = np.where(cand, T / crit, 0.0)
         if cand.any() and ratio.max() > 1.0:
-            p = int(np.argmax(ratio))
-            self.rejected[p] = {"phase": "snooping", "statistic": float(T[p]),
-                                "dof": int(k_p[p])}
-            self.point_ok[p] = False
+            # the worst point, and with it every failing point with unknowns of its own
+            # alone (a tie point's ground, :meth:`_sole_owners`): one round for them all,
+            # not one re-adjustment each
+            worst = int(np.argmax(ratio))
+            out = (ratio > 1.0) & (self._sole_owners() | self._low_leverage(w, act, Q, Jf))
+            out[worst] = True
+            for p in np.flatnonzero(out):
+                self.rejected[int(p)] = {"phase": "snooping", "statistic": float(T[p]),
+                                         "dof": int(k_p[p])}
+            self.point_ok[out] = False
             return "rejected"
         if readmit and self.rejected:
             idx = np.arange(blocks.shape[1])
@@ -351,13 +375,46 @@ class _Solver:
             qpl[:, idx, idx] += qdiag
             rr = np.where(np.isfinite(r), r, 0.0)
             Tp, kp = _block_stat(rr, qpl, self.pts.obs, qdiag)
-            crit_p = stats.chi2.ppf(1 - alpha, np.maximum(kp, 1))
-            back = [p for p in self.rejected if Tp[p] <= crit_p[p]]
+            crit_p = _critical(alpha, np.maximum(kp, 1))
+            own = self._sole_owners()
+            back = [p for p in self.rejected if not own[p] and Tp[p] <= crit_p[p]]
             for p in back:
                 self.rejected.pop(p)
                 self.point_ok[p] = True
             return "readmitted" if back else "done"
         return "done"
+
+    def _low_leverage(self, w, act, cov, Jf) -> np.ndarray:
+        """Per point: its observations' redundancy numbers are all at least
+        :data:`LOW_LEVERAGE` (the adjustment hardly leans on it: a blunder in it hardly
+        moves the unknowns or the other points' tests, so failing ones are rejected
+        together; hundreds of automatic control points otherwise cost a re-adjustment
+        each)."""
+        red = np.where(act, 1.0 - w * cov.diag_jqjt(Jf), 0.0)
+        obs = self.pts.obs
+        valid = obs >= 0
+        r = np.where(valid, red[np.where(valid, obs, 0)], np.inf)
+        return valid.any(axis=1) & (r.min(axis=1) >= LOW_LEVERAGE)
+
+    def _sole_owners(self) -> np.ndarray:
+        """Per point: of the tested points, it alone observes its point unknowns (a tie
+        point tested whole: its ground). Once rejected, such a point is not predicted by
+        the adjustment (its ground then follows only its weak prior, so a prediction test
+        always passes: it is not re-admitted), and a blunder in it moves its own ground,
+        hardly the rest (failing ones are rejected together). Rays of one ground point
+        tested one by one share it: a blunder in one fails the others, so they are
+        rejected one at a time."""
+        own = np.zeros(len(self.pts.group), bool)
+        if self.schur is None or self._split is None:
+            return own
+        blk = self._split[1].block
+        obs = self.pts.obs
+        valid = obs >= 0
+        b = np.where(valid, blk[np.where(valid, obs, 0)], -1).max(axis=1)   # its block
+        has = (b >= 0) & self.pts.robust             # tested points (not the priors)
+        count = np.bincount(b[has], minlength=int(b.max()) + 1 if has.any() else 0)
+        own[has] = count[b[has]] == 1
+        return own
 
     def _leave_one_out(self, r, w, act, cov, Jf) -> np.ndarray:
         """Per point, the factor of its estimated variance components were they estimated
@@ -471,6 +528,6 @@ class _Solver:
             out.append({"group": g.name, "point": int(self.pts.point[p]),
                         "name": str(g.point_names[int(self.pts.point[p])]),
                         "statistic": info["statistic"],
-                        "critical": float(stats.chi2.ppf(1 - alpha, max(kp, 1))),
+                        "critical": float(_critical(alpha, max(kp, 1))),
                         "phase": info["phase"]})
         return out

@@ -42,27 +42,22 @@ def enu_basis(lat_deg, lon_deg) -> np.ndarray:
     return np.stack([east, north, up], -2)
 
 
-def ground_jacobian(model, xyz: np.ndarray, lat, lon, step: float = 0.5,
-                    at: np.ndarray | None = None) -> np.ndarray:
-    """``(n, 2, 3)``: d(line, element) / d(east, north, up) (px per m) of ``model`` at the
-    ECEF points ``xyz`` by forward differences of ``step`` metres (``at``: the points'
-    image coordinates, when known)."""
+def ground_jacobian(d_ground: np.ndarray, lat, lon) -> np.ndarray:
+    """``(n, 2, 3)``: d(line, element) / d(east, north, up) (px per m) from the partials
+    ``d_ground`` ``(n, 2, 3)`` by the ECEF coordinates (a projector's, analytic) at points
+    of geodetic ``lat``, ``lon`` (deg)."""
     basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))      # (n, 3, 3)
-    at = model.ground_to_image(xyz, clip=False) if at is None else at
-    out = np.empty((len(xyz), 2, 3))
-    for k in range(3):
-        out[:, :, k] = (model.ground_to_image(xyz + step * basis[:, k, :], clip=False)
-                        - at) / step
-    return out
+    return np.einsum("nax,nkx->nak", np.asarray(d_ground, float), basis)
 
 
-def mono_errors(model, xyz: np.ndarray, lat, lon, image: np.ndarray, jac: np.ndarray,
+def mono_errors(project, xyz: np.ndarray, lat, lon, image: np.ndarray, jac: np.ndarray,
                 computed: np.ndarray, iterations: int = 8) -> np.ndarray:
     """``(n, 2)``: east, north (m) of where each observed ``image`` point (line, element)
     meets its surveyed point's height, minus the surveyed ECEF point ``xyz``: Newton-chord
-    steps on ``ground_to_image`` in the point's horizontal plane with the Jacobian ``jac``
-    at the surveyed point (``computed``: its image position), one model call a step (a
-    pendulum's line coordinate bends strongly near the swing's ends, where one linear
+    steps on ``project`` (ECEF points ``(n, 3)`` -> their image coordinates ``(n, 2)``, the
+    same observations in the same order) in the point's horizontal plane with the Jacobian
+    ``jac`` at the surveyed point (``computed``: its image position), one bulk call a step
+    (a pendulum's line coordinate bends strongly near the swing's ends, where one linear
     step is off by decimetres)."""
     basis = enu_basis(np.asarray(lat, float), np.asarray(lon, float))
     J = jac[:, :, :2]
@@ -77,20 +72,45 @@ def mono_errors(model, xyz: np.ndarray, lat, lon, image: np.ndarray, jac: np.nda
         if not np.nanmax(np.abs(step), initial=0.0) > 1e-4:
             break
         p = xyz + d[:, :1] * basis[:, 0, :] + d[:, 1:] * basis[:, 1, :]
-        r = image - model.ground_to_image(p, clip=False)
+        r = image - project(p)
     return d
 
 
-def _solve(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, bool]:
-    """(east, north, up) from stacked rays ``J`` (2k, 3) and residuals ``r`` (2k,): 3-D
-    when the rays cross at a useful angle (second return True), else east and north with
-    up held (up NaN)."""
-    if len(J) >= 4:
-        s = np.linalg.svd(J, compute_uv=False)
-        if s[-1] >= MIN_CONDITION * s[0]:
-            return np.linalg.lstsq(J, r, rcond=None)[0], True
-    en = np.linalg.lstsq(J[:, :2], r, rcond=None)[0]
-    return np.array([en[0], en[1], np.nan]), False
+def _intersections(r: pd.DataFrame, keys: list, cols: list) -> pd.DataFrame:
+    """The ground error of every point seen in two or more images (rows of ``r``; points
+    in order of first appearance), all at once: east, north, up by least squares over the
+    point's rays (the normal equations of its stacked rays, 3x3) when they cross at a
+    useful angle (:data:`MIN_CONDITION`), else east and north with up held (up NaN; the
+    mean of its single rays' own east and north when the table has them)."""
+    code = r.groupby(keys, sort=False).ngroup().to_numpy()
+    k = int(code.max()) + 1
+    J = np.stack([r[list(JACOBIAN[:3])].to_numpy(float),
+                  r[list(JACOBIAN[3:])].to_numpy(float)], 1)                 # (m, 2, 3)
+    v = np.stack([r["y"].to_numpy(float), r["x"].to_numpy(float)], 1)      # (m, 2)
+    A = np.zeros((k, 3, 3))
+    b = np.zeros((k, 3))
+    np.add.at(A, code, np.einsum("mai,maj->mij", J, J))
+    np.add.at(b, code, np.einsum("mai,ma->mi", J, v))
+    ev = np.linalg.eigvalsh(A)                       # squared singular values of the rays
+    crossed = (np.sqrt(np.clip(ev[:, 0], 0, None)) >= MIN_CONDITION * np.sqrt(ev[:, -1])) & (
+        ev[:, -1] > 0)
+    d = np.full((k, 3), np.nan)
+    if crossed.any():
+        d[crossed] = np.linalg.solve(A[crossed], b[crossed][..., None])[..., 0]
+    flat = ~crossed
+    if flat.any():
+        d[flat, :2] = (np.linalg.pinv(A[flat][:, :2, :2]) @ b[flat][:, :2, None])[..., 0]
+        if set(MONO) <= set(r.columns):              # the exact single rays
+            mono = np.zeros((k, 2))
+            np.add.at(mono, code, r[list(MONO)].to_numpy(float))
+            mono /= np.bincount(code, minlength=k)[:, None]
+            d[flat, :2] = mono[flat]
+    first = np.unique(code, return_index=True)[1]
+    head = r.iloc[first]
+    return pd.DataFrame({"stage": head["stage"].to_numpy(), "role": head["role"].to_numpy(),
+                         "gcp_id": head["gcp_id"].to_numpy(),
+                         "rays": np.bincount(code, minlength=k), "east": d[:, 0],
+                         "north": d[:, 1], "up": d[:, 2]}, columns=cols)
 
 
 def point_errors(res: pd.DataFrame) -> pd.DataFrame:
@@ -115,17 +135,10 @@ def point_errors(res: pd.DataFrame) -> pd.DataFrame:
     single = pd.DataFrame({"stage": one["stage"].to_numpy(), "role": one["role"].to_numpy(),
                            "gcp_id": one["gcp_id"].to_numpy(), "rays": 1, "east": en[:, 0],
                            "north": en[:, 1], "up": np.nan})
-    rows = []
-    for (stage, role, gid), g in r[rays > 1].groupby(keys, sort=False):
-        J = np.stack([g[list(JACOBIAN[:3])].to_numpy(float),
-                      g[list(JACOBIAN[3:])].to_numpy(float)], 1).reshape(-1, 3)
-        v = np.stack([g["y"].to_numpy(float), g["x"].to_numpy(float)], 1).reshape(-1)
-        d, _ = _solve(J, v)
-        if not np.isfinite(d[2]) and set(MONO) <= set(g.columns):
-            d[:2] = g[list(MONO)].to_numpy(float).mean(axis=0)     # the exact single rays
-        rows.append({"stage": stage, "role": role, "gcp_id": gid, "rays": len(g),
-                     "east": d[0], "north": d[1], "up": d[2]})
-    parts = [single] + ([pd.DataFrame(rows, columns=cols[:-1])] if rows else [])
+    parts = [single]
+    many = r[rays > 1]
+    if len(many):
+        parts.append(_intersections(many, keys, cols[:-1]))
     out = pd.concat(parts, ignore_index=True).astype(
         {"rays": int, "east": float, "north": float, "up": float})
     out["horizontal"] = np.hypot(out["east"].to_numpy(float), out["north"].to_numpy(float))

@@ -212,14 +212,16 @@ def calibrate_from_reference(models: Mapping[str, object], sources: Mapping[str,
             say(f"round {k}: {tie_obs['tie_id'].nunique()} tie points "
                 f"({', '.join(t['pair'] + ' ' + str(t['kept']) for t in tie_stats)}) "
                 f"in {t_ties:.1f} s")
+        t0 = time.perf_counter()
         res, warning = _adjust_round(models, obs, priors, {**calibrate_options,
                                                            "ties": tie_obs})
+        t_adjust = time.perf_counter() - t0
         change = _change_in_sigmas(prev, res)
         rounds.append({"round": k, "points": int(len(obs)), "rejected": int(len(res.rejected)),
                        "sigma0": float(res.sigma0), "max_change_sigma": change,
                        "matching_s": round(t_match, 3), "design_warning": warning,
                        "ties": (res.options.get("ties") or {}).get("points", 0),
-                       "tie_matching_s": round(t_ties, 3)})
+                       "tie_matching_s": round(t_ties, 3), "adjust_s": round(t_adjust, 3)})
         rounds[-1]["converged"] = bool(change < tol_sigma)
         current = {iid: models[iid].with_vector(res.image_vectors[iid]) for iid in models}
         if change < tol_sigma:

@@ -216,7 +216,7 @@ def report_figures(res: pd.DataFrame) -> list[tuple[str, str, str]]:
 
 
 #: most images drawn one by one (a survey has hundreds: their statistics are in the tables)
-MAX_IMAGES = 12
+MAX_IMAGES = 6
 
 
 def _worst_images(res: pd.DataFrame) -> list:

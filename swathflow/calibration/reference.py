@@ -58,6 +58,11 @@ class MatchSettings:
     tie_search: int = 6             # tie points: search radius, raw pixels
     tie_max: int = 12               # tie points per pair of swings at most (spread along the
     #                                 overlap; each adds 3 unknowns to the adjustment)
+    tie_sigma_factor: float = 2.0   # tie points: the block matcher's formal sigma times this
+    #                                 (then with sigma_floor in quadrature: against simulator
+    #                                 truth and a noise-free trajectory the transfer errors
+    #                                 are 0.82-1.05 x the tie sigmas, 1.4 x without it:
+    #                                 benchmarks/bench_calibration_tiesigma.py)
 
 
 DEFAULT_SETTINGS = MatchSettings()

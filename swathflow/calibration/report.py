@@ -71,18 +71,23 @@ def _paper_tables(summary: pd.DataFrame) -> list[dict]:
 def _cross(res: pd.DataFrame) -> dict | None:
     if not (res["stage"] == "cross").any():
         return None
+    q = res[res["role"].isin(["control", "check"]) & res["stage"].isin(["after", "cross"])]
+    keys = [q["image_id"], q["stage"]]
+    stats = q.groupby(keys, sort=False).agg(mean_x=("x", "mean"), std_x=("x", "std"),
+                                            mean_y=("y", "mean"), std_y=("y", "std"))
+    stats["n"] = q[["x", "y"]].notna().all(axis=1).groupby(keys, sort=False).sum()
+    direction = q.groupby("image_id", sort=False)["direction"].first()
     rows = []
-    for iid in dict.fromkeys(res["image_id"]):
-        r = res[(res["image_id"] == iid) & res["role"].isin(["control", "check"])]
-        d = r["direction"].iloc[0]
+    for iid, d in direction.items():
         other = {"L": "R", "R": "L"}.get(d, "?")
         for stage, label in (("after", f"own ({d}) parameters"),
                              ("cross", f"{other} parameters")):
-            q = r[r["stage"] == stage]
+            st = (stats.loc[(iid, stage)] if (iid, stage) in stats.index
+                  else pd.Series({"n": 0}, dtype=float))
             rows.append({"image": iid, "direction": d, "parameters": label,
-                         "n": int(q[["x", "y"]].notna().all(axis=1).sum()),
-                         "mean_x": q["x"].mean(), "std_x": q["x"].std(),
-                         "mean_y": q["y"].mean(), "std_y": q["y"].std()})
+                         "n": int(st.get("n", 0)),
+                         **{c: st.get(c, np.nan) for c in ("mean_x", "std_x", "mean_y",
+                                                           "std_y")}})
     px = {c: "px" for c in ("mean_x", "std_x", "mean_y", "std_y")}
     return table(pd.DataFrame(rows), 3, left=("image", "direction", "parameters"), units=px)
 

@@ -15,6 +15,7 @@ import pandas as pd
 from swathflow.adjustment import Solution
 from swathflow.calibration.accuracy import JACOBIAN, MONO, ground_jacobian, mono_errors
 from swathflow.calibration.points import point_context
+from swathflow.sensormodel.projection import projectors
 from swathflow.calibration.unknowns import Unknowns
 
 
@@ -22,53 +23,115 @@ def _direction(model) -> str:
     return str(model.image_attrs.get("direction", "")).upper()
 
 
+def _by_image(obs: pd.DataFrame) -> np.ndarray:
+    """Positions of ``obs`` grouped by image (images in order of appearance, rows stable)."""
+    codes = pd.factorize(obs["image_id"])[0]
+    return np.argsort(codes, kind="stable")
+
+
+def observation_context(models: Mapping, obs: pd.DataFrame) -> pd.DataFrame:
+    """Each observation's context (:func:`~swathflow.calibration.points.point_context`),
+    rows in the order of ``obs``; it does not depend on the parameters: one table serves
+    every stage."""
+    perm = _by_image(obs)
+    srt = obs.iloc[perm]
+    parts = [pd.DataFrame(point_context(models[iid], grp))
+             for iid, grp in srt.groupby("image_id", sort=False)]
+    if not parts:
+        return pd.DataFrame(index=obs.index)
+    ctx = pd.concat(parts, ignore_index=True)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(perm.size)
+    return ctx.iloc[inv].set_axis(obs.index)
+
+
+def _project_all(models: Mapping, vectors: Mapping, ids: np.ndarray, xyz: np.ndarray):
+    """``project(points, partials)`` over the observations (image ``ids``, in that order):
+    one bulk call per sensor (:meth:`SensorModel.projector`), each image's ``vectors``."""
+    order = list(dict.fromkeys(ids.tolist()))
+    pos = {iid: k for k, iid in enumerate(order)}
+    image = np.array([pos[i] for i in ids], dtype=np.intp)
+    groups = []
+    for proj, members in projectors([models[iid] for iid in order]):
+        rows = np.flatnonzero(np.isin(image, members))
+        V = np.stack([np.asarray(vectors[order[k]], float) for k in members])
+        groups.append((proj, rows, np.searchsorted(members, image[rows]), V))
+
+    def project(points, partials=False):
+        out = np.full((len(points), 2), np.nan)
+        dg = np.full((len(points), 2, 3), np.nan) if partials else None
+        for proj, rows, local, V in groups:
+            p = proj.project(local, points[rows], V, partials)
+            out[rows] = p.image
+            if partials:
+                dg[rows] = p.d_ground
+        return (out, dg) if partials else out
+
+    return project
+
+
 def residual_table(models: Mapping, vectors: Mapping[str, np.ndarray], obs: pd.DataFrame,
-                   stage: str) -> pd.DataFrame:
+                   stage: str, context: pd.DataFrame | None = None) -> pd.DataFrame:
     """Observed minus computed per observation: x (element), y (line), pixels; with the
-    point's context (:func:`~swathflow.calibration.points.point_context`) and the model's
-    Jacobian d(line, element) / d(east, north, up) in px per metre at the surveyed point
-    (:data:`~swathflow.calibration.accuracy.JACOBIAN`) and the observation's own ground
-    error east, north in metres (:data:`~swathflow.calibration.accuracy.MONO`): what
-    :func:`~swathflow.calibration.accuracy.point_errors` makes the ground errors of."""
-    out = []
-    for iid, grp in obs.groupby("image_id", sort=False):
-        m = models[iid].with_vector(vectors[iid])
-        xyz = grp[["X", "Y", "Z"]].to_numpy(float)
-        comp = m.ground_to_image(xyz, clip=False)
-        ctx = point_context(models[iid], grp)
-        jac = ground_jacobian(m, xyz, ctx["lat"], ctx["lon"], at=comp)
-        mono = mono_errors(m, xyz, ctx["lat"], ctx["lon"],
-                           grp[["line", "element"]].to_numpy(float), jac, comp)
-        jac = jac.reshape(-1, 6)
-        out.append(pd.DataFrame({
-            "row": grp.index.to_numpy(), "gcp_id": grp["gcp_id"].to_numpy(), "image_id": iid,
-            "direction": _direction(models[iid]), "role": grp["role"].to_numpy(),
-            "stage": stage, "x": grp["element"].to_numpy(float) - comp[:, 1],
-            "y": grp["line"].to_numpy(float) - comp[:, 0],
-            **ctx, **{c: jac[:, k] for k, c in enumerate(JACOBIAN)},
-            **{c: mono[:, k] for k, c in enumerate(MONO)}}, index=grp.index))
-    if not out:
+    point's context (:func:`observation_context`; ``context``: already computed for
+    ``obs``) and the model's Jacobian d(line, element) / d(east, north, up) in px per metre
+    at the surveyed point (:data:`~swathflow.calibration.accuracy.JACOBIAN`, from the
+    projector's analytic partials) and the observation's own ground error east, north in
+    metres (:data:`~swathflow.calibration.accuracy.MONO`): what
+    :func:`~swathflow.calibration.accuracy.point_errors` makes the ground errors of. Every
+    image's observations in one bulk projection per sensor."""
+    if not len(obs):
         return pd.DataFrame(columns=["row", "gcp_id", "image_id", "direction", "role", "stage",
                                      "x", "y"])
-    return pd.concat(out).sort_index()
+    ctx = observation_context(models, obs) if context is None else context
+    perm = _by_image(obs)                # one image's rows together: the projector's order
+    obs, ctx = obs.iloc[perm], ctx.iloc[perm]
+    first = dict.fromkeys(obs["image_id"])
+    ids = obs["image_id"].to_numpy()
+    xyz = obs[["X", "Y", "Z"]].to_numpy(float)
+    observed = obs[["line", "element"]].to_numpy(float)
+    project = _project_all(models, vectors, ids, xyz)
+    comp, dg = project(xyz, True)
+    lat, lon = ctx["lat"].to_numpy(float), ctx["lon"].to_numpy(float)
+    jac = ground_jacobian(dg, lat, lon)
+    mono = mono_errors(project, xyz, lat, lon, observed, jac, comp)
+    jac = jac.reshape(-1, 6)
+    dirs = {iid: _direction(models[iid]) for iid in first}
+    out = pd.DataFrame({
+        "row": obs.index.to_numpy(), "gcp_id": obs["gcp_id"].to_numpy(), "image_id": ids,
+        "direction": [dirs[i] for i in ids], "role": obs["role"].to_numpy(),
+        "stage": stage, "x": observed[:, 1] - comp[:, 1], "y": observed[:, 0] - comp[:, 0],
+        **{c: ctx[c].to_numpy() for c in ctx.columns},
+        **{c: jac[:, k] for k, c in enumerate(JACOBIAN)},
+        **{c: mono[:, k] for k, c in enumerate(MONO)}}, index=obs.index)
+    return out.sort_index(kind="stable")
 
 
 def summarize(res: pd.DataFrame, by=("stage", "image_id", "direction", "role")) -> pd.DataFrame:
-    """Mean, std (ddof 1), RMS of x and y and counts per group (NaN rows counted apart)."""
-    rows = []
-    for key, g in res.groupby(list(by), sort=False):
-        ok = g[["x", "y"]].notna().all(axis=1)
-        x, y = g.loc[ok, "x"].to_numpy(), g.loc[ok, "y"].to_numpy()
-        row = dict(zip(by, key if isinstance(key, tuple) else (key,)))
-        row.update(n=int(ok.sum()), n_unprojected=int((~ok).sum()),
-                   mean_x=float(x.mean()) if x.size else np.nan,
-                   std_x=float(x.std(ddof=1)) if x.size > 1 else np.nan,
-                   mean_y=float(y.mean()) if y.size else np.nan,
-                   std_y=float(y.std(ddof=1)) if y.size > 1 else np.nan,
-                   rms_x=float(np.sqrt(np.mean(x ** 2))) if x.size else np.nan,
-                   rms_y=float(np.sqrt(np.mean(y ** 2))) if y.size else np.nan)
-        rows.append(row)
-    return pd.DataFrame(rows)
+    """Mean, std (ddof 1), RMS of x and y and counts per group (NaN rows counted apart);
+    groups in order of appearance."""
+    cols = ["n", "n_unprojected", "mean_x", "std_x", "mean_y", "std_y", "rms_x", "rms_y"]
+    if not len(res):
+        return pd.DataFrame(columns=list(by) + cols)
+    ok = res[["x", "y"]].notna().all(axis=1).to_numpy()
+    x = np.where(ok, res["x"].to_numpy(float), 0.0)
+    y = np.where(ok, res["y"].to_numpy(float), 0.0)
+    frame = pd.DataFrame({"ok": ok.astype(float), "bad": (~ok).astype(float), "x": x, "y": y,
+                          "x2": x * x, "y2": y * y})
+    keys = [res[b].to_numpy() for b in by]
+    g = frame.groupby(keys, sort=False, dropna=False).sum()
+    n = g["ok"].to_numpy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx, my = g["x"].to_numpy() / n, g["y"].to_numpy() / n
+        vx = (g["x2"].to_numpy() - n * mx ** 2) / (n - 1)
+        vy = (g["y2"].to_numpy() - n * my ** 2) / (n - 1)
+        out = {"n": n.astype(int), "n_unprojected": g["bad"].to_numpy().astype(int),
+               "mean_x": mx, "std_x": np.where(n > 1, np.sqrt(np.clip(vx, 0, None)), np.nan),
+               "mean_y": my, "std_y": np.where(n > 1, np.sqrt(np.clip(vy, 0, None)), np.nan),
+               "rms_x": np.sqrt(g["x2"].to_numpy() / n), "rms_y": np.sqrt(g["y2"].to_numpy() / n)}
+    idx = g.index.to_frame(index=False)
+    idx.columns = list(by)
+    return pd.concat([idx, pd.DataFrame(out)], axis=1)
 
 
 @dataclass

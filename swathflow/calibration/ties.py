@@ -146,7 +146,8 @@ def match_pair(a, b, models, sources, terrain, ref, settings: MatchSettings,
     if not pts:
         return pd.DataFrame(columns=list(TIE_COLUMNS))
     out = []
-    sig = np.array([np.hypot(np.asarray(s, float), settings.sigma_floor) for _, _, s in pts])
+    sig = np.array([np.hypot(settings.tie_sigma_factor * np.asarray(s, float),
+                             settings.sigma_floor) for _, _, s in pts])
     s = sig / np.sqrt(2.0)                # the match error, shared by the two images
     xa, ya = grid.xy(np.array([t[0][0] for t in pts]), np.array([t[0][1] for t in pts]))
     g0 = grid.to_ecef(xa, ya, terrain)
@@ -190,6 +191,7 @@ def match_ties(models, sources, terrain, ref, settings: MatchSettings,
         tables.append(t)
         if stats is not None:
             stats.append(st)
+    tables = [t for t in tables if len(t)]
     if not tables:
         return pd.DataFrame(columns=list(TIE_COLUMNS))
     return pd.concat(tables, ignore_index=True)
