@@ -36,6 +36,9 @@ cell gives the median and, in brackets, the range over the runs.
 `DEMO` in the commands is the demo mission with seed 3:
 `swathflow simulate DEMO --preset demo --seed 3`. Every script in `benchmarks/` prints its
 figures and the command that reproduces them; the GDAL peers need Debian's `gdal-bin`.
+`OLD` is the `swathflow` command of another build installed beside this one (the rows
+"before" used 0.1.0: `git worktree add OLD-SRC v0.1.0`, then a venv there with
+`pip install -e .`).
 To record a new figure, update `benchmarks/results.json` (by hand, or with
 `benchmarks_table.record(...)` from a benchmark) and run
 `python benchmarks/benchmarks_table.py`.

@@ -231,9 +231,6 @@ def _node_places(rep: dict, layout) -> dict:
 def graph_panel(ax, rep: dict, layout):
     """The overlap graph on ``ax`` (map coordinates); returns the colour mapping."""
     import matplotlib
-    from matplotlib.collections import LineCollection, PatchCollection
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Rectangle
 
     from swathflow.drawing import map_frame
     _, top = _scale(rep)
@@ -244,6 +241,21 @@ def graph_panel(ax, rep: dict, layout):
     ax.set_ylim(y0, y1)
     # the footprints, the edges and the swings' centres one collection each (one artist
     # each, not one a swing and two an overlap: 1,200 artists on the survey)
+    _footprints(ax, layout)
+    edges = graph_edges(rep, layout)
+    _edges(ax, edges, cmap, norm)
+    places = _node_places(rep, layout)
+    anchors = set(rep.get("anchors", []))
+    _nodes(ax, rep, places, anchors)
+    map_frame(ax, _crs_name(layout))
+    _graph_legend(ax, {e["state"] for e in edges}, bool(anchors & set(places)), cmap)
+    return matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
+
+
+def _footprints(ax, layout) -> None:
+    """Every swing's rectangle on the grid, one collection."""
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Rectangle
     boxes = []
     for s in layout.swings:
         x, y = _to_map(layout, s.row + s.height, s.col)
@@ -252,21 +264,30 @@ def graph_panel(ax, rep: dict, layout):
     if boxes:
         ax.add_collection(PatchCollection(boxes, facecolors="#f3f3f3", edgecolors="#bbbbbb",
                                           linewidths=0.6, zorder=0))
-    edges = graph_edges(rep, layout)
-    states = {e["state"] for e in edges}
-    style = {"used": (2.5, "solid"), "rejected": (1.5, "solid"), "skipped": (1.0, ":")}
-    # drawn in the order of the overlaps, as one line each before
-    if edges:
-        ax.add_collection(LineCollection(
-            [[e["a"], e["b"]] for e in edges], zorder=2, capstyle="round",
-            colors=[cmap(norm(e["residual"])) if e["state"] == "used" else
-                    REJECTED if e["state"] == "rejected" else SKIPPED for e in edges],
-            linewidths=[style[e["state"]][0] for e in edges],
-            linestyles=[style[e["state"]][1] for e in edges]))
-        ends = np.array([p for e in edges for p in (e["a"], e["b"])], float)
-        ax.plot(ends[:, 0], ends[:, 1], "o", ms=2.5, color="#555555", zorder=3)
-    places = _node_places(rep, layout)
-    anchors = set(rep.get("anchors", []))
+
+
+_EDGE_STYLE = {"used": (2.5, "solid"), "rejected": (1.5, "solid"), "skipped": (1.0, ":")}
+
+
+def _edges(ax, edges: list, cmap, norm) -> None:
+    """Every overlap an edge between its swings' centres (one collection, in the order of
+    the overlaps), coloured by its residual when used, and the centres."""
+    from matplotlib.collections import LineCollection
+    if not edges:
+        return
+    ax.add_collection(LineCollection(
+        [[e["a"], e["b"]] for e in edges], zorder=2, capstyle="round",
+        colors=[cmap(norm(e["residual"])) if e["state"] == "used" else
+                REJECTED if e["state"] == "rejected" else SKIPPED for e in edges],
+        linewidths=[_EDGE_STYLE[e["state"]][0] for e in edges],
+        linestyles=[_EDGE_STYLE[e["state"]][1] for e in edges]))
+    ends = np.array([p for e in edges for p in (e["a"], e["b"])], float)
+    ax.plot(ends[:, 0], ends[:, 1], "o", ms=2.5, color="#555555", zorder=3)
+
+
+def _nodes(ax, rep: dict, places: dict, anchors: set) -> None:
+    """The network's nodes (anchors as squares), labelled with their sigmas when there
+    are few enough to read."""
     sig = {n["node"]: n["sigma"] for n in rep.get("nodes", [])}
     label = len(places) <= 60
     for q, (name, (x, y)) in enumerate(places.items()):
@@ -280,9 +301,13 @@ def graph_panel(ax, rep: dict, layout):
             ax.annotate(text, (x, y), xytext=(0, 9 if q % 2 == 0 else -14),
                         textcoords="offset points", ha="center", fontsize=7.5, zorder=5,
                         bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.7))
-    map_frame(ax, _crs_name(layout))
+
+
+def _graph_legend(ax, states: set, anchored: bool, cmap) -> None:
+    """The legend of what the graph draws (an anchor square only where one is drawn)."""
+    from matplotlib.lines import Line2D
     handles = [Line2D([], [], marker="o", ls="", color=NODE, label="node (strip or image)")]
-    if anchors & set(places):
+    if anchored:
         handles.append(Line2D([], [], marker="s", ls="", color=ANCHOR, label="anchor node"))
     handles.append(Line2D([], [], marker="o", ls="", ms=2.5, color="#555555",
                           label="swing centre"))
@@ -293,7 +318,6 @@ def graph_panel(ax, rep: dict, layout):
     if "skipped" in states:
         handles.append(Line2D([], [], color=SKIPPED, lw=1.0, ls=":", label="skipped overlap"))
     ax.legend(handles=handles, loc="upper left", fontsize=7.5, framealpha=0.85)
-    return matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
 
 
 def _node_order(name):
