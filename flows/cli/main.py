@@ -10,7 +10,8 @@ import argparse
 import sys
 from importlib import import_module
 
-from swathflow import arguments
+from swathflow.flows.cli.argtypes import (MAX_SHIFT, TILE, finite_float, int_between,
+                                         positive_float, positive_int)
 
 
 def _sensors(args) -> int:
@@ -27,63 +28,6 @@ def _sensors(args) -> int:
         for label, text in _hooks(cls):
             print(f"{'':<{width}}  {label:<12} {text}")
     return 0 if list_sensors() else 1
-
-
-def _positive_int(text: str) -> int:
-    """argparse type: a whole number above zero."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be 1 or more, got {v}")
-    return v
-
-
-def _int_between(lo: int, hi: int, step: int = 1):
-    """argparse type: a whole number from ``lo`` to ``hi`` (a multiple of ``step``)."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        why = arguments.out_of_range(v, lo, hi, step)
-        if why is not None:
-            raise argparse.ArgumentTypeError(why)
-        return v
-    parse.__name__ = "number"       # argparse names the type in its messages
-    return parse
-
-
-#: output tile sizes in pixels (the Python API's bounds)
-TILE = _int_between(*arguments.TILE)
-#: the mosaic's search range S: each search holds (2 S + 1)^2 costs of 8 bytes (S = 100000
-#: asked for 299 GiB; 256 asks 2 MiB, and is 100 m at 0.4 m pixels)
-MAX_SHIFT = _int_between(1, 256)
-
-
-def _finite_float(text: str) -> float:
-    """argparse type: a finite number."""
-    import math
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    """argparse type: a finite number above zero."""
-    import math
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a number above 0, got {text}")
-    return v
 
 
 def _hooks(cls) -> list[tuple[str, str]]:
@@ -193,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default="tiny",
                    help="a preset of a registered sensor's simulator (listed by "
                         "'swathflow sensors'; default tiny)")
-    s.add_argument("--seed", type=_int_between(0, 2**32 - 1), default=0,
+    s.add_argument("--seed", type=int_between(0, 2**32 - 1), default=0,
                    help="random seed, 0 to 2^32-1 (default 0)")
     s.add_argument("--texture", help="orthophoto GeoTIFF/JPEG+world file for the ground truth")
     s.add_argument("--dem", help="DEM GeoTIFF for the terrain shape")
@@ -204,11 +148,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "(paper: slow)")
     s.add_argument("--no-direction-effect", action="store_true",
                    help="same true IMU boresight for left and right swings")
-    s.add_argument("--direction-omega", type=_finite_float, metavar="DEG",
+    s.add_argument("--direction-omega", type=finite_float, metavar="DEG",
                    help="true omega_L - omega_R (deg; default: the paper's Table 4)")
-    s.add_argument("--gcp-noise", type=_finite_float, metavar="PX",
+    s.add_argument("--gcp-noise", type=finite_float, metavar="PX",
                    help="GCP image measurement noise, px per axis (default 1)")
-    s.add_argument("--gross-errors", type=_finite_float, dest="gross_fraction", metavar="FRACTION",
+    s.add_argument("--gross-errors", type=finite_float, dest="gross_fraction", metavar="FRACTION",
                    help="fraction of GCP measurements with a 10-40 px gross error")
     s.add_argument("--image-format", choices=("tif", "envi"), help="raw image format")
     s.add_argument("--pos-format", choices=("sbet", "csv"), help="POS file format")
@@ -237,13 +181,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep the a-priori weights (no variance component estimation)")
     s.add_argument("--vce-priors", action="store_true",
                    help="also estimate one variance component for the priors")
-    s.add_argument("--sigma-px", type=_positive_float, default=1.0,
+    s.add_argument("--sigma-px", type=positive_float, default=1.0,
                    help="a-priori sigma of image coordinates in pixels (default 1)")
     s.add_argument("--method", choices=("joint", "two-step", "both"), default="joint",
                    help="for calibration strategies with tie points and orientation fixes: "
                         "joint adjustment (default), the iterative two-step scheme, or "
                         "both (compared in the report)")
-    s.add_argument("--max-rounds", type=_positive_int, default=50,
+    s.add_argument("--max-rounds", type=positive_int, default=50,
                    help="two-step scheme: stop after this many rounds even when it is not "
                         "yet within 0.1 sigma of the joint optimum (default 50)")
     s.add_argument("--reference", metavar="ORTHO",
@@ -255,7 +199,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--ties", action="store_true",
                    help="with a reference: also match overlapping swings of opposite "
                         "directions with each other (tie points, ground unknown)")
-    s.add_argument("--rounds", type=_int_between(1, 100), default=4,
+    s.add_argument("--rounds", type=int_between(1, 100), default=4,
                    help="with a reference: at most this many match / adjust rounds (default 4)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:calibrate"))
 
@@ -272,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="extra products, comma separated: glt (output->raw lookup), "
                         "igm (ground coordinates of every raw pixel)")
     s.add_argument("--images", help="only these image ids, comma separated")
-    s.add_argument("--tolerance", type=_positive_float, default=0.05,
+    s.add_argument("--tolerance", type=positive_float, default=0.05,
                    help="bound on the interpolated raw coordinates' error, pixels (default 0.05)")
     s.add_argument("--tile", type=TILE, default=512,
                    help="output tile size, a multiple of 16 from 16 to 4096 (default 512)")
@@ -293,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="COG compression (default deflate, which every GDAL and TIFF reader "
                         "opens); zstd compresses about 1.6x faster, but needs GDAL 2.3 or "
                         "later built with ZSTD (rasterio's wheels and the usual GDAL builds)")
-    s.add_argument("--workers", type=_positive_int,
+    s.add_argument("--workers", type=positive_int,
                    help="local Dask worker processes (default: one per core, at most one "
                         "per image)")
     s.add_argument("--dask-address",
@@ -314,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "(for --anchor gcp)")
     s.add_argument("--per-image", action="store_true",
                    help="one offset per image instead of one per strip")
-    s.add_argument("--feather", type=_positive_int, default=64,
+    s.add_argument("--feather", type=positive_int, default=64,
                    help="feathering distance cap in pixels (default 64)")
     s.add_argument("--no-feather", action="store_true", help="hard seams (nearest footprint)")
     s.add_argument("--no-balance", action="store_true", help="no radiometric balancing")
@@ -323,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="largest offset searched, pixels, 1 to 256 (default 12)")
     s.add_argument("--tile", type=TILE, default=1024,
                    help="tile size in pixels, a multiple of 16 from 16 to 4096 (default 1024)")
-    s.add_argument("--workers", type=_positive_int,
+    s.add_argument("--workers", type=positive_int,
                    help="threads for the overlap matching and the rendering (default: "
                         "all cores)")
     s.add_argument("--dask-address",
@@ -340,7 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where the Dask workers run without --dask-address: local processes "
                         "(default) or SLURM jobs through dask-jobqueue (settings: Dask's "
                         "jobqueue.slurm config, see deploy/dask/jobqueue.yaml)")
-    s.add_argument("--jobs", type=_positive_int, default=2,
+    s.add_argument("--jobs", type=positive_int, default=2,
                    help="--cluster slurm: number of worker jobs to submit (default 2)")
     s.set_defaults(func=_call("swathflow.flows.cli.commands:run"))
 
