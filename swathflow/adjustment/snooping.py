@@ -6,6 +6,8 @@ whose prediction passes. A mixin of the solver: it reads the solver's state (poi
 weights, components, Schur split)."""
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.special import chdtri
 
@@ -24,6 +26,28 @@ def critical(alpha, dof):
 
 class Snooping:
     """The data-snooping rounds of :class:`swathflow.adjustment.solver._Solver`."""
+
+    # the solver's state these rounds read and update (set by the solver)
+    pts: Any
+    labels: list
+    min_redundancy: float
+    est: Any
+    comp_idx: np.ndarray
+    counted: np.ndarray
+    point_ok: np.ndarray
+    rejected: dict
+    schur: Any
+    _split: Any
+
+    def statistics(self, r, J) -> tuple:
+        """The normal system, its covariance, the free columns of ``J``, the weights and
+        the active observations at residuals ``r`` (the solver's)."""
+        raise NotImplementedError
+
+    def a_priori_variances(self) -> np.ndarray:
+        """The observations' a-priori variances with the current components (the
+        solver's)."""
+        raise NotImplementedError
 
     def snoop_stats(self, cov, Jf, r):
         """Per-point v' Qvv^-1 v with the current components, its dof, J Q J' blocks and
