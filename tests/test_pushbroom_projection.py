@@ -16,6 +16,7 @@ from swathflow.sensormodel.projection import NumericalProjector
 from swathflow.sensors.pushbroom.model import PushbroomModel
 from swathflow.sensors.pushbroom.projection import PushbroomProjector
 from swathflow.testing import check_projector
+from numeric_partials import central_partials
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -68,26 +69,7 @@ def test_bulk_image_equals_each_models_ground_to_image():
 
 def _numerical(models, idx, ground, V, h_g=0.01):
     """Central differences of each model's ground_to_image, the model rebuilt per step."""
-    n, P = idx.size, V.shape[1]
-    steps = models[0].fd_step_sizes()
-    dp, dg = np.zeros((n, 2, P)), np.zeros((n, 2, 3))
-    for k, m in enumerate(models):
-        rows = idx == k
-        g = ground[rows]
-        for i in range(P):
-            vp, vm = V[k].copy(), V[k].copy()
-            vp[i] += steps[i]
-            vm[i] -= steps[i]
-            dp[rows, :, i] = (m.with_vector(vp).ground_to_image(g, clip=False)
-                              - m.with_vector(vm).ground_to_image(g, clip=False)) / (
-                2 * steps[i])
-        mk = m.with_vector(V[k])
-        for a in range(3):
-            e = np.zeros(3)
-            e[a] = h_g
-            dg[rows, :, a] = (mk.ground_to_image(g + e, clip=False)
-                              - mk.ground_to_image(g - e, clip=False)) / (2 * h_g)
-    return dp, dg
+    return central_partials(models, idx, ground, V, models[0].fd_step_sizes(), h_g)
 
 
 def test_analytic_partials_match_numerical_ones():

@@ -24,6 +24,7 @@ import numpy as np
 from numba import njit
 
 from swathflow.geometry.navkernel import pos_epoch
+from swathflow.sensors.pushbroom.rays import fix_at
 
 #: the line step of the derivative along the line (lines; 0.01 line is a few mm of
 #: flight: ECEF rounding, 1e-9 m, stays far below it)
@@ -33,21 +34,6 @@ LINE_STEP = 1e-2
 TOL = 1e-7
 #: Newton iterations at most
 MAX_ITER = 30
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _fix(ft, val, t, c):
-    """Column ``c`` of the fix corrections ``val`` at time ``t`` (``np.interp``)."""
-    n = ft.shape[0]
-    if t <= ft[0]:
-        return val[0, c]
-    if t >= ft[n - 1]:
-        return val[n - 1, c]
-    k = 0
-    while ft[k + 1] < t:
-        k += 1
-    w = (t - ft[k]) / (ft[k + 1] - ft[k])
-    return val[k, c] + (val[k + 1, c] - val[k, c]) * w
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -68,9 +54,9 @@ def camera_vector(line, g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, 
     x, y, z = (-sl * co * x - sl * so * y + cl * z, -so * x + co * y,
                -cl * co * x - cl * so * y - sl * z)
     if ft.shape[0]:
-        x -= _fix(ft, dned, t, 0)
-        y -= _fix(ft, dned, t, 1)
-        z -= _fix(ft, dned, t, 2)
+        x -= fix_at(ft, dned, t, 0)
+        y -= fix_at(ft, dned, t, 1)
+        z -= fix_at(ft, dned, t, 2)
     # R_NB^T = Rx(roll)^T Ry(pitch)^T Rz(heading)^T
     h = pos[7] * math.pi / 180.0
     sh, ch = math.sin(h), math.cos(h)
@@ -83,7 +69,7 @@ def camera_vector(line, g, ltime, time, table, max_gap, ft, dned, dopk, rbs, u, 
     y, z = cr * y + sr * z, -sr * y + cr * z
     if ft.shape[0]:
         # R_opk(d_opk)^T = Rz(kappa)^T Ry(phi)^T Rx(omega)^T
-        om, ph, ka = _fix(ft, dopk, t, 0), _fix(ft, dopk, t, 1), _fix(ft, dopk, t, 2)
+        om, ph, ka = fix_at(ft, dopk, t, 0), fix_at(ft, dopk, t, 1), fix_at(ft, dopk, t, 2)
         so_, co_ = math.sin(om), math.cos(om)
         y, z = co_ * y + so_ * z, -so_ * y + co_ * z
         sp_, cp_ = math.sin(ph), math.cos(ph)

@@ -13,7 +13,7 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _fix(ft, val, t, c):
+def fix_at(ft, val, t, c):
     """Column ``c`` of the fix corrections ``val`` at time ``t`` (``np.interp``: linear
     between fixes, held outside them)."""
     n = ft.shape[0]
@@ -72,12 +72,12 @@ def rays(image, lines, nav, fixes, cam, c_out, d_out):
         lx, ly, lz = u_gps[0], u_gps[1], u_gps[2]
         px, py, pz = pos[0], pos[1], pos[2]
         if ft.shape[0]:
-            om, ph, ka = _fix(ft, d_opk, t, 0), _fix(ft, d_opk, t, 1), _fix(ft, d_opk, t, 2)
+            om, ph, ka = fix_at(ft, d_opk, t, 0), fix_at(ft, d_opk, t, 1), fix_at(ft, d_opk, t, 2)
             x, y, z = _opk(x, y, z, om, ph, ka)
             lx, ly, lz = _opk(lx, ly, lz, om, ph, ka)
             # the position correction is north, east, down: R_EN of (d_n, d_e, d_d)
             sl, cl, so, co = trig[6], trig[7], trig[8], trig[9]
-            dn, de, dd = _fix(ft, d_ned, t, 0), _fix(ft, d_ned, t, 1), _fix(ft, d_ned, t, 2)
+            dn, de, dd = fix_at(ft, d_ned, t, 0), fix_at(ft, d_ned, t, 1), fix_at(ft, d_ned, t, 2)
             px += -sl * co * dn - so * de - cl * co * dd
             py += -sl * so * dn + co * de - cl * so * dd
             pz += cl * dn - sl * dd
