@@ -290,6 +290,9 @@ def _nodes(ax, rep: dict, places: dict, anchors: set) -> None:
     are few enough to read."""
     sig = {n["node"]: n["sigma"] for n in rep.get("nodes", [])}
     label = len(places) <= 60
+    # with more than a dozen nodes their sigmas would overlap one another: names only
+    # (the offsets panel gives every node's sigma)
+    with_sigma = len(places) <= 12
     for q, (name, (x, y)) in enumerate(places.items()):
         a = name in anchors
         ax.plot(x, y, "s" if a else "o", ms=8, color=ANCHOR if a else NODE, mec="white",
@@ -297,7 +300,8 @@ def _nodes(ax, rep: dict, places: dict, anchors: set) -> None:
         if label:
             sg = sig.get(name) or [None, None]
             text = (f"{name} (anchor)" if a else
-                    f"{name} σ {'/'.join(_sig(v) for v in sg)} px")
+                    f"{name} σ {'/'.join(_sig(v) for v in sg)} px" if with_sigma else
+                    str(name))
             ax.annotate(text, (x, y), xytext=(0, 9 if q % 2 == 0 else -14),
                         textcoords="offset points", ha="center", fontsize=7.5, zorder=5,
                         bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.7))
