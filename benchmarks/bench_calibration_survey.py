@@ -34,11 +34,9 @@ def _since(t):
     return c - t[0], w - t[1]
 
 
-def scipy_solve(P):
-    """The Problem ``P`` (weighted least squares, fixed unknowns held) by
-    scipy.optimize.least_squares with its analytic Jacobian (sparse)."""
-    import scipy.sparse as sp
-    from scipy.optimize import least_squares
+def _free_unknowns(P):
+    """The Problem ``P``'s free unknowns (mask), observation sigmas, start values and the
+    map from the free unknowns' values back to the whole vector (fixed ones held)."""
     free = ~P.fixed
     sig = np.concatenate([g.sigma for g in P.groups])
     x0 = P.x0.copy()
@@ -47,6 +45,15 @@ def scipy_solve(P):
         x = x0.copy()
         x[free] = z
         return x
+    return free, sig, x0, full
+
+
+def scipy_solve(P):
+    """The Problem ``P`` (weighted least squares, fixed unknowns held) by
+    scipy.optimize.least_squares with its analytic Jacobian (sparse)."""
+    import scipy.sparse as sp
+    from scipy.optimize import least_squares
+    free, sig, x0, full = _free_unknowns(P)
 
     def fun(z):
         r, _ = P.evaluate(full(z), False)
@@ -69,14 +76,7 @@ def ceres_solve(P):
     15 unknowns), Levenberg-Marquardt with its default tolerances."""
     import pyceres
     import scipy.sparse as sp
-    free = ~P.fixed
-    sig = np.concatenate([g.sigma for g in P.groups])
-    x0 = P.x0.copy()
-
-    def full(z):
-        x = x0.copy()
-        x[free] = z
-        return x
+    free, sig, x0, full = _free_unknowns(P)
 
     class Cost(pyceres.CostFunction):
         def __init__(self):

@@ -46,20 +46,7 @@ class _Normal:
         else:
             K = N
         self.K = K
-        try:
-            if sparse:
-                self._lu = spla.splu(sp.csc_matrix(K))
-                self._solve = self._lu.solve
-            elif self.nc:
-                lu = sla.lu_factor(K)
-                self._solve = lambda b: sla.lu_solve(lu, b)
-            else:
-                cf = sla.cho_factor(K)
-                self._solve = lambda b: sla.cho_solve(cf, b)
-        except (RuntimeError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
-            raise RankDeficiencyError(
-                f"the normal equations are singular ({exc}); fix unknowns, add priors or "
-                f"add observations", []) from None
+        self._solve = factorize(K, sparse, bool(self.nc), "the normal equations")
 
     def _check_rank(self, N, diag, C, rcond):
         names = np.asarray(self.names, dtype=object)
@@ -227,3 +214,21 @@ def check_determined(Nd, names, rcond) -> None:
         f"the observations do not determine {len(directions)} combination(s) of the "
         f"unknowns: {text}. Add observations that separate them, add priors, or fix "
         f"some of them", directions)
+
+
+def factorize(K, sparse: bool, bordered: bool, what: str):
+    """The solver ``b -> K^-1 b`` of the normal matrix ``K``: a sparse LU, a dense LU when
+    hard constraints border it (indefinite) or a Cholesky factor. A singular ``K`` is a
+    :class:`RankDeficiencyError` naming ``what`` (e.g. "the normal equations")."""
+    try:
+        if sparse:
+            return spla.splu(sp.csc_matrix(K)).solve
+        if bordered:
+            lu = sla.lu_factor(K)
+            return lambda b: sla.lu_solve(lu, b)
+        cf = sla.cho_factor(K)
+        return lambda b: sla.cho_solve(cf, b)
+    except (RuntimeError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
+        raise RankDeficiencyError(
+            f"{what} are singular ({exc}); fix unknowns, add priors or add observations",
+            []) from None

@@ -16,10 +16,9 @@ the blunder tests.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
+from swathflow.adjustment.normal import factorize
 from swathflow.adjustment.problem import RankDeficiencyError
 
 #: camera unknowns above which the reduced system is solved sparse
@@ -92,20 +91,8 @@ class SchurNormal:
             K = np.block([[S, Cm.T], [Cm, np.zeros((self.nc, self.nc))]])
         else:
             K = S
-        try:
-            if nc > SPARSE_REDUCED:
-                lu = spla.splu(sp.csc_matrix(K))
-                self._solve_reduced = lu.solve
-            elif self.nc:
-                lu = sla.lu_factor(K)
-                self._solve_reduced = lambda b: sla.lu_solve(lu, b)
-            else:
-                cf = sla.cho_factor(K)
-                self._solve_reduced = lambda b: sla.cho_solve(cf, b)
-        except (RuntimeError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
-            raise RankDeficiencyError(
-                f"the reduced normal equations are singular ({exc}); fix unknowns, add "
-                f"priors or add observations", []) from None
+        self._solve_reduced = factorize(K, nc > SPARSE_REDUCED, bool(self.nc),
+                                        "the reduced normal equations")
         self.W = W
         self.ncam = nc
 
